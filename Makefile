@@ -1,0 +1,46 @@
+# Two commands do everything on a fresh machine:
+#   make demo   install into .venv and run the whole stack on the embedded simulated world
+#   make test   install into .venv, lint, and run the fast test tier
+SHELL := /bin/bash
+PYTHON ?= python3
+VENV := .venv
+PY := $(VENV)/bin/python
+STAMP := $(VENV)/.installed-$(shell sha1sum pyproject.toml | cut -c1-12)
+export PYTHONUNBUFFERED := 1
+
+.PHONY: install demo test test-all lint bench clean
+
+install: $(STAMP)
+
+$(STAMP): pyproject.toml
+	@if ! ldconfig -p 2>/dev/null | grep -q libusb-1.0; then \
+	  if [ "$$(id -u)" = "0" ]; then \
+	    echo "[make] installing system library libusb-1.0-0 (needed by open3d)"; \
+	    (apt-get update -qq && apt-get install -y -qq libusb-1.0-0) >/dev/null || echo "[make] warning: could not install libusb-1.0-0"; \
+	  else echo "[make] warning: libusb-1.0-0 missing; open3d needs it (apt-get install libusb-1.0-0)"; fi; \
+	fi
+	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
+	@rm -f $(VENV)/.installed-*
+	$(PY) -m pip install -q --upgrade pip setuptools wheel
+	# torch first, pinned: a looser request pulls several GB of CUDA packages
+	$(PY) -m pip install -q torch==2.13.0
+	$(PY) -m pip install -q -e '.[server,dev]'
+	@touch $@
+
+demo: install
+	$(VENV)/bin/argus demo
+
+lint: install
+	$(VENV)/bin/ruff check .
+
+test: install lint
+	$(PY) -m pytest -q -x --durations=10
+
+test-all: install lint
+	$(PY) -m pytest -q -m '' --durations=20
+
+bench: install
+	$(VENV)/bin/argus bench all --out bench_out
+
+clean:
+	rm -rf $(VENV) build *.egg-info

@@ -1,0 +1,63 @@
+"""``argus router``: a Zenoh router run from Python (the eclipse-zenoh package embeds one).
+
+Example::
+
+    argus router --listen tcp/127.0.0.1:7447
+    argus router --config deploy/zenoh/router.json5
+"""
+
+from __future__ import annotations
+
+import argparse
+import logging
+import sys
+from pathlib import Path
+
+from protocol.keys import Keys
+from protocol.runtime import install_stop_handlers, setup_logging
+from protocol.session import DEFAULT_ENDPOINT, ZenohSettings, open_session
+
+log = logging.getLogger("argus.router")
+
+
+def run(settings: ZenohSettings, site: str = "default", ready_file: Path | None = None) -> int:
+    """Run a router until SIGINT/SIGTERM. Declares ``alive/router/<zid>`` while up."""
+    stop = install_stop_handlers()
+    with open_session(settings) as session:
+        zid = str(session.info.zid())
+        token = session.liveliness().declare_token(Keys(site).alive("router", zid[:32]))
+        log.info("router %s listening on %s", zid, ", ".join(settings.listen) or "(config file)")
+        if ready_file is not None:
+            ready_file.write_text(zid)
+        stop.wait()
+        log.info("router shutting down")
+        token.undeclare()
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(
+        prog="argus router",
+        description="Run a Zenoh router. Every other Argus process connects to it in client mode.",
+        epilog="example: argus router --listen tcp/127.0.0.1:7447",
+    )
+    p.add_argument("--listen", action="append", default=None,
+                   help=f"endpoint to listen on (repeatable; default {DEFAULT_ENDPOINT})")
+    p.add_argument("--connect", action="append", default=[], help="other routers to connect to (repeatable)")
+    p.add_argument("--config", type=Path, default=None, help="json5 Zenoh config file (e.g. deploy/zenoh/router.json5)")
+    p.add_argument("--site", default="default", help="Argus site name (for the liveliness token)")
+    p.add_argument("--ready-file", type=Path, default=None, help="write the router id here once listening")
+    p.add_argument("--log-level", default="INFO")
+    a = p.parse_args(argv)
+    setup_logging("router", a.log_level)
+    listen = a.listen if a.listen is not None else ([] if a.config else [DEFAULT_ENDPOINT])
+    try:
+        settings = ZenohSettings(mode="router", connect=a.connect, listen=listen, config_file=a.config)
+        return run(settings, a.site, a.ready_file)
+    except Exception as e:  # noqa: BLE001 - configuration errors end the process with a message
+        print(f"argus router: {e}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,350 @@
+"""Wire messages (pydantic v2). Every message crossing a process boundary is one of these.
+
+Poses follow the conventions of :mod:`protocol.poses`: ``T_world_cam`` is a 4x4 rigid transform
+mapping camera-frame points (OpenCV axes: x right, y down, z forward) into the world frame (metres,
+z up). Times are integer nanoseconds since the Unix epoch (``time.time_ns()``).
+
+Arrays travel compactly (dtype, shape, raw bytes) through :mod:`protocol.codec`; in Python they are
+numpy arrays. Messages compare equal field by field, arrays included.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Annotated, Any, ClassVar, Literal
+
+import numpy as np
+from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, PlainSerializer, field_validator
+
+
+def _to_ndarray(v: Any) -> np.ndarray:
+    if isinstance(v, np.ndarray):
+        return v
+    if isinstance(v, (list, tuple)):
+        return np.asarray(v)
+    raise ValueError(f"expected an array, got {type(v).__name__}")
+
+
+NDArray = Annotated[
+    np.ndarray,
+    BeforeValidator(_to_ndarray),
+    # JSON dumps (model_dump_json, --json outputs) get nested lists; msgpack keeps the ndarray.
+    PlainSerializer(lambda a: a.tolist(), when_used="json"),
+]
+
+
+def _to_mat(n: int, m: int) -> Any:
+    def check(v: Any) -> list[list[float]]:
+        a = np.asarray(v, dtype=np.float64)
+        if a.shape != (n, m):
+            raise ValueError(f"expected a {n}x{m} matrix, got shape {a.shape}")
+        if not np.all(np.isfinite(a)):
+            raise ValueError("matrix entries must be finite")
+        return a.tolist()
+
+    return BeforeValidator(check)
+
+
+Mat4 = Annotated[list[list[float]], _to_mat(4, 4)]
+"""A 4x4 pose (rows), see :mod:`protocol.poses`. ``np.asarray(msg.T_world_cam)`` gives the matrix."""
+Mat3 = Annotated[list[list[float]], _to_mat(3, 3)]
+Mat6 = Annotated[list[list[float]], _to_mat(6, 6)]
+Vec3 = Annotated[tuple[float, float, float], Field(description="x, y, z in metres")]
+
+
+def _arrays_equal(a: Any, b: Any) -> bool:
+    if isinstance(a, np.ndarray) or isinstance(b, np.ndarray):
+        return (
+            isinstance(a, np.ndarray)
+            and isinstance(b, np.ndarray)
+            and a.dtype == b.dtype
+            and a.shape == b.shape
+            and bool(np.array_equal(a, b, equal_nan=a.dtype.kind == "f"))
+        )
+    if isinstance(a, BaseModel) and isinstance(b, BaseModel):
+        return type(a) is type(b) and all(
+            _arrays_equal(getattr(a, k), getattr(b, k)) for k in type(a).model_fields
+        )
+    if isinstance(a, (list, tuple)) and isinstance(b, (list, tuple)):
+        return len(a) == len(b) and all(_arrays_equal(x, y) for x, y in zip(a, b, strict=True))
+    if isinstance(a, dict) and isinstance(b, dict):
+        return a.keys() == b.keys() and all(_arrays_equal(a[k], b[k]) for k in a)
+    if isinstance(a, float) and isinstance(b, float) and math.isnan(a) and math.isnan(b):
+        return True
+    return bool(a == b)
+
+
+class Message(BaseModel):
+    """Base of all wire messages: strict fields, arrays allowed, value equality."""
+
+    model_config = ConfigDict(extra="forbid", arbitrary_types_allowed=True, frozen=False)
+    KIND: ClassVar[str] = ""
+    SCHEMA: ClassVar[tuple[int, int]] = (1, 0)
+
+    def __eq__(self, other: object) -> bool:
+        return isinstance(other, BaseModel) and _arrays_equal(self, other)
+
+    __hash__ = None  # type: ignore[assignment]
+
+
+class Intrinsics(Message):
+    """Pinhole intrinsics in pixels for an image of ``width`` x ``height``."""
+
+    KIND: ClassVar[str] = "intrinsics"
+    width: int = Field(gt=0, le=16384, description="image width in pixels")
+    height: int = Field(gt=0, le=16384, description="image height in pixels")
+    fx: float = Field(gt=0, description="focal length along u, pixels")
+    fy: float = Field(gt=0, description="focal length along v, pixels")
+    cx: float = Field(description="principal point u, pixels")
+    cy: float = Field(description="principal point v, pixels")
+
+    @classmethod
+    def from_fov(cls, width: int, height: int, hfov_deg: float) -> Intrinsics:
+        """Square pixels, principal point at the image centre, horizontal field of view ``hfov_deg``."""
+        f = (width / 2.0) / math.tan(math.radians(hfov_deg) / 2.0)
+        return cls(width=width, height=height, fx=f, fy=f, cx=(width - 1) / 2.0, cy=(height - 1) / 2.0)
+
+    def K(self) -> np.ndarray:
+        """The 3x3 matrix."""
+        return np.array([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
+
+    def scaled(self, width: int, height: int) -> Intrinsics:
+        """The same camera at another resolution."""
+        sx, sy = width / self.width, height / self.height
+        return Intrinsics(
+            width=width,
+            height=height,
+            fx=self.fx * sx,
+            fy=self.fy * sy,
+            cx=(self.cx + 0.5) * sx - 0.5,
+            cy=(self.cy + 0.5) * sy - 0.5,
+        )
+
+
+SourceKind = Literal["fixed", "robot"]
+
+
+class FrameHeader(Message):
+    """Metadata of one camera frame; travels as the attachment of the JPEG sample."""
+
+    KIND: ClassVar[str] = "frame_header"
+    source_id: str = Field(min_length=1, max_length=128, description="camera or robot id")
+    source_kind: SourceKind = Field(description="fixed infrastructure camera or robot camera")
+    seq: int = Field(ge=0, description="per-source sequence number, +1 per frame sent")
+    stamp_ns: int = Field(ge=0, description="capture time, ns since the epoch")
+    width: int = Field(gt=0, le=16384)
+    height: int = Field(gt=0, le=16384)
+    intrinsics: Intrinsics | None = Field(default=None, description="calibration, if known")
+    T_world_cam: Mat4 | None = Field(default=None, description="camera pose, if known (odometry/calibration)")
+    pose_covariance: Mat6 | None = Field(
+        default=None, description="6x6 covariance of the pose (x y z roll pitch yaw), if any"
+    )
+    pose_trusted: bool = Field(
+        default=False,
+        description="true when T_world_cam is a surveyed calibration, false when it is an odometry prior",
+    )
+
+
+RobotStatus = Literal["idle", "moving", "arrived", "failed", "refused", "budget_exhausted"]
+
+
+class RobotState(Message):
+    """A robot's state, published on its state key."""
+
+    KIND: ClassVar[str] = "robot_state"
+    robot_id: str = Field(min_length=1, max_length=128)
+    stamp_ns: int = Field(ge=0)
+    status: RobotStatus
+    x: float = Field(description="base position x, metres (odometry)")
+    y: float = Field(description="base position y, metres (odometry)")
+    yaw_rad: float = Field(description="base heading (odometry)")
+    T_world_cam: Mat4 = Field(description="camera pose from odometry")
+    goal_id: str | None = Field(default=None, description="the goal being pursued or last finished")
+    reason: str | None = Field(default=None, description="why a goal was refused or failed")
+    distance_m: float = Field(default=0.0, ge=0.0, description="distance travelled so far")
+    steps: int = Field(default=0, ge=0, description="goals reached so far")
+    viewpoint_id: int | None = Field(default=None, description="viewpoint the robot stands on, if any")
+    travel_cost_m: NDArray | None = Field(
+        default=None,
+        description="geodesic distance from here to each viewpoint of the robot's ViewpointSet (inf: none)",
+    )
+
+
+class Viewpoint(Message):
+    """One navigable viewpoint: a base pose whose camera pose follows from the set's mount."""
+
+    KIND: ClassVar[str] = "viewpoint"
+    vp_id: int = Field(ge=0)
+    x: float
+    y: float
+    yaw_rad: float
+    room: str | None = Field(default=None, description="room name, if known")
+
+
+class ViewpointSet(Message):
+    """Candidate viewpoints of one robot, published so a remote planner knows where it can go."""
+
+    KIND: ClassVar[str] = "viewpoint_set"
+    robot_id: str = Field(min_length=1, max_length=128)
+    camera_height_m: float = Field(gt=0.0)
+    camera_pitch_deg: float = 0.0
+    intrinsics: Intrinsics
+    max_range_m: float = Field(default=6.0, gt=0.0, description="useful sensing range")
+    viewpoints: list[Viewpoint]
+
+
+class NbvGoal(Message):
+    """A next-best-view goal for one robot."""
+
+    KIND: ClassVar[str] = "nbv_goal"
+    goal_id: str = Field(min_length=1, max_length=128)
+    robot_id: str = Field(min_length=1, max_length=128)
+    stamp_ns: int = Field(ge=0)
+    x: float
+    y: float
+    yaw_rad: float
+    vp_id: int | None = Field(default=None, description="the viewpoint chosen, if from the robot's set")
+    strategy: str = Field(default="", description="planner strategy (see, asp, ...)")
+    expected_gain: float = Field(default=0.0, description="score of the goal (bits for asp)")
+    reason: str = Field(default="", description="why this goal")
+    graph_version: int = Field(default=0, ge=0)
+
+
+class OrientedBox(Message):
+    """Gravity-aligned oriented box: rotated by ``yaw_rad`` about world z."""
+
+    KIND: ClassVar[str] = "oriented_box"
+    center: Vec3
+    extent: Vec3 = Field(description="full side lengths along the box's x, y, z axes, metres")
+    yaw_rad: float = 0.0
+
+    @field_validator("extent")
+    @classmethod
+    def _non_negative(cls, v: tuple[float, float, float]) -> tuple[float, float, float]:
+        if min(v) < 0:
+            raise ValueError("box extents must be >= 0")
+        return v
+
+
+class LabelScore(Message):
+    KIND: ClassVar[str] = "label_score"
+    label: str
+    score: float
+
+
+class GraphNode(Message):
+    """One object node of the scene graph."""
+
+    KIND: ClassVar[str] = "graph_node"
+    node_id: str = Field(min_length=1, max_length=64)
+    label: str
+    label_confidence: float = Field(ge=0.0, le=1.0)
+    label_alternatives: list[LabelScore] = Field(default_factory=list)
+    centroid: Vec3
+    box: OrientedBox
+    point_count: int = Field(ge=0)
+    observation_count: int = Field(ge=0)
+    sources: list[str] = Field(default_factory=list, description="source ids that observed it")
+    first_seen_ns: int = Field(ge=0)
+    last_seen_ns: int = Field(ge=0)
+    embedding: NDArray | None = Field(default=None, description="region descriptor (float32), optional")
+
+
+Predicate = Literal["on_top_of", "under", "over", "inside", "next_to"]
+PREDICATES: tuple[str, ...] = ("on_top_of", "under", "over", "inside", "next_to")
+
+
+class GraphEdge(Message):
+    """A relation ``subject predicate object``, e.g. cup on_top_of table."""
+
+    KIND: ClassVar[str] = "graph_edge"
+    subject_id: str
+    predicate: Predicate
+    object_id: str
+
+
+class GraphSnapshot(Message):
+    """The whole graph at one version."""
+
+    KIND: ClassVar[str] = "graph_snapshot"
+    version: int = Field(ge=0)
+    stamp_ns: int = Field(ge=0)
+    nodes: list[GraphNode] = Field(default_factory=list)
+    edges: list[GraphEdge] = Field(default_factory=list)
+
+
+class GraphDelta(Message):
+    """Changes from version ``version - 1`` to ``version`` (versions increase by exactly one)."""
+
+    KIND: ClassVar[str] = "graph_delta"
+    version: int = Field(ge=1)
+    stamp_ns: int = Field(ge=0)
+    upserted: list[GraphNode] = Field(default_factory=list)
+    removed: list[str] = Field(default_factory=list)
+    edges_added: list[GraphEdge] = Field(default_factory=list)
+    edges_removed: list[GraphEdge] = Field(default_factory=list)
+
+
+class PointMap(Message):
+    """Downsampled world point map for planners (and viewers)."""
+
+    KIND: ClassVar[str] = "point_map"
+    version: int = Field(ge=0)
+    stamp_ns: int = Field(ge=0)
+    voxel_m: float = Field(gt=0.0)
+    points: NDArray = Field(description="(N, 3) float32 world points")
+    counts: NDArray | None = Field(default=None, description="(N,) observations per voxel")
+    colors: NDArray | None = Field(default=None, description="(N, 3) uint8")
+
+
+class Status(Message):
+    """Heartbeat and counters of one process, published at a low rate."""
+
+    KIND: ClassVar[str] = "status"
+    role: str
+    node_id: str
+    stamp_ns: int = Field(ge=0)
+    state: str = Field(default="ok", description="ok / degraded / error / starting / stopping")
+    counters: dict[str, float] = Field(default_factory=dict)
+    last_error: str | None = None
+
+
+Heartbeat = Status
+
+
+class OracleFrame(Message):
+    """Simulator ground truth for one frame (ORACLE: only simulated sources publish it).
+
+    Like Habitat's semantic and depth sensors: the ``sim`` segmenter (an oracle for 2D perception)
+    and the ``oracle`` reconstructor (true geometry, the paper's "CG" baseline) read it; the default
+    RGB-only pipeline never does. Matched to its frame by ``(source_id, seq)``.
+    """
+
+    KIND: ClassVar[str] = "oracle_frame"
+    source_id: str = Field(min_length=1, max_length=128)
+    seq: int = Field(ge=0)
+    stamp_ns: int = Field(ge=0)
+    T_world_cam_true: Mat4 = Field(description="true camera pose")
+    ids_png: bytes | None = Field(
+        default=None, description="16-bit PNG of instance ids: 0 = structure or nothing, k = object id"
+    )
+    depth_png: bytes | None = Field(default=None, description="16-bit PNG of z-depth in millimetres (0 = none)")
+    labels: dict[str, str] = Field(default_factory=dict, description="str(object id) -> label")
+
+ALL_MESSAGES: tuple[type[Message], ...] = (
+    Intrinsics,
+    FrameHeader,
+    RobotState,
+    Viewpoint,
+    ViewpointSet,
+    NbvGoal,
+    OrientedBox,
+    LabelScore,
+    GraphNode,
+    GraphEdge,
+    GraphSnapshot,
+    GraphDelta,
+    PointMap,
+    Status,
+    OracleFrame,
+)

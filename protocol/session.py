@@ -1,0 +1,76 @@
+"""One Zenoh session config builder for every Argus process.
+
+Multicast scouting is **off** unless explicitly enabled, and processes find each other through
+explicit endpoints (``tcp/127.0.0.1:7447`` by default). Processes that connect to a router should run
+in ``client`` mode. Shared memory is off by default (killed processes leave ``/dev/shm`` files and
+the loopback TCP path is fast enough for JPEG frames).
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import TYPE_CHECKING, Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field
+
+if TYPE_CHECKING:
+    import zenoh
+
+DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
+
+
+class ZenohSettings(BaseModel):
+    """How a process joins the Zenoh network."""
+
+    model_config = ConfigDict(extra="forbid")
+    mode: Literal["peer", "client", "router"] = Field(
+        default="client", description="client (connects to a router), peer, or router"
+    )
+    connect: list[str] = Field(
+        default_factory=lambda: [DEFAULT_ENDPOINT], description="endpoints to connect to, e.g. tcp/127.0.0.1:7447"
+    )
+    listen: list[str] = Field(default_factory=list, description="endpoints to listen on (routers, peers)")
+    config_file: Path | None = Field(default=None, description="optional json5 Zenoh config applied first")
+    multicast_scouting: bool = Field(
+        default=False, description="UDP multicast discovery; keep off unless the LAN is yours"
+    )
+    shared_memory: bool = Field(default=False, description="Zenoh shared-memory transport between local processes")
+    overrides: dict[str, Any] = Field(
+        default_factory=dict, description="extra Zenoh config keys (json5 paths such as 'transport/link/tx/lease')"
+    )
+
+
+def build_config(settings: ZenohSettings) -> zenoh.Config:
+    """Turn :class:`ZenohSettings` into a ``zenoh.Config``."""
+    import zenoh
+
+    conf = zenoh.Config.from_file(str(settings.config_file)) if settings.config_file else zenoh.Config()
+    conf.insert_json5("mode", json.dumps(settings.mode))
+    if settings.connect:
+        conf.insert_json5("connect/endpoints", json.dumps(settings.connect))
+    if settings.listen:
+        conf.insert_json5("listen/endpoints", json.dumps(settings.listen))
+    conf.insert_json5("scouting/multicast/enabled", json.dumps(settings.multicast_scouting))
+    conf.insert_json5("transport/shared_memory/enabled", json.dumps(settings.shared_memory))
+    for key, value in settings.overrides.items():
+        conf.insert_json5(key, json.dumps(value))
+    return conf
+
+
+def open_session(settings: ZenohSettings) -> zenoh.Session:
+    """Open a Zenoh session (use it as a context manager: ``with open_session(s) as session:``)."""
+    import zenoh
+
+    zenoh.init_log_from_env_or("error")
+    return zenoh.open(build_config(settings))
+
+
+def client(endpoint: str = DEFAULT_ENDPOINT) -> ZenohSettings:
+    """Settings of a client connecting to one router endpoint."""
+    return ZenohSettings(mode="client", connect=[endpoint])
+
+
+def router(endpoint: str = DEFAULT_ENDPOINT) -> ZenohSettings:
+    """Settings of a router listening on one endpoint."""
+    return ZenohSettings(mode="router", connect=[], listen=[endpoint])

@@ -1,0 +1,203 @@
+"""Transport helpers: frames as one sample, typed messages, bounded receive buffers, liveliness.
+
+A frame is one Zenoh sample: payload = the JPEG bytes (encoding ``image/jpeg``, so any Zenoh tool
+can show it), attachment = the codec-encoded :class:`~protocol.messages.FrameHeader`.
+"""
+
+from __future__ import annotations
+
+import collections
+import logging
+import threading
+import time
+from collections.abc import Callable
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Any, Generic, TypeVar
+
+from protocol.codec import DecodeError, decode, encode
+from protocol.messages import FrameHeader, Message, Status
+
+if TYPE_CHECKING:
+    import zenoh
+
+log = logging.getLogger(__name__)
+T = TypeVar("T")
+M = TypeVar("M", bound=Message)
+
+
+@dataclass(frozen=True)
+class Frame:
+    """A received frame: its header, the raw JPEG bytes and the key it arrived on."""
+
+    header: FrameHeader
+    jpeg: bytes
+    key: str
+    received_ns: int
+
+
+def declare_frame_publisher(session: zenoh.Session, key: str) -> zenoh.Publisher:
+    """Publisher for frames: ``image/jpeg``, congestion control DROP (a slow link drops, never blocks)."""
+    import zenoh
+
+    return session.declare_publisher(
+        key,
+        encoding=zenoh.Encoding.IMAGE_JPEG,
+        congestion_control=zenoh.CongestionControl.DROP,
+        priority=zenoh.Priority.DATA,
+    )
+
+
+def declare_message_publisher(session: zenoh.Session, key: str, *, important: bool = True) -> zenoh.Publisher:
+    """Publisher for codec messages. ``important`` (goals, deltas): BLOCK and a higher priority."""
+    import zenoh
+
+    return session.declare_publisher(
+        key,
+        encoding=zenoh.Encoding.APPLICATION_OCTET_STREAM,
+        congestion_control=zenoh.CongestionControl.BLOCK if important else zenoh.CongestionControl.DROP,
+        priority=zenoh.Priority.INTERACTIVE_HIGH if important else zenoh.Priority.DATA,
+    )
+
+
+def put_frame(publisher: zenoh.Publisher, header: FrameHeader, jpeg: bytes) -> None:
+    """Put one frame sample: JPEG payload, encoded header as attachment."""
+    publisher.put(jpeg, attachment=encode(header))
+
+
+def decode_frame_sample(sample: zenoh.Sample) -> Frame:
+    """Decode a frame sample; raises :class:`DecodeError` when the attachment is missing or bad.
+
+    The JPEG bytes are not decoded here (that is the receiver's choice and cost).
+    """
+    att = sample.attachment
+    if att is None:
+        raise DecodeError("frame sample has no header attachment")
+    header = decode(att.to_bytes(), FrameHeader)
+    return Frame(header=header, jpeg=sample.payload.to_bytes(), key=str(sample.key_expr), received_ns=time.time_ns())
+
+
+def decode_message_sample(sample: zenoh.Sample, expected: type[M]) -> M:
+    """Decode the payload of a message sample as ``expected`` (raises :class:`DecodeError`)."""
+    return decode(sample.payload.to_bytes(), expected)
+
+
+class LatestSlots(Generic[T]):
+    """Bounded receive buffer: per key a ring of the newest ``depth`` items; older ones are dropped.
+
+    Thread-safe; ``dropped`` counts items evicted before anyone took them. A slow consumer therefore
+    always works on fresh data and memory stays bounded (``max_keys`` caps the number of sources).
+    """
+
+    def __init__(self, depth: int = 1, max_keys: int = 256) -> None:
+        if depth < 1 or max_keys < 1:
+            raise ValueError("depth and max_keys must be >= 1")
+        self.depth = depth
+        self.max_keys = max_keys
+        self._rings: dict[str, collections.deque[T]] = {}
+        self._cond = threading.Condition()
+        self.dropped = 0
+        self.refused_keys = 0
+
+    def put(self, key: str, item: T) -> None:
+        with self._cond:
+            ring = self._rings.get(key)
+            if ring is None:
+                if len(self._rings) >= self.max_keys:
+                    self.refused_keys += 1
+                    return
+                ring = self._rings[key] = collections.deque(maxlen=self.depth)
+            if len(ring) == self.depth:
+                self.dropped += 1
+            ring.append(item)
+            self._cond.notify_all()
+
+    def take_all(self, timeout: float | None = None) -> list[tuple[str, T]]:
+        """Take every buffered item (oldest first per key); waits up to ``timeout`` for one."""
+        with self._cond:
+            if timeout is not None and not any(self._rings.values()):
+                self._cond.wait(timeout)
+            out = [(k, item) for k, ring in self._rings.items() for item in ring]
+            for ring in self._rings.values():
+                ring.clear()
+            return out
+
+    def __len__(self) -> int:
+        with self._cond:
+            return sum(len(r) for r in self._rings.values())
+
+
+class Counters:
+    """Thread-safe named counters for status reports."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._values: dict[str, float] = {}
+
+    def add(self, name: str, value: float = 1.0) -> None:
+        with self._lock:
+            self._values[name] = self._values.get(name, 0.0) + value
+
+    def set(self, name: str, value: float) -> None:
+        with self._lock:
+            self._values[name] = float(value)
+
+    def get(self, name: str) -> float:
+        with self._lock:
+            return self._values.get(name, 0.0)
+
+    def snapshot(self) -> dict[str, float]:
+        with self._lock:
+            return dict(self._values)
+
+
+class StatusReporter:
+    """Publishes a :class:`Status` for one process every ``period_s`` from a daemon thread."""
+
+    def __init__(
+        self,
+        session: zenoh.Session,
+        key: str,
+        role: str,
+        node_id: str,
+        counters: Counters,
+        period_s: float = 1.0,
+        extra: Callable[[], dict[str, Any]] | None = None,
+    ) -> None:
+        self._pub = declare_message_publisher(session, key, important=False)
+        self.role, self.node_id, self.counters, self.period_s = role, node_id, counters, period_s
+        self.state = "ok"
+        self.last_error: str | None = None
+        self._extra = extra
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, name=f"status-{role}", daemon=True)
+
+    def __enter__(self) -> StatusReporter:
+        self._thread.start()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self._stop.set()
+        self._thread.join(timeout=2.0)
+        self.publish()
+
+    def publish(self) -> Status:
+        counters = self.counters.snapshot()
+        if self._extra is not None:
+            counters.update({k: float(v) for k, v in self._extra().items()})
+        msg = Status(
+            role=self.role,
+            node_id=self.node_id,
+            stamp_ns=time.time_ns(),
+            state=self.state,
+            counters=counters,
+            last_error=self.last_error,
+        )
+        try:
+            self._pub.put(encode(msg))
+        except Exception as e:  # noqa: BLE001 - a closed session at shutdown must not raise here
+            log.debug("status publish failed: %s", e)
+        return msg
+
+    def _run(self) -> None:
+        while not self._stop.wait(self.period_s):
+            self.publish()

@@ -1,0 +1,28 @@
+from __future__ import annotations
+
+from collections.abc import Iterator
+
+import pytest
+
+from tests.procs import Proc, endpoint, free_port, wait_port
+
+
+@pytest.fixture
+def router() -> Iterator[str]:
+    """A real ``argus router`` process on a free loopback port; yields its endpoint."""
+    port = free_port()
+    proc = Proc(["router", "--listen", endpoint(port)])
+    try:
+        wait_port(port)
+        yield endpoint(port)
+    finally:
+        proc.stop()
+
+
+@pytest.fixture
+def procs() -> Iterator[list[Proc]]:
+    """Processes appended here are stopped (whole process group) at teardown."""
+    started: list[Proc] = []
+    yield started
+    for p in reversed(started):
+        p.stop()
