@@ -81,7 +81,7 @@ def camera_pose_from_base(x: float, y: float, yaw_rad: float, height_m: float, p
     p = np.deg2rad(pitch_deg)
     # Pitch is a rotation about the camera x axis; positive pitch_deg tilts the view up.
     c, s = np.cos(p), np.sin(p)
-    R_cam0_cam = np.array([[1.0, 0.0, 0.0], [0.0, c, s], [0.0, -s, c]])
+    R_cam0_cam = np.array([[1.0, 0.0, 0.0], [0.0, c, -s], [0.0, s, c]])
     R = rot_z(yaw_rad) @ R_base_cam0 @ R_cam0_cam
     return make_pose(R, [x, y, height_m])
 

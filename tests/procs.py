@@ -49,15 +49,21 @@ def wait_port(port: int, timeout: float = 20.0) -> None:
 
 
 class Proc:
-    """An ``argus`` CLI process in its own process group with its output captured."""
+    """An ``argus`` CLI process (or ``python -m <module>``) in its own process group, output captured."""
 
-    def __init__(self, args: list[str], env: dict[str, str] | None = None, cwd: Path | None = None) -> None:
+    def __init__(
+        self,
+        args: list[str],
+        env: dict[str, str] | None = None,
+        cwd: Path | None = None,
+        module: str = "deploy.cli",
+    ) -> None:
         full_env = dict(os.environ)
         full_env["PYTHONUNBUFFERED"] = "1"
         full_env.update(env or {})
         self.args = args
         self.popen = subprocess.Popen(
-            [sys.executable, "-m", "deploy.cli", *args],
+            [sys.executable, "-m", module, *args],
             cwd=str(cwd or REPO),
             env=full_env,
             stdout=subprocess.PIPE,

@@ -1,0 +1,111 @@
+"""TOML config files for Argus processes: load, apply ``--set a.b=value`` overrides, validate, describe.
+
+Every process has a pydantic config model (``extra="forbid"``, a description on every field). A run
+is configured by a TOML file, then command-line overrides, then validation, in that order::
+
+    cfg = load_config(EdgeCameraConfig, Path("cam.toml"), {"id": "cam1"}, ["source.rate_hz=2"])
+
+Overrides use dotted paths; a value is parsed as a TOML value when it can be (``2``, ``true``,
+``[1, 2]``, ``"x"``) and is taken as a plain string otherwise (``source.path=/data/imgs``).
+"""
+
+from __future__ import annotations
+
+import tomllib
+import types
+from pathlib import Path
+from typing import Annotated, Any, Literal, TypeVar, Union, get_args, get_origin
+
+from pydantic import BaseModel, ValidationError
+
+C = TypeVar("C", bound=BaseModel)
+
+
+class ConfigError(ValueError):
+    """A configuration that cannot be used: unreadable file, bad TOML, unknown or invalid field."""
+
+
+def load_toml(path: Path) -> dict[str, Any]:
+    """Read a TOML file into a dict; raises :class:`ConfigError` with the reason."""
+    try:
+        with open(path, "rb") as f:
+            return tomllib.load(f)
+    except OSError as e:
+        raise ConfigError(f"cannot read config file {path}: {e.strerror or e}") from None
+    except tomllib.TOMLDecodeError as e:
+        raise ConfigError(f"config file {path} is not valid TOML: {e}") from None
+
+
+def parse_value(text: str) -> Any:
+    """A TOML value (``2``, ``1.5``, ``true``, ``[1, 2]``, ``"s"``), else the text itself."""
+    try:
+        return tomllib.loads(f"v = {text}")["v"]
+    except tomllib.TOMLDecodeError:
+        return text
+
+
+def set_path(data: dict[str, Any], dotted: str, value: Any) -> None:
+    """Set ``data[a][b][c] = value`` for ``dotted = "a.b.c"``, creating tables on the way."""
+    parts = dotted.split(".")
+    if not all(parts):
+        raise ConfigError(f"bad config path {dotted!r}")
+    node = data
+    for p in parts[:-1]:
+        nxt = node.setdefault(p, {})
+        if not isinstance(nxt, dict):
+            raise ConfigError(f"config path {dotted!r}: {p!r} is not a table")
+        node = nxt
+    node[parts[-1]] = value
+
+
+def load_config(
+    model: type[C],
+    path: Path | None = None,
+    values: dict[str, Any] | None = None,
+    overrides: list[str] | None = None,
+) -> C:
+    """File, then ``values`` (dotted path -> value, ``None`` skipped), then ``a.b=v`` overrides."""
+    data: dict[str, Any] = load_toml(path) if path is not None else {}
+    for dotted, value in (values or {}).items():
+        if value is not None:
+            set_path(data, dotted, value)
+    for item in overrides or []:
+        dotted, sep, text = item.partition("=")
+        if not sep:
+            raise ConfigError(f"override {item!r} is not of the form path=value")
+        set_path(data, dotted.strip(), parse_value(text.strip()))
+    try:
+        return model.model_validate(data)
+    except ValidationError as e:
+        lines = [f"  {'.'.join(str(p) for p in err['loc']) or '(top)'}: {err['msg']}" for err in e.errors()]
+        where = f" in {path}" if path is not None else ""
+        raise ConfigError(f"invalid configuration{where}:\n" + "\n".join(lines)) from None
+
+
+def _type_name(annotation: Any) -> str:
+    origin = get_origin(annotation)
+    if origin is None:
+        return "none" if annotation is type(None) else getattr(annotation, "__name__", str(annotation))
+    args = get_args(annotation)
+    if origin in (Union, types.UnionType):
+        return " | ".join(_type_name(a) for a in args)
+    if origin is Literal:
+        return "one of " + ", ".join(repr(a) for a in args)
+    if origin is Annotated:
+        return _type_name(args[0])
+    return f"{getattr(origin, '__name__', str(origin))}[{', '.join(_type_name(a) for a in args)}]"
+
+
+def describe(model: type[BaseModel], prefix: str = "") -> list[str]:
+    """One line per field (nested models expanded): ``path (type, default): description``."""
+    lines: list[str] = []
+    for name, field in model.model_fields.items():
+        path = f"{prefix}{name}"
+        ann = field.annotation
+        if isinstance(ann, type) and issubclass(ann, BaseModel):
+            lines.append(f"[{path}]  {field.description or ''}".rstrip())
+            lines.extend(describe(ann, prefix=f"{path}."))
+            continue
+        default = "required" if field.is_required() else repr(field.get_default(call_default_factory=True))
+        lines.append(f"{path} ({_type_name(ann)}, default {default}): {field.description or ''}")
+    return lines
