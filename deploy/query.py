@@ -1,0 +1,273 @@
+"""``argus query``: the scene graph as a consumer sees it, from any machine on the Zenoh network.
+
+Examples::
+
+    argus query nodes --label chair --near 1,2,0 --radius 2
+    argus query snapshot --json > graph.json
+    argus query watch                      # live deltas; Ctrl-C exits
+
+``nodes`` and ``snapshot`` are Zenoh queries answered by the mapper's queryable (``graph/nodes`` with
+:class:`protocol.query.GraphQuery` parameters, ``graph/snapshot``); ``watch`` subscribes to
+``graph/delta``. A consumer never blocks the mapper: queries are answered from the mapper's latest
+graph and each consumer only waits on its own reply.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import queue
+import sys
+import threading
+import time
+from collections.abc import Iterable
+from typing import Any
+
+from protocol.codec import DecodeError, decode, peek_kind
+from protocol.keys import Keys
+from protocol.messages import GraphDelta, GraphEdge, GraphNode, GraphSnapshot
+from protocol.query import GraphQuery
+from protocol.session import DEFAULT_ENDPOINT, ZenohSettings, open_session
+
+
+class QueryError(RuntimeError):
+    """No usable answer (nobody answered, or only undecodable replies)."""
+
+
+def _reply_payloads(replies: Iterable[Any]) -> tuple[list[bytes], list[str]]:
+    ok: list[bytes] = []
+    errors: list[str] = []
+    for reply in replies:
+        if reply.ok is not None:
+            ok.append(reply.ok.payload.to_bytes())
+        else:
+            try:
+                errors.append(reply.err.payload.to_string())
+            except Exception:  # noqa: BLE001 - an error reply with an odd payload is still an error
+                errors.append("error reply")
+    return ok, errors
+
+
+def get_nodes(session: Any, keys: Keys, query: GraphQuery, timeout_s: float = 5.0) -> list[GraphNode]:
+    """Nodes selected by ``query``: one Zenoh ``get`` on ``graph/nodes?<parameters>``.
+
+    The mapper may answer with one ``GraphSnapshot`` (the selection) or one ``GraphNode`` per reply;
+    both are accepted. Raises :class:`QueryError` when nobody answered or the mapper refused.
+    """
+    import zenoh
+
+    params = query.to_parameters()
+    selector = zenoh.Selector(keys.graph_nodes, params) if params else keys.graph_nodes
+    payloads, errors = _reply_payloads(session.get(selector, timeout=timeout_s))
+    nodes: dict[str, GraphNode] = {}
+    bad = 0
+    for data in payloads:
+        try:
+            kind = peek_kind(data)
+            if kind == GraphNode.KIND:
+                n = decode(data, GraphNode)
+                nodes[n.node_id] = n
+            elif kind == GraphSnapshot.KIND:
+                for n in decode(data, GraphSnapshot).nodes:
+                    nodes[n.node_id] = n
+            else:
+                bad += 1
+        except DecodeError:
+            bad += 1
+    if not payloads:
+        why = "; ".join(errors) if errors else "no answer"
+        raise QueryError(f"{why} on {keys.graph_nodes} (is a mapper running?)")
+    if bad == len(payloads):
+        raise QueryError(f"{bad} undecodable replies on {keys.graph_nodes}")
+    return sorted(nodes.values(), key=lambda n: n.node_id)
+
+
+def get_snapshot(session: Any, keys: Keys, timeout_s: float = 5.0) -> GraphSnapshot:
+    """The latest full graph (newest version among the replies)."""
+    payloads, errors = _reply_payloads(session.get(keys.graph_snapshot, timeout=timeout_s))
+    best: GraphSnapshot | None = None
+    for data in payloads:
+        try:
+            snap = decode(data, GraphSnapshot)
+        except DecodeError:
+            continue
+        if best is None or snap.version > best.version:
+            best = snap
+    if best is None:
+        why = "; ".join(errors) if errors else "no decodable answer"
+        raise QueryError(f"{why} on {keys.graph_snapshot} (is a mapper running?)")
+    return best
+
+
+# --- formatting -----------------------------------------------------------------------------------
+def _fmt_xyz(v: Iterable[float]) -> str:
+    return "(" + ", ".join(f"{x:6.2f}" for x in v) + ")"
+
+
+def format_nodes(nodes: list[GraphNode], near: tuple[float, float, float] | None = None) -> str:
+    """A fixed-width table of nodes (distance column when ``near`` is given)."""
+    head = f"{'id':<12} {'label':<22} {'conf':>5} {'centroid (m)':<24} {'size (m)':<24} {'obs':>4}  sources"
+    if near is not None:
+        head += "  dist_m"
+    lines = [head]
+    for n in nodes:
+        line = (f"{n.node_id:<12} {n.label[:22]:<22} {n.label_confidence:5.2f} {_fmt_xyz(n.centroid):<24} "
+                f"{_fmt_xyz(n.box.extent):<24} {n.observation_count:>4}  {','.join(n.sources)}")
+        if near is not None:
+            line += f"  {math.dist(near, n.centroid):.2f}"
+        lines.append(line)
+    lines.append(f"{len(nodes)} node(s)")
+    return "\n".join(lines)
+
+
+def format_edges(edges: list[GraphEdge], nodes: list[GraphNode]) -> str:
+    label = {n.node_id: n.label for n in nodes}
+    return "\n".join(
+        f"  {label.get(e.subject_id, '?')} ({e.subject_id}) {e.predicate} "
+        f"{label.get(e.object_id, '?')} ({e.object_id})"
+        for e in edges
+    )
+
+
+def format_delta(d: GraphDelta) -> str:
+    up = ", ".join(f"{n.label}({n.node_id})" for n in d.upserted[:6])
+    more = f" +{len(d.upserted) - 6} more" if len(d.upserted) > 6 else ""
+    return (f"v{d.version}: {len(d.upserted)} upserted, {len(d.removed)} removed, "
+            f"+{len(d.edges_added)}/-{len(d.edges_removed)} edges" + (f"  [{up}{more}]" if up else ""))
+
+
+# --- commands -------------------------------------------------------------------------------------
+def run_nodes(session: Any, keys: Keys, query: GraphQuery, as_json: bool, timeout_s: float) -> int:
+    nodes = get_nodes(session, keys, query, timeout_s)
+    if as_json:
+        print(json.dumps([n.model_dump(mode="json", exclude={"embedding"}) for n in nodes], indent=1))
+    else:
+        print(format_nodes(nodes, query.near))
+    return 0
+
+
+def run_snapshot(session: Any, keys: Keys, as_json: bool, timeout_s: float) -> int:
+    snap = get_snapshot(session, keys, timeout_s)
+    if as_json:
+        print(snap.model_dump_json(exclude={"nodes": {"__all__": {"embedding"}}}))
+        return 0
+    print(f"graph version {snap.version}: {len(snap.nodes)} nodes, {len(snap.edges)} edges")
+    print(format_nodes(snap.nodes))
+    if snap.edges:
+        print("edges:")
+        print(format_edges(snap.edges, snap.nodes))
+    return 0
+
+
+def run_watch(
+    session: Any, keys: Keys, as_json: bool, stop: threading.Event, count: int | None = None,
+    timeout_s: float | None = None,
+) -> int:
+    """Print every delta until ``stop`` (Ctrl-C), ``count`` deltas, or ``timeout_s`` without any."""
+    inbox: queue.Queue[bytes] = queue.Queue(maxsize=256)
+    dropped = [0]
+
+    def on_sample(sample: Any) -> None:
+        try:
+            inbox.put_nowait(sample.payload.to_bytes())
+        except queue.Full:
+            dropped[0] += 1  # a slow terminal must never back-pressure the network
+
+    sub = session.declare_subscriber(keys.graph_delta, on_sample)
+    print(f"watching {keys.graph_delta} (Ctrl-C to stop)", file=sys.stderr, flush=True)
+    seen, bad, last_version = 0, 0, None
+    last_at = time.monotonic()
+    try:
+        while not stop.is_set() and (count is None or seen < count):
+            try:
+                data = inbox.get(timeout=0.2)
+            except queue.Empty:
+                if timeout_s is not None and time.monotonic() - last_at > timeout_s:
+                    print(f"no delta for {timeout_s:g}s", file=sys.stderr)
+                    return 1
+                continue
+            last_at = time.monotonic()
+            try:
+                d = decode(data, GraphDelta)
+            except DecodeError as e:
+                bad += 1
+                print(f"undecodable delta ({bad} so far): {e}", file=sys.stderr)
+                continue
+            seen += 1
+            gap = last_version is not None and d.version != last_version + 1
+            last_version = d.version
+            if as_json:
+                print(d.model_dump_json(exclude={"upserted": {"__all__": {"embedding"}}}), flush=True)
+            else:
+                note = "  (gap: missed deltas, re-query the snapshot)" if gap else ""
+                print(format_delta(d) + note, flush=True)
+    finally:
+        sub.undeclare()
+        if dropped[0]:
+            print(f"{dropped[0]} deltas dropped by this consumer (too slow)", file=sys.stderr)
+    return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(
+        prog="argus query",
+        description="Query or watch the live scene graph (any number of consumers, from any machine).",
+        epilog="examples: argus query nodes --label chair --near 1,2,0 --radius 2 | "
+        "argus query snapshot --json | argus query watch",
+    )
+    p.add_argument("--connect", default=DEFAULT_ENDPOINT, help=f"router endpoint ({DEFAULT_ENDPOINT})")
+    p.add_argument("--site", default="default", help="Argus site name")
+    p.add_argument("--timeout", type=float, default=5.0, help="seconds to wait for answers")
+    sub = p.add_subparsers(dest="what", required=True)
+    pn = sub.add_parser("nodes", help="nodes selected by label / position / id")
+    pn.add_argument("--label", default=None, help="label substring, case-insensitive (e.g. chair)")
+    pn.add_argument("--near", default=None, help="x,y,z centre in metres (world frame)")
+    pn.add_argument("--radius", type=float, default=None, help="radius around --near in metres (default 1)")
+    pn.add_argument("--id", default=None, help="one node id")
+    pn.add_argument("--since-version", type=int, default=None, help="only nodes changed after this version")
+    pn.add_argument("--json", action="store_true", help="JSON list of nodes")
+    ps = sub.add_parser("snapshot", help="the whole latest graph")
+    ps.add_argument("--json", action="store_true", help="the GraphSnapshot as JSON")
+    pw = sub.add_parser("watch", help="print graph deltas as they happen (Ctrl-C exits)")
+    pw.add_argument("--json", action="store_true", help="one JSON delta per line")
+    pw.add_argument("--count", type=int, default=None, help="exit after this many deltas")
+    pw.add_argument("--idle-timeout", type=float, default=None, help="exit 1 after this long without a delta")
+    a = p.parse_args(argv)
+
+    try:
+        keys = Keys(a.site)
+        query = None
+        if a.what == "nodes":
+            near = None
+            if a.near is not None:
+                near = tuple(float(v) for v in a.near.split(","))
+                if len(near) != 3:
+                    raise ValueError("--near needs x,y,z")
+            query = GraphQuery(label=a.label, near=near, radius=a.radius, id=a.id,
+                               since_version=a.since_version)
+    except ValueError as e:
+        print(f"argus query: {e}", file=sys.stderr)
+        return 2
+
+    from protocol.runtime import install_stop_handlers
+
+    stop = install_stop_handlers()
+    try:
+        with open_session(ZenohSettings(mode="client", connect=[a.connect])) as session:
+            if a.what == "nodes":
+                assert query is not None
+                return run_nodes(session, keys, query, a.json, a.timeout)
+            if a.what == "snapshot":
+                return run_snapshot(session, keys, a.json, a.timeout)
+            return run_watch(session, keys, a.json, stop, a.count, a.idle_timeout)
+    except QueryError as e:
+        print(f"argus query: {e}", file=sys.stderr)
+        return 1
+    except Exception as e:  # noqa: BLE001 - e.g. no router reachable: a message, not a traceback
+        print(f"argus query: {type(e).__name__}: {e}", file=sys.stderr)
+        return 1
+
+
+if __name__ == "__main__":
+    sys.exit(main())

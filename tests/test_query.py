@@ -1,0 +1,151 @@
+"""``argus query`` against a graph holder on loopback: nodes, snapshot and watch return what it holds."""
+
+from __future__ import annotations
+
+import json
+import threading
+import time
+from typing import Any
+
+import pytest
+
+from deploy.query import format_delta, format_nodes, get_nodes, get_snapshot
+from protocol.codec import encode
+from protocol.keys import Keys
+from protocol.messages import GraphDelta, GraphEdge, GraphNode, GraphSnapshot, OrientedBox
+from protocol.query import GraphQuery
+from protocol.session import ZenohSettings, open_session
+from tests.procs import Proc, wait_for
+
+SITE = "qtest"
+
+
+def _node(node_id: str, label: str, xyz: tuple[float, float, float]) -> GraphNode:
+    return GraphNode(
+        node_id=node_id, label=label, label_confidence=0.8, centroid=xyz,
+        box=OrientedBox(center=xyz, extent=(0.5, 0.5, 0.9)), point_count=100, observation_count=3,
+        sources=["cam_a"], first_seen_ns=1, last_seen_ns=2,
+    )
+
+
+SNAP = GraphSnapshot(
+    version=7, stamp_ns=123,
+    nodes=[_node("n1", "chair", (1.0, 2.0, 0.4)), _node("n2", "office chair", (5.0, 5.0, 0.4)),
+           _node("n3", "table", (1.5, 2.0, 0.4))],
+    edges=[GraphEdge(subject_id="n1", predicate="next_to", object_id="n3")],
+)
+
+
+class FakeGraphHolder:
+    """Answers graph queries the way the mapper's queryable does (selection by GraphQuery)."""
+
+    def __init__(self, endpoint: str) -> None:
+        self.keys = Keys(SITE)
+        self.session = open_session(ZenohSettings(mode="client", connect=[endpoint]))
+        self.queries = 0
+        self.qbl = self.session.declare_queryable(self.keys.graph_all, self._on_query)
+        self.delta_pub = self.session.declare_publisher(self.keys.graph_delta)
+
+    def _on_query(self, query: Any) -> None:
+        self.queries += 1
+        key = str(query.key_expr)
+        if key == self.keys.graph_snapshot:
+            query.reply(self.keys.graph_snapshot, encode(SNAP))
+        elif key == self.keys.graph_nodes:
+            sel = GraphQuery.from_parameters(str(query.parameters))
+            picked = [n for n in SNAP.nodes if sel.matches(n)]
+            query.reply(self.keys.graph_nodes, encode(SNAP.model_copy(update={"nodes": picked, "edges": []})))
+
+    def close(self) -> None:
+        self.qbl.undeclare()
+        self.session.close()
+
+
+@pytest.fixture
+def holder(router: str):
+    h = FakeGraphHolder(router)
+    yield h
+    h.close()
+
+
+def test_get_nodes_selects_like_the_holder(router: str, holder: FakeGraphHolder) -> None:
+    with open_session(ZenohSettings(mode="client", connect=[router])) as s:
+        keys = Keys(SITE)
+        wait_for(lambda: _answers(s, keys), timeout=10, what="queryable reachable")
+        chairs = get_nodes(s, keys, GraphQuery(label="chair", near=(1, 2, 0), radius=2))
+        assert [n.node_id for n in chairs] == ["n1"]
+        assert {n.node_id for n in get_nodes(s, keys, GraphQuery(label="CHAIR"))} == {"n1", "n2"}
+        snap = get_snapshot(s, keys)
+        assert snap == SNAP
+
+
+def _answers(session: Any, keys: Keys) -> bool:
+    try:
+        get_snapshot(session, keys, timeout_s=1.0)
+        return True
+    except Exception:  # noqa: BLE001
+        return False
+
+
+def test_cli_nodes_snapshot_and_watch(router: str, holder: FakeGraphHolder, procs: list[Proc]) -> None:
+    base = ["query", "--connect", router, "--site", SITE]
+    p = Proc([*base, "nodes", "--label", "chair", "--near", "1,2,0", "--radius", "2", "--json"])
+    procs.append(p)
+    assert p.wait(30) == 0, p.output
+    got = json.loads(p.output[p.output.index("["):])
+    assert [n["node_id"] for n in got] == ["n1"] and got[0]["label"] == "chair"
+
+    p = Proc([*base, "snapshot", "--json"])
+    procs.append(p)
+    assert p.wait(30) == 0, p.output
+    snap = GraphSnapshot.model_validate_json(p.output[p.output.index("{"):])
+    assert snap == SNAP
+
+    p = Proc([*base, "snapshot"])
+    procs.append(p)
+    assert p.wait(30) == 0, p.output
+    assert "version 7: 3 nodes, 1 edges" in p.output and "chair (n1) next_to table (n3)" in p.output
+
+    w = Proc([*base, "watch", "--count", "2"])
+    procs.append(w)
+    wait_for(lambda: "watching" in w.output, timeout=20, what="watch started")
+    # The subscriber may take a moment to be routed: keep publishing until two deltas are printed.
+    version = 8
+    stop = threading.Event()
+
+    def publish() -> None:
+        nonlocal version
+        while not stop.is_set():
+            holder.delta_pub.put(encode(GraphDelta(version=version, stamp_ns=1, upserted=[_node("n9", "lamp",
+                                                                                                 (0, 0, 1))])))
+            version += 1
+            time.sleep(0.1)
+
+    t = threading.Thread(target=publish, daemon=True)
+    t.start()
+    try:
+        assert w.wait(30) == 0, w.output
+    finally:
+        stop.set()
+        t.join()
+    assert w.output.count("1 upserted") == 2 and "lamp(n9)" in w.output
+
+
+def test_cli_without_mapper_fails_cleanly(router: str, procs: list[Proc]) -> None:
+    p = Proc(["query", "--connect", router, "--site", "nobody", "--timeout", "1", "snapshot"])
+    procs.append(p)
+    assert p.wait(30) == 1
+    assert "is a mapper running?" in p.output and "Traceback" not in p.output
+
+
+def test_cli_bad_arguments() -> None:
+    from deploy.query import main
+
+    assert main(["nodes", "--near", "1,2"]) == 2
+
+
+def test_formatting() -> None:
+    table = format_nodes(SNAP.nodes, near=(1.0, 2.0, 0.4))
+    assert "3 node(s)" in table and "office chair" in table and "0.00" in table
+    line = format_delta(GraphDelta(version=3, stamp_ns=0, upserted=SNAP.nodes, removed=["x"]))
+    assert line.startswith("v3: 3 upserted, 1 removed")
