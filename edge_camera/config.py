@@ -1,0 +1,73 @@
+"""Configuration of ``argus edge-camera`` (TOML file + command-line overrides)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+from pydantic import BaseModel, ConfigDict, Field, SerializeAsAny, field_validator, model_validator
+
+from edge_camera.sources import parse_source_config
+from edge_camera.sources.base import SourceConfig
+from protocol.keys import validate_id
+from protocol.session import ZenohSettings
+
+
+class PublishConfig(BaseModel):
+    """How frames go on the wire."""
+
+    model_config = ConfigDict(extra="forbid")
+    max_rate_hz: float = Field(default=5.0, gt=0, le=120, description="upper bound on frames sent per second")
+    width: int | None = Field(
+        default=None, gt=0, le=8192, description="resize frames to this width (none: source width)"
+    )
+    height: int | None = Field(
+        default=None, gt=0, le=8192, description="resize frames to this height (none: keep the aspect ratio)"
+    )
+    jpeg_quality: int = Field(default=85, ge=1, le=100, description="JPEG quality 1..100")
+
+
+class ReconnectConfig(BaseModel):
+    """Back-off between attempts to reopen a failed source (or reach the router)."""
+
+    model_config = ConfigDict(extra="forbid")
+    initial_s: float = Field(default=0.5, gt=0, description="first wait after a fault")
+    max_s: float = Field(default=10.0, gt=0, description="longest wait between attempts")
+    factor: float = Field(default=2.0, ge=1.0, description="wait multiplier per consecutive failure")
+
+
+class EdgeCameraConfig(BaseModel):
+    """One fixed camera: where it reads, how it publishes, where the router is."""
+
+    model_config = ConfigDict(extra="forbid")
+    id: str = Field(default="cam0", description="camera id (a single key chunk: letters, digits, _ . -)")
+    site: str = Field(default="default", description="Argus site name (key prefix argus/<site>/...)")
+    key_prefix: str = Field(default="argus", description="top-level key prefix")
+    source: SerializeAsAny[SourceConfig] = Field(
+        description="[source] table: 'type' picks the backend (opencv, stream, video, folder, pattern, sim); "
+        "the other fields belong to that backend (see --describe)"
+    )
+    publish: PublishConfig = Field(default_factory=PublishConfig, description="rate, size and JPEG quality")
+    calibration: Path | None = Field(
+        default=None, description="OpenCV YAML or JSON file with intrinsics and/or T_world_cam (see calibration.py)"
+    )
+    reconnect: ReconnectConfig = Field(default_factory=ReconnectConfig, description="back-off on faults")
+    status_period_s: float = Field(default=2.0, gt=0, description="seconds between Status messages")
+    zenoh: ZenohSettings = Field(default_factory=ZenohSettings, description="how to join the Zenoh network")
+    log_level: str = Field(default="INFO", description="DEBUG, INFO, WARNING or ERROR")
+
+    @field_validator("id", "site")
+    @classmethod
+    def _chunk(cls, v: str) -> str:
+        return validate_id(v)
+
+    @field_validator("source", mode="before")
+    @classmethod
+    def _source(cls, v: Any) -> SourceConfig:
+        return parse_source_config(v)
+
+    @model_validator(mode="after")
+    def _backoff(self) -> EdgeCameraConfig:
+        if self.reconnect.max_s < self.reconnect.initial_s:
+            raise ValueError("reconnect.max_s must be >= reconnect.initial_s")
+        return self

@@ -1,0 +1,206 @@
+"""Integration tests of ``argus edge-camera``: real CLI processes on loopback with a real router."""
+
+from __future__ import annotations
+
+import json
+import shutil
+import threading
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from protocol.codec import DecodeError, decode
+from protocol.jpeg import decode_jpeg
+from protocol.keys import Keys
+from protocol.messages import Status
+from protocol.session import ZenohSettings, open_session
+from protocol.transport import Frame, decode_frame_sample
+from tests.procs import Proc, wait_for
+
+KEYS = Keys("default")
+
+
+class Listener:
+    """A client session collecting frames, Status messages and liveliness changes of one camera."""
+
+    def __init__(self, router: str, camera_id: str) -> None:
+        self.session = open_session(ZenohSettings(mode="client", connect=[router]))
+        self.frames: list[Frame] = []
+        self.statuses: list[Status] = []
+        self.alive_events: list[str] = []
+        self._lock = threading.Lock()
+        self._subs = [
+            self.session.declare_subscriber(KEYS.cam_frame(camera_id), self._on_frame),
+            self.session.declare_subscriber(KEYS.status("edge-camera", camera_id), self._on_status),
+            self.session.liveliness().declare_subscriber(
+                KEYS.alive("edge-camera", camera_id), self._on_alive, history=True
+            ),
+        ]
+
+    def _on_frame(self, sample) -> None:  # noqa: ANN001 - zenoh.Sample
+        frame = decode_frame_sample(sample)
+        with self._lock:
+            self.frames.append(frame)
+
+    def _on_status(self, sample) -> None:  # noqa: ANN001
+        try:
+            msg = decode(sample.payload.to_bytes(), Status)
+        except DecodeError:
+            return
+        with self._lock:
+            self.statuses.append(msg)
+
+    def _on_alive(self, sample) -> None:  # noqa: ANN001
+        with self._lock:
+            self.alive_events.append(str(sample.kind))
+
+    def n_frames(self) -> int:
+        with self._lock:
+            return len(self.frames)
+
+    def close(self) -> None:
+        for s in self._subs:
+            s.undeclare()
+        self.session.close()
+
+
+@pytest.fixture
+def listener_factory():
+    made: list[Listener] = []
+
+    def make(router: str, camera_id: str) -> Listener:
+        lst = Listener(router, camera_id)
+        made.append(lst)
+        return lst
+
+    yield make
+    for lst in made:
+        lst.close()
+
+
+def write_images(folder: Path, n: int, size: tuple[int, int] = (200, 150), start: int = 0) -> list[np.ndarray]:
+    """``n`` PNGs of distinct flat colours (w x h = size); returns the RGB images."""
+    folder.mkdir(parents=True, exist_ok=True)
+    out = []
+    for i in range(start, start + n):
+        rgb = np.zeros((size[1], size[0], 3), np.uint8)
+        rgb[:] = ((40 * i) % 256, 255 - (30 * i) % 256, 128)
+        cv2.imwrite(str(folder / f"img_{i:03d}.png"), cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
+        out.append(rgb)
+    return out
+
+
+def write_config(path: Path, router: str, source: str, extra: str = "") -> Path:
+    path.write_text(
+        f"""id = "cam_t"
+status_period_s = 0.2
+{extra}
+[source]
+{source}
+[publish]
+max_rate_hz = 20.0
+width = 160
+jpeg_quality = 90
+[reconnect]
+initial_s = 0.1
+max_s = 0.3
+[zenoh]
+mode = "client"
+connect = ["{router}"]
+"""
+    )
+    return path
+
+
+def test_folder_source_publishes_frames_with_calibration(tmp_path, router, procs, listener_factory):
+    images = write_images(tmp_path / "imgs", 3)
+    calib = tmp_path / "calib.json"
+    T = [[0.0, 0.0, 1.0, 1.0], [-1.0, 0.0, 0.0, 2.0], [0.0, -1.0, 0.0, 2.5], [0.0, 0.0, 0.0, 1.0]]
+    calib.write_text(json.dumps({
+        "intrinsics": {"width": 200, "height": 150, "fx": 100.0, "fy": 100.0, "cx": 99.5, "cy": 74.5},
+        "T_world_cam": T,
+    }))
+    cfg = write_config(
+        tmp_path / "cam.toml", router,
+        f'type = "folder"\npath = "{tmp_path / "imgs"}"\nrate_hz = 20.0\n',
+        extra=f'calibration = "{calib}"',
+    )
+    lst = listener_factory(router, "cam_t")
+    proc = Proc(["edge-camera", "--config", str(cfg)])
+    procs.append(proc)
+    wait_for(lambda: lst.n_frames() >= 4, timeout=30, what=f"4 frames; output:\n{proc.output}")
+    frames = list(lst.frames)
+    seqs = [f.header.seq for f in frames]
+    assert seqs == sorted(seqs) and len(set(seqs)) == len(seqs)
+    for f in frames:
+        rgb = decode_jpeg(f.jpeg)
+        assert rgb.shape == (120, 160, 3)
+        h = f.header
+        assert (h.source_id, h.source_kind, h.width, h.height) == ("cam_t", "fixed", 160, 120)
+        assert h.intrinsics is not None and h.intrinsics.width == 160
+        assert h.intrinsics.fx == pytest.approx(80.0)
+        assert h.intrinsics.cx == pytest.approx((99.5 + 0.5) * 0.8 - 0.5)
+        assert np.allclose(np.asarray(h.T_world_cam), T)
+        assert h.pose_trusted is True
+    # Images go out in sorted name order and keep their colour through resize + JPEG.
+    first = decode_jpeg(frames[0].jpeg).reshape(-1, 3).mean(axis=0)
+    idx = frames[0].header.seq % 3
+    assert np.allclose(first, images[idx][0, 0], atol=6)
+    wait_for(lambda: any(s.counters.get("frames_sent", 0) >= 1 for s in lst.statuses), timeout=10,
+             what="a Status with frames_sent")
+    assert any(ev.endswith("PUT") for ev in lst.alive_events)
+    proc.signal()
+    assert proc.wait(timeout=15) == 0
+    wait_for(lambda: any(ev.endswith("DELETE") for ev in lst.alive_events), timeout=10,
+             what="the liveliness token withdrawn")
+
+
+def test_folder_emptied_mid_stream_reconnects_and_stays_up(tmp_path, router, procs, listener_factory):
+    folder = tmp_path / "imgs"
+    write_images(folder, 2)
+    cfg = write_config(tmp_path / "cam.toml", router, f'type = "folder"\npath = "{folder}"\nrate_hz = 20.0\n')
+    lst = listener_factory(router, "cam_t")
+    proc = Proc(["edge-camera", "--config", str(cfg)])
+    procs.append(proc)
+    wait_for(lambda: lst.n_frames() >= 2, timeout=30, what=f"first frames; output:\n{proc.output}")
+    shutil.rmtree(folder)
+
+    def reports_fault() -> bool:
+        return any(
+            s.last_error and "imgs" in s.last_error and s.counters.get("reconnect_attempts", 0) >= 2
+            for s in list(lst.statuses)
+        )
+
+    wait_for(reports_fault, timeout=20, what=f"Status with the error and reconnect attempts:\n{proc.output}")
+    assert proc.alive()
+    assert any(s.state == "degraded" for s in lst.statuses)
+    n_before = lst.n_frames()
+    write_images(folder, 2, start=5)
+    wait_for(lambda: lst.n_frames() >= n_before + 2, timeout=20, what="frames after the folder came back")
+    wait_for(lambda: any(s.counters.get("reconnects", 0) >= 1 and s.state == "ok" for s in list(lst.statuses)),
+             timeout=10, what="Status ok after reconnecting")
+    assert proc.alive()
+
+
+@pytest.mark.parametrize(
+    ("source", "extra", "message"),
+    [
+        ('type = "no_such_source"', "", "unknown source type"),
+        ('type = "pattern"', 'calibration = "/nonexistent/calib.yaml"', "calibration file"),
+        ('type = "pattern"', 'calibration = "BADFILE"', "calibration"),
+    ],
+)
+def test_configuration_errors_exit_nonzero_with_a_message(tmp_path, source, extra, message):
+    bad = tmp_path / "bad.json"
+    bad.write_text("{not json")
+    extra = extra.replace("BADFILE", str(bad))
+    cfg = write_config(tmp_path / "cam.toml", "tcp/127.0.0.1:9", source, extra=extra)
+    proc = Proc(["edge-camera", "--config", str(cfg)])
+    try:
+        rc = proc.wait(timeout=30)
+    finally:
+        proc.stop()
+    assert rc == 2
+    assert message in proc.output
