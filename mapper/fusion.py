@@ -1,0 +1,530 @@
+"""ConceptGraphs-style 3D fusion of 2D detections into object nodes (pure: no I/O).
+
+Per view: each detection mask is back-projected with the reconstructed world points, low-confidence
+depth is dropped, the cloud is voxel-downsampled and denoised (DBSCAN, keep the main cluster). Each
+detection is associated to the existing node with the best score ``geo_weight * overlap + sem_weight *
+similarity`` (overlap: fraction of the detection's points with a node point within ``overlap_radius_m``;
+similarity: cosine of descriptors) when it reaches ``match_threshold``, else it starts a node. Merging
+unions the clouds (voxel-downsampled, capped) and averages descriptors weighted by observation count.
+Every ``merge_every_updates`` updates duplicate nodes are merged and rarely seen nodes dropped.
+
+Points are world metres (z up). Node ids are stable strings ``n000001``... that never get reused.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
+
+from mapper.perception.base import Detection, unit
+from protocol.messages import GraphNode, LabelScore, OrientedBox
+
+
+class FusionConfig(BaseModel):
+    """Fusion thresholds and bounds."""
+
+    model_config = ConfigDict(extra="forbid")
+    voxel_m: float = Field(default=0.03, gt=0.0, description="voxel size of node point clouds, metres")
+    min_depth_confidence: float = Field(
+        default=0.3, ge=0.0, le=1.0, description="pixels with lower depth confidence are not back-projected"
+    )
+    max_depth_m: float = Field(default=10.0, gt=0.0, description="pixels farther than this are ignored")
+    min_points: int = Field(default=15, ge=1, description="detections with fewer valid 3D points are dropped")
+    min_mask_pixels: int = Field(default=30, ge=1, description="masks smaller than this are dropped")
+    dbscan_eps_m: float = Field(default=0.1, gt=0.0, description="DBSCAN neighbourhood radius, metres")
+    dbscan_min_samples: int = Field(default=4, ge=1, description="DBSCAN core point neighbour count")
+    overlap_radius_m: float | None = Field(
+        default=None, description="neighbour radius of the overlap measure (default: voxel_m)"
+    )
+    geo_weight: float = Field(default=1.0, ge=0.0, description="weight of geometric overlap in the match score")
+    sem_weight: float = Field(default=1.0, ge=0.0, description="weight of descriptor similarity in the score")
+    match_threshold: float = Field(default=1.1, description="score needed to associate with a node")
+    min_overlap: float = Field(default=0.05, ge=0.0, le=1.0, description="overlap needed to associate at all")
+    max_points_per_node: int = Field(default=3000, ge=10, description="cap on points kept per node")
+    merge_every_updates: int = Field(default=5, ge=1, description="duplicate merge / prune period (updates)")
+    merge_overlap: float = Field(
+        default=0.5, ge=0.0, le=1.0, description="duplicates: overlap (either direction) needed to merge"
+    )
+    merge_similarity: float = Field(default=0.8, ge=-1.0, le=1.0, description="duplicates: descriptor cosine")
+    min_observations: int = Field(default=1, ge=1, description="nodes seen fewer times are dropped after ...")
+    prune_after_updates: int = Field(default=15, ge=1, description="... this many updates since creation")
+    max_nodes: int = Field(default=2000, ge=1, description="hard cap on nodes (least observed dropped)")
+    max_label_alternatives: int = Field(default=3, ge=0, description="label alternatives kept per node")
+    seed: int = Field(default=0, description="seed of point subsampling")
+
+    @property
+    def radius_m(self) -> float:
+        return self.overlap_radius_m if self.overlap_radius_m is not None else self.voxel_m
+
+
+# ------------------------------------------------------------------------------------------------
+# Point-cloud helpers
+
+
+def _pack(ijk: np.ndarray) -> np.ndarray:
+    off = np.int64(1 << 20)
+    ijk = np.clip(ijk, -off + 1, off - 1).astype(np.int64) + off
+    return (ijk[:, 0] << 42) | (ijk[:, 1] << 21) | ijk[:, 2]
+
+
+def voxel_keys(points: np.ndarray, voxel_m: float) -> np.ndarray:
+    """int64 keys of the voxels holding ``points`` (N, 3)."""
+    return _pack(np.floor(np.asarray(points, dtype=np.float64) / voxel_m).astype(np.int64))
+
+
+def voxel_downsample(points: np.ndarray, voxel_m: float) -> np.ndarray:
+    """One point per occupied voxel (the mean of its points), float32 (M, 3)."""
+    pts = np.asarray(points, dtype=np.float32).reshape(-1, 3)
+    if len(pts) == 0:
+        return pts
+    _, inv, counts = np.unique(voxel_keys(pts, voxel_m), return_inverse=True, return_counts=True)
+    sums = np.zeros((len(counts), 3), dtype=np.float64)
+    np.add.at(sums, inv.reshape(-1), pts)
+    return (sums / counts[:, None]).astype(np.float32)
+
+
+def dbscan_labels(points: np.ndarray, eps: float, min_samples: int) -> np.ndarray:
+    """DBSCAN cluster label per point (-1 = noise), via a KD-tree and connected components."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+    from scipy.spatial import cKDTree
+
+    n = len(points)
+    labels = np.full(n, -1, dtype=np.int64)
+    if n == 0:
+        return labels
+    pairs = cKDTree(points).query_pairs(eps, output_type="ndarray")
+    degree = np.bincount(pairs.reshape(-1), minlength=n) + 1  # a point counts itself
+    core = degree >= min_samples
+    if not core.any():
+        return labels
+    cc = pairs[core[pairs[:, 0]] & core[pairs[:, 1]]]
+    graph = coo_matrix((np.ones(len(cc)), (cc[:, 0], cc[:, 1])), shape=(n, n))
+    _, comp = connected_components(graph, directed=False)
+    labels[core] = comp[core]
+    # Border points join the cluster of a core neighbour.
+    for a, b in ((0, 1), (1, 0)):
+        sel = core[pairs[:, a]] & ~core[pairs[:, b]]
+        labels[pairs[sel, b]] = comp[pairs[sel, a]]
+    return labels
+
+
+def main_cluster(points: np.ndarray, eps: float, min_samples: int) -> np.ndarray:
+    """The points of the largest DBSCAN cluster (empty when all are noise)."""
+    labels = dbscan_labels(points, eps, min_samples)
+    valid = labels[labels >= 0]
+    if len(valid) == 0:
+        return points[:0]
+    best = np.bincount(valid).argmax()
+    return points[labels == best]
+
+
+def fit_box(points: np.ndarray) -> OrientedBox:
+    """Gravity-aligned oriented box of ``points`` (N, 3): min-area footprint rectangle, z from min/max."""
+    import cv2
+
+    pts = np.asarray(points, dtype=np.float32).reshape(-1, 3)
+    if len(pts) == 0:
+        return OrientedBox(center=(0.0, 0.0, 0.0), extent=(0.0, 0.0, 0.0))
+    zmin, zmax = float(pts[:, 2].min()), float(pts[:, 2].max())
+    if len(pts) < 3:
+        lo, hi = pts[:, :2].min(0), pts[:, :2].max(0)
+        c, e, yaw = (lo + hi) / 2.0, hi - lo, 0.0
+    else:
+        (cx, cy), (w, h), angle_deg = cv2.minAreaRect(np.ascontiguousarray(pts[:, :2]).reshape(-1, 1, 2))
+        c, e, yaw = np.array([cx, cy]), np.array([w, h]), math.radians(angle_deg)
+        # Keep yaw in [-pi/4, pi/4) by swapping axes: one canonical box per footprint.
+        while yaw >= math.pi / 4:
+            yaw -= math.pi / 2
+            e = e[::-1]
+        while yaw < -math.pi / 4:
+            yaw += math.pi / 2
+            e = e[::-1]
+    return OrientedBox(
+        center=(float(c[0]), float(c[1]), (zmin + zmax) / 2.0),
+        extent=(float(e[0]), float(e[1]), zmax - zmin),
+        yaw_rad=float(yaw),
+    )
+
+
+# ------------------------------------------------------------------------------------------------
+# Detections in 3D
+
+
+@dataclass(frozen=True)
+class Object3D:
+    """A denoised, downsampled 3D detection ready for association."""
+
+    points: np.ndarray  # (M, 3) float32 world
+    label: str
+    confidence: float
+    descriptor: np.ndarray
+    alternatives: tuple[tuple[str, float], ...] = ()
+
+
+@dataclass
+class LiftStats:
+    """Why detections were dropped while lifting them to 3D."""
+
+    lifted: int = 0
+    dropped_small_mask: int = 0
+    dropped_no_depth: int = 0
+    dropped_noise: int = 0
+
+    @property
+    def dropped(self) -> int:
+        return self.dropped_small_mask + self.dropped_no_depth + self.dropped_noise
+
+
+def _resize_mask(mask: np.ndarray, h: int, w: int) -> np.ndarray:
+    if mask.shape == (h, w):
+        return mask
+    import cv2
+
+    return cv2.resize(mask.astype(np.uint8), (w, h), interpolation=cv2.INTER_NEAREST).astype(bool)
+
+
+def lift_detections(
+    detections: Sequence[Detection],
+    points_world: np.ndarray,
+    confidence: np.ndarray,
+    depth_m: np.ndarray,
+    cfg: FusionConfig,
+) -> tuple[list[Object3D], LiftStats]:
+    """Back-project each mask with a view's reconstruction (``points_world`` (h, w, 3), ``confidence``
+    and ``depth_m`` (h, w)); masks at another resolution are resized (nearest)."""
+    h, w = depth_m.shape
+    stats = LiftStats()
+    valid = (
+        np.isfinite(depth_m)
+        & (depth_m > 0)
+        & (depth_m <= cfg.max_depth_m)
+        & (confidence >= cfg.min_depth_confidence)
+        & np.all(np.isfinite(points_world), axis=-1)
+    )
+    out: list[Object3D] = []
+    for det in detections:
+        if int(det.mask.sum()) < cfg.min_mask_pixels:
+            stats.dropped_small_mask += 1
+            continue
+        m = _resize_mask(det.mask, h, w) & valid
+        if int(m.sum()) < cfg.min_points:
+            stats.dropped_no_depth += 1
+            continue
+        pts = voxel_downsample(points_world[m], cfg.voxel_m)
+        pts = main_cluster(pts, cfg.dbscan_eps_m, cfg.dbscan_min_samples)
+        if len(pts) < max(3, min(cfg.min_points, cfg.dbscan_min_samples)):
+            stats.dropped_noise += 1
+            continue
+        stats.lifted += 1
+        out.append(Object3D(pts, det.label, float(det.confidence), unit(det.descriptor), det.alternatives))
+    return out, stats
+
+
+# ------------------------------------------------------------------------------------------------
+# Nodes
+
+
+@dataclass
+class NodeState:
+    """Mutable fusion state of one node."""
+
+    node_id: str
+    points: np.ndarray
+    descriptor: np.ndarray
+    observations: int
+    label_votes: dict[str, float]
+    sources: set[str]
+    first_seen_ns: int
+    last_seen_ns: int
+    created_update: int
+    _tree: Any = field(default=None, repr=False)
+    _box: OrientedBox | None = field(default=None, repr=False)
+
+    def touch(self) -> None:
+        self._tree = None
+        self._box = None
+
+    @property
+    def tree(self) -> Any:
+        if self._tree is None:
+            from scipy.spatial import cKDTree
+
+            self._tree = cKDTree(self.points)
+        return self._tree
+
+    @property
+    def box(self) -> OrientedBox:
+        if self._box is None:
+            self._box = fit_box(self.points)
+        return self._box
+
+    @property
+    def aabb(self) -> tuple[np.ndarray, np.ndarray]:
+        return self.points.min(0), self.points.max(0)
+
+    def label_ranking(self) -> list[tuple[str, float]]:
+        total = sum(self.label_votes.values()) or 1.0
+        return sorted(((k, v / total) for k, v in self.label_votes.items()), key=lambda kv: (-kv[1], kv[0]))
+
+    def to_message(self, max_alternatives: int = 3, with_embedding: bool = True) -> GraphNode:
+        ranking = self.label_ranking() or [("object", 0.0)]
+        box = self.box
+        return GraphNode(
+            node_id=self.node_id,
+            label=ranking[0][0],
+            label_confidence=float(min(1.0, max(0.0, ranking[0][1]))),
+            label_alternatives=[LabelScore(label=k, score=float(v)) for k, v in ranking[1 : 1 + max_alternatives]],
+            centroid=box.center,
+            box=box,
+            point_count=int(len(self.points)),
+            observation_count=int(self.observations),
+            sources=sorted(self.sources),
+            first_seen_ns=int(self.first_seen_ns),
+            last_seen_ns=int(self.last_seen_ns),
+            embedding=self.descriptor.astype(np.float32) if with_embedding else None,
+        )
+
+
+def overlap_fraction(points: np.ndarray, node: NodeState, radius_m: float) -> float:
+    """Fraction of ``points`` with a point of ``node`` within ``radius_m``."""
+    if len(points) == 0 or len(node.points) == 0:
+        return 0.0
+    d, _ = node.tree.query(points, k=1, distance_upper_bound=radius_m)
+    return float(np.mean(d <= radius_m))
+
+
+def similarity(a: np.ndarray, b: np.ndarray) -> float:
+    """Cosine similarity of two unit descriptors (0 when their dimensions differ)."""
+    if a.shape != b.shape:
+        return 0.0
+    return float(np.dot(a, b))
+
+
+@dataclass
+class UpdateResult:
+    """What one fusion update changed."""
+
+    changed: set[str] = field(default_factory=set)
+    removed: set[str] = field(default_factory=set)
+    created: int = 0
+    associated: int = 0
+    merged_duplicates: int = 0
+    pruned: int = 0
+
+
+class ObjectMap:
+    """The fused object nodes. Not thread-safe: one owner (the mapper core) calls it."""
+
+    def __init__(self, cfg: FusionConfig | None = None) -> None:
+        self.cfg = cfg or FusionConfig()
+        self.nodes: dict[str, NodeState] = {}
+        self.next_id = 1
+        self.updates = 0
+        self._rng = np.random.default_rng(self.cfg.seed)
+
+    # -- association ---------------------------------------------------------------------------
+    def _candidates(self, pts: np.ndarray) -> list[NodeState]:
+        r = self.cfg.radius_m
+        lo, hi = pts.min(0) - r, pts.max(0) + r
+        out = []
+        for node in self.nodes.values():
+            nlo, nhi = node.aabb
+            if np.all(nlo <= hi) and np.all(nhi >= lo):
+                out.append(node)
+        return out
+
+    def match(self, obj: Object3D) -> tuple[NodeState | None, float]:
+        """The best node for ``obj`` and its score (None when no node reaches the threshold)."""
+        cfg = self.cfg
+        best, best_score = None, -math.inf
+        for node in self._candidates(obj.points):
+            ov = overlap_fraction(obj.points, node, cfg.radius_m)
+            if ov < cfg.min_overlap:
+                continue
+            score = cfg.geo_weight * ov + cfg.sem_weight * similarity(obj.descriptor, node.descriptor)
+            if score > best_score or (score == best_score and best is not None and node.node_id < best.node_id):
+                best, best_score = node, score
+        if best is None or best_score < cfg.match_threshold:
+            return None, best_score
+        return best, best_score
+
+    def _cap(self, pts: np.ndarray) -> np.ndarray:
+        if len(pts) > self.cfg.max_points_per_node:
+            idx = self._rng.choice(len(pts), self.cfg.max_points_per_node, replace=False)
+            pts = pts[np.sort(idx)]
+        return pts
+
+    def _new_node(self, obj: Object3D, source_id: str, stamp_ns: int) -> NodeState:
+        node_id = f"n{self.next_id:06d}"
+        self.next_id += 1
+        votes = {obj.label: max(obj.confidence, 1e-3)}
+        for lab, score in obj.alternatives:
+            votes[lab] = votes.get(lab, 0.0) + 0.5 * max(score, 0.0)
+        node = NodeState(
+            node_id=node_id,
+            points=self._cap(obj.points.astype(np.float32)),
+            descriptor=unit(obj.descriptor),
+            observations=1,
+            label_votes=votes,
+            sources={source_id},
+            first_seen_ns=stamp_ns,
+            last_seen_ns=stamp_ns,
+            created_update=self.updates,
+        )
+        self.nodes[node_id] = node
+        return node
+
+    def _absorb(self, node: NodeState, obj: Object3D, source_id: str, stamp_ns: int) -> None:
+        n = node.observations
+        node.points = self._cap(voxel_downsample(np.concatenate([node.points, obj.points]), self.cfg.voxel_m))
+        node.descriptor = unit(node.descriptor * n + obj.descriptor)
+        node.observations = n + 1
+        node.label_votes[obj.label] = node.label_votes.get(obj.label, 0.0) + max(obj.confidence, 1e-3)
+        for lab, score in obj.alternatives:
+            node.label_votes[lab] = node.label_votes.get(lab, 0.0) + 0.5 * max(score, 0.0)
+        node.sources.add(source_id)
+        node.first_seen_ns = min(node.first_seen_ns, stamp_ns)
+        node.last_seen_ns = max(node.last_seen_ns, stamp_ns)
+        node.touch()
+
+    def integrate(self, objects: Sequence[Object3D], source_id: str, stamp_ns: int) -> UpdateResult:
+        """Fuse one view's 3D detections; runs maintenance every ``merge_every_updates`` updates."""
+        self.updates += 1
+        res = UpdateResult()
+        # Match everything against the map as it was before this view: detections of one view are
+        # distinct instances and must not absorb each other.
+        matches = [self.match(obj)[0] for obj in objects]
+        for obj, node in zip(objects, matches, strict=True):
+            if node is not None and node.node_id in self.nodes:
+                self._absorb(node, obj, source_id, stamp_ns)
+                res.associated += 1
+                res.changed.add(node.node_id)
+            else:
+                res.changed.add(self._new_node(obj, source_id, stamp_ns).node_id)
+                res.created += 1
+        if self.updates % self.cfg.merge_every_updates == 0:
+            self.maintain(res)
+        self._enforce_cap(res)
+        res.changed -= res.removed
+        return res
+
+    # -- maintenance ---------------------------------------------------------------------------
+    def merge_nodes(self, keep: NodeState, gone: NodeState) -> None:
+        """Fold ``gone`` into ``keep`` (clouds, descriptors weighted by observations, votes, sources)."""
+        a, b = keep.observations, gone.observations
+        keep.points = self._cap(voxel_downsample(np.concatenate([keep.points, gone.points]), self.cfg.voxel_m))
+        keep.descriptor = unit(keep.descriptor * a + gone.descriptor * b)
+        keep.observations = a + b
+        for lab, v in gone.label_votes.items():
+            keep.label_votes[lab] = keep.label_votes.get(lab, 0.0) + v
+        keep.sources |= gone.sources
+        keep.first_seen_ns = min(keep.first_seen_ns, gone.first_seen_ns)
+        keep.last_seen_ns = max(keep.last_seen_ns, gone.last_seen_ns)
+        keep.created_update = min(keep.created_update, gone.created_update)
+        keep.touch()
+        del self.nodes[gone.node_id]
+
+    def maintain(self, res: UpdateResult | None = None) -> UpdateResult:
+        """Merge duplicate nodes, then drop nodes seen too rarely."""
+        res = res if res is not None else UpdateResult()
+        cfg = self.cfg
+        ids = sorted(self.nodes)
+        pairs: list[tuple[float, str, str]] = []
+        for i, a_id in enumerate(ids):
+            a = self.nodes[a_id]
+            alo, ahi = a.aabb
+            for b_id in ids[i + 1 :]:
+                b = self.nodes[b_id]
+                blo, bhi = b.aabb
+                if np.any(alo > bhi + cfg.radius_m) or np.any(blo > ahi + cfg.radius_m):
+                    continue
+                sim = similarity(a.descriptor, b.descriptor)
+                if sim < cfg.merge_similarity:
+                    continue
+                ov = max(overlap_fraction(a.points, b, cfg.radius_m), overlap_fraction(b.points, a, cfg.radius_m))
+                if ov >= cfg.merge_overlap:
+                    pairs.append((ov + sim, a_id, b_id))
+        for _, a_id, b_id in sorted(pairs, key=lambda p: (-p[0], p[1], p[2])):
+            if a_id not in self.nodes or b_id not in self.nodes:
+                continue
+            a, b = self.nodes[a_id], self.nodes[b_id]
+            keep, gone = (a, b) if (a.observations, b.node_id) >= (b.observations, a.node_id) else (b, a)
+            self.merge_nodes(keep, gone)
+            res.merged_duplicates += 1
+            res.removed.add(gone.node_id)
+            res.changed.add(keep.node_id)
+        for node_id in sorted(self.nodes):
+            node = self.nodes[node_id]
+            aged = self.updates - node.created_update >= cfg.prune_after_updates
+            if (aged and node.observations < cfg.min_observations) or len(node.points) < 3:
+                del self.nodes[node_id]
+                res.pruned += 1
+                res.removed.add(node_id)
+        res.changed -= res.removed
+        return res
+
+    def _enforce_cap(self, res: UpdateResult) -> None:
+        excess = len(self.nodes) - self.cfg.max_nodes
+        if excess <= 0:
+            return
+        order = sorted(self.nodes.values(), key=lambda n: (n.observations, n.last_seen_ns, n.node_id))
+        for node in order[:excess]:
+            del self.nodes[node.node_id]
+            res.removed.add(node.node_id)
+            res.pruned += 1
+
+    # -- export / persistence --------------------------------------------------------------------
+    def messages(self, ids: Sequence[str] | None = None, with_embedding: bool = True) -> list[GraphNode]:
+        """GraphNode messages of ``ids`` (default all), sorted by id."""
+        sel = sorted(self.nodes) if ids is None else sorted(i for i in ids if i in self.nodes)
+        return [self.nodes[i].to_message(self.cfg.max_label_alternatives, with_embedding) for i in sel]
+
+    def boxes(self) -> dict[str, OrientedBox]:
+        return {i: n.box for i, n in self.nodes.items()}
+
+    def state(self) -> dict[str, Any]:
+        """Plain-data state (numpy arrays as ``(dtype, shape, bytes)``) for persistence."""
+        return {
+            "next_id": self.next_id,
+            "updates": self.updates,
+            "nodes": [
+                {
+                    "node_id": n.node_id,
+                    "points": n.points.astype(np.float32).tobytes(),
+                    "descriptor": n.descriptor.astype(np.float32).tobytes(),
+                    "observations": n.observations,
+                    "label_votes": dict(n.label_votes),
+                    "sources": sorted(n.sources),
+                    "first_seen_ns": n.first_seen_ns,
+                    "last_seen_ns": n.last_seen_ns,
+                    "created_update": n.created_update,
+                }
+                for n in (self.nodes[k] for k in sorted(self.nodes))
+            ],
+        }
+
+    def load_state(self, state: dict[str, Any]) -> None:
+        """Restore :meth:`state` output (raises ``ValueError``/``KeyError`` on malformed state)."""
+        nodes: dict[str, NodeState] = {}
+        for d in state["nodes"]:
+            pts = np.frombuffer(d["points"], dtype=np.float32).reshape(-1, 3).copy()
+            nodes[str(d["node_id"])] = NodeState(
+                node_id=str(d["node_id"]),
+                points=pts,
+                descriptor=np.frombuffer(d["descriptor"], dtype=np.float32).copy(),
+                observations=int(d["observations"]),
+                label_votes={str(k): float(v) for k, v in d["label_votes"].items()},
+                sources=set(map(str, d["sources"])),
+                first_seen_ns=int(d["first_seen_ns"]),
+                last_seen_ns=int(d["last_seen_ns"]),
+                created_update=int(d["created_update"]),
+            )
+        self.nodes = nodes
+        self.next_id = int(state["next_id"])
+        self.updates = int(state["updates"])

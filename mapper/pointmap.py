@@ -1,0 +1,108 @@
+"""The global voxel point map with per-voxel observation counts (pure: no I/O).
+
+Every update adds a view's confident world points; each voxel keeps the mean point, the mean colour
+and how many views observed it (what the planner's frontier detection reads). Memory is bounded by
+``max_voxels``: beyond it the least observed voxels are dropped.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import numpy as np
+
+from mapper.fusion import voxel_keys
+from protocol.messages import PointMap
+
+
+class VoxelMap:
+    """Voxel-hashed accumulation of world points."""
+
+    def __init__(self, voxel_m: float = 0.05, max_voxels: int = 400_000) -> None:
+        if voxel_m <= 0 or max_voxels < 1:
+            raise ValueError("voxel_m must be > 0 and max_voxels >= 1")
+        self.voxel_m = voxel_m
+        self.max_voxels = max_voxels
+        self.keys = np.zeros(0, dtype=np.int64)
+        self.sums = np.zeros((0, 3), dtype=np.float64)
+        self.color_sums = np.zeros((0, 3), dtype=np.float64)
+        self.npoints = np.zeros(0, dtype=np.int64)
+        self.counts = np.zeros(0, dtype=np.int64)
+
+    def __len__(self) -> int:
+        return len(self.keys)
+
+    def add(self, points: np.ndarray, colors: np.ndarray | None = None) -> None:
+        """Add one view's points (N, 3) with optional uint8 colours (N, 3); a voxel's count grows by one
+        per call that touches it."""
+        pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+        ok = np.all(np.isfinite(pts), axis=1)
+        pts = pts[ok]
+        if len(pts) == 0:
+            return
+        cols = (
+            np.zeros_like(pts) if colors is None else np.asarray(colors, dtype=np.float64).reshape(-1, 3)[ok]
+        )
+        k_new = voxel_keys(pts, self.voxel_m)
+        uk, inv = np.unique(k_new, return_inverse=True)
+        inv = inv.reshape(-1)
+        n_new = np.bincount(inv, minlength=len(uk))
+        s_new = np.zeros((len(uk), 3))
+        c_new = np.zeros((len(uk), 3))
+        np.add.at(s_new, inv, pts)
+        np.add.at(c_new, inv, cols)
+        all_keys = np.concatenate([self.keys, uk])
+        merged, minv = np.unique(all_keys, return_inverse=True)
+        minv = minv.reshape(-1)
+        sums = np.zeros((len(merged), 3))
+        csum = np.zeros((len(merged), 3))
+        npts = np.zeros(len(merged), dtype=np.int64)
+        cnt = np.zeros(len(merged), dtype=np.int64)
+        old, new = minv[: len(self.keys)], minv[len(self.keys) :]
+        sums[old] += self.sums
+        csum[old] += self.color_sums
+        npts[old] += self.npoints
+        cnt[old] += self.counts
+        sums[new] += s_new
+        csum[new] += c_new
+        npts[new] += n_new
+        cnt[new] += 1
+        self.keys, self.sums, self.color_sums, self.npoints, self.counts = merged, sums, csum, npts, cnt
+        if len(self.keys) > self.max_voxels:
+            keep = np.sort(np.argsort(-self.counts, kind="stable")[: self.max_voxels])
+            self.keys, self.sums = self.keys[keep], self.sums[keep]
+            self.color_sums, self.npoints, self.counts = self.color_sums[keep], self.npoints[keep], self.counts[keep]
+
+    def points(self) -> np.ndarray:
+        """(N, 3) float32 mean point per voxel."""
+        return (self.sums / np.maximum(self.npoints, 1)[:, None]).astype(np.float32)
+
+    def colors(self) -> np.ndarray:
+        return np.clip(self.color_sums / np.maximum(self.npoints, 1)[:, None], 0, 255).astype(np.uint8)
+
+    def message(self, version: int, stamp_ns: int, max_points: int | None = None) -> PointMap:
+        """The :class:`PointMap` (at most ``max_points``, the most observed voxels first)."""
+        pts, cnt, col = self.points(), self.counts.astype(np.uint32), self.colors()
+        if max_points is not None and len(pts) > max_points:
+            keep = np.sort(np.argsort(-self.counts, kind="stable")[:max_points])
+            pts, cnt, col = pts[keep], cnt[keep], col[keep]
+        return PointMap(version=version, stamp_ns=stamp_ns, voxel_m=self.voxel_m, points=pts, counts=cnt, colors=col)
+
+    def state(self) -> dict[str, Any]:
+        return {
+            "voxel_m": self.voxel_m,
+            "keys": self.keys.tobytes(),
+            "sums": self.sums.tobytes(),
+            "color_sums": self.color_sums.tobytes(),
+            "npoints": self.npoints.tobytes(),
+            "counts": self.counts.tobytes(),
+        }
+
+    def load_state(self, state: dict[str, Any]) -> None:
+        if float(state["voxel_m"]) != self.voxel_m:
+            return  # a different voxel size: start the map afresh rather than mix grids
+        self.keys = np.frombuffer(state["keys"], dtype=np.int64).copy()
+        self.sums = np.frombuffer(state["sums"], dtype=np.float64).reshape(-1, 3).copy()
+        self.color_sums = np.frombuffer(state["color_sums"], dtype=np.float64).reshape(-1, 3).copy()
+        self.npoints = np.frombuffer(state["npoints"], dtype=np.int64).copy()
+        self.counts = np.frombuffer(state["counts"], dtype=np.int64).copy()

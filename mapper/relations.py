@@ -1,0 +1,229 @@
+"""Relation edges from gravity-aligned oriented boxes: deterministic, geometry only (no I/O).
+
+For every ordered pair ``(a, b)`` the predicates are tried in a fixed priority order and the first
+that holds becomes the single edge ``a <predicate> b``:
+
+1. ``on_top_of``: a rests on b: a's bottom is within ``contact_gap_m`` of b's top and most of a's
+   footprint lies over b's footprint.
+2. ``over`` / ``under``: vertical adjacency without contact: a is above (``over``) or below
+   (``under``) b with a vertical gap up to ``max_vertical_gap_m`` and overlapping footprints.
+3. ``inside``: most of a's volume lies within b's box (and a is the smaller).
+4. ``next_to``: the footprints are at most ``next_to_max_gap_m`` apart horizontally and the two
+   stand at a similar height (bottoms close and vertical extents overlapping).
+
+Boxes are :class:`protocol.messages.OrientedBox`: a centre, full extents along the box axes and a yaw
+about world z (metres, z up).
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from dataclasses import dataclass
+
+import numpy as np
+from pydantic import BaseModel, ConfigDict, Field
+
+from protocol.messages import GraphEdge, OrientedBox
+
+
+class RelationConfig(BaseModel):
+    """Thresholds of the relation predicates (fixed per dataset, as in the paper)."""
+
+    model_config = ConfigDict(extra="forbid")
+    contact_gap_m: float = Field(
+        default=0.06, ge=0.0, description="on_top_of: max |bottom of a - top of b| for vertical contact"
+    )
+    max_penetration_m: float = Field(
+        default=0.08, ge=0.0, description="on_top_of: how far a's bottom may sink below b's top (box slack)"
+    )
+    min_footprint_overlap: float = Field(
+        default=0.5, ge=0.0, le=1.0, description="on_top_of: footprint intersection / footprint area of a"
+    )
+    max_vertical_gap_m: float = Field(
+        default=1.0, gt=0.0, description="over/under: largest vertical gap still counted as adjacent"
+    )
+    min_vertical_footprint_overlap: float = Field(
+        default=0.3, ge=0.0, le=1.0, description="over/under: footprint intersection / smaller footprint"
+    )
+    min_inside_fraction: float = Field(
+        default=0.8, ge=0.0, le=1.0, description="inside: fraction of a's volume within b's box"
+    )
+    next_to_max_gap_m: float = Field(
+        default=0.35, ge=0.0, description="next_to: largest horizontal gap between the footprints"
+    )
+    next_to_max_base_dz_m: float = Field(
+        default=0.25, ge=0.0, description="next_to: largest difference between the two bottoms"
+    )
+    next_to_min_vertical_overlap: float = Field(
+        default=0.3, ge=0.0, le=1.0, description="next_to: vertical overlap / the smaller height"
+    )
+    next_to_max_footprint_overlap: float = Field(
+        default=0.5, ge=0.0, le=1.0,
+        description="next_to: footprints overlapping more than this (of the smaller) are not 'next to'",
+    )
+    min_extent_m: float = Field(default=0.01, gt=0.0, description="extents are clamped to at least this")
+
+
+@dataclass(frozen=True)
+class _Box:
+    corners_xy: np.ndarray  # (4, 2) counter-clockwise footprint
+    zmin: float
+    zmax: float
+    area: float
+    volume: float
+    center: np.ndarray  # (3,)
+    extent: np.ndarray  # (3,)
+    yaw: float
+
+
+def footprint(box: OrientedBox, min_extent_m: float = 0.0) -> np.ndarray:
+    """(4, 2) footprint corners of ``box`` in world xy, counter-clockwise."""
+    ex = max(box.extent[0], min_extent_m) / 2.0
+    ey = max(box.extent[1], min_extent_m) / 2.0
+    c, s = math.cos(box.yaw_rad), math.sin(box.yaw_rad)
+    local = np.array([[-ex, -ey], [ex, -ey], [ex, ey], [-ex, ey]])
+    R = np.array([[c, -s], [s, c]])
+    return local @ R.T + np.asarray(box.center[:2])
+
+
+def _prep(box: OrientedBox, min_extent_m: float) -> _Box:
+    ext = np.maximum(np.asarray(box.extent, dtype=np.float64), min_extent_m)
+    cz = box.center[2]
+    return _Box(
+        corners_xy=footprint(box, min_extent_m),
+        zmin=cz - ext[2] / 2.0,
+        zmax=cz + ext[2] / 2.0,
+        area=float(ext[0] * ext[1]),
+        volume=float(ext.prod()),
+        center=np.asarray(box.center, dtype=np.float64),
+        extent=ext,
+        yaw=box.yaw_rad,
+    )
+
+
+def _clip(subject: np.ndarray, clipper: np.ndarray) -> np.ndarray:
+    """Sutherland-Hodgman: ``subject`` polygon clipped by the convex counter-clockwise ``clipper``."""
+    out = subject
+    n = len(clipper)
+    for i in range(n):
+        if len(out) == 0:
+            break
+        a, b = clipper[i], clipper[(i + 1) % n]
+        edge = b - a
+        inp = out
+        side = edge[0] * (inp[:, 1] - a[1]) - edge[1] * (inp[:, 0] - a[0])
+        pts: list[np.ndarray] = []
+        m = len(inp)
+        for j in range(m):
+            p, q = inp[j], inp[(j + 1) % m]
+            sp, sq = side[j], side[(j + 1) % m]
+            if sp >= 0:
+                pts.append(p)
+            if (sp >= 0) != (sq >= 0):
+                t = sp / (sp - sq)
+                pts.append(p + t * (q - p))
+        out = np.array(pts) if pts else np.zeros((0, 2))
+    return out
+
+
+def _poly_area(poly: np.ndarray) -> float:
+    if len(poly) < 3:
+        return 0.0
+    x, y = poly[:, 0], poly[:, 1]
+    return float(0.5 * abs(np.dot(x, np.roll(y, -1)) - np.dot(y, np.roll(x, -1))))
+
+
+def footprint_intersection_area(a: np.ndarray, b: np.ndarray) -> float:
+    """Area of the intersection of two convex counter-clockwise polygons (m^2)."""
+    return _poly_area(_clip(a, b))
+
+
+def _seg_point_dist(p: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Distances from points ``p`` (K, 2) to the segment ab."""
+    ab = b - a
+    denom = float(ab @ ab)
+    t = np.zeros(len(p)) if denom == 0.0 else np.clip(((p - a) @ ab) / denom, 0.0, 1.0)
+    proj = a + t[:, None] * ab
+    return np.linalg.norm(p - proj, axis=1)
+
+
+def footprint_gap(a: np.ndarray, b: np.ndarray) -> float:
+    """Horizontal distance between two convex polygons (0 when they touch or overlap)."""
+    if footprint_intersection_area(a, b) > 0.0:
+        return 0.0
+    best = math.inf
+    for P, Q in ((a, b), (b, a)):
+        for i in range(len(Q)):
+            best = min(best, float(_seg_point_dist(P, Q[i], Q[(i + 1) % len(Q)]).min()))
+    return best
+
+
+def _inside_fraction(a: _Box, b: _Box) -> float:
+    """Fraction of a's volume within b (footprints exact, heights as intervals)."""
+    dz = max(0.0, min(a.zmax, b.zmax) - max(a.zmin, b.zmin))
+    inter = footprint_intersection_area(a.corners_xy, b.corners_xy)
+    return inter * dz / a.volume if a.volume > 0 else 0.0
+
+
+def relation(a_box: OrientedBox, b_box: OrientedBox, cfg: RelationConfig | None = None) -> str | None:
+    """The one predicate of ``a -> b`` (highest priority that holds), or None."""
+    cfg = cfg or RelationConfig()
+    return _relation(_prep(a_box, cfg.min_extent_m), _prep(b_box, cfg.min_extent_m), cfg)
+
+
+def _relation(a: _Box, b: _Box, cfg: RelationConfig) -> str | None:
+    # Cheap reject: footprints far apart horizontally cannot relate at all.
+    reach = cfg.next_to_max_gap_m + 0.5 * (np.hypot(*a.extent[:2]) + np.hypot(*b.extent[:2]))
+    if np.hypot(*(a.center[:2] - b.center[:2])) > reach:
+        return None
+    inter = footprint_intersection_area(a.corners_xy, b.corners_xy)
+    min_area = min(a.area, b.area)
+    # 1. on_top_of: a's bottom touches b's top, a mostly over b, a's centre above b's.
+    bottom_to_top = a.zmin - b.zmax
+    if (
+        -cfg.max_penetration_m <= bottom_to_top <= cfg.contact_gap_m
+        and a.center[2] > b.center[2]
+        and inter >= cfg.min_footprint_overlap * a.area
+    ):
+        return "on_top_of"
+    # 2. over / under: stacked with a clear gap.
+    if inter >= cfg.min_vertical_footprint_overlap * min_area:
+        if cfg.contact_gap_m < a.zmin - b.zmax <= cfg.max_vertical_gap_m:
+            return "over"
+        if cfg.contact_gap_m < b.zmin - a.zmax <= cfg.max_vertical_gap_m:
+            return "under"
+    # 3. inside: a's volume mostly within the larger b.
+    if a.volume < b.volume and _inside_fraction(a, b) >= cfg.min_inside_fraction:
+        return "inside"
+    # 4. next_to: close footprints at a similar height.
+    if inter <= cfg.next_to_max_footprint_overlap * min_area and abs(a.zmin - b.zmin) <= cfg.next_to_max_base_dz_m:
+        dz = min(a.zmax, b.zmax) - max(a.zmin, b.zmin)
+        min_h = min(a.zmax - a.zmin, b.zmax - b.zmin)
+        if dz >= cfg.next_to_min_vertical_overlap * min_h and footprint_gap(a.corners_xy, b.corners_xy) <= (
+            cfg.next_to_max_gap_m
+        ):
+            return "next_to"
+    return None
+
+
+def compute_edges(boxes: Mapping[str, OrientedBox], cfg: RelationConfig | None = None) -> list[GraphEdge]:
+    """All edges among ``boxes`` (node id -> box), at most one per ordered pair, sorted by triple."""
+    cfg = cfg or RelationConfig()
+    ids = sorted(boxes)
+    prepared = [_prep(boxes[i], cfg.min_extent_m) for i in ids]
+    if len(ids) < 2:
+        return []
+    # Vectorised horizontal pre-filter on circumscribed circles keeps this ~O(n) for sparse scenes.
+    centers = np.array([p.center[:2] for p in prepared])
+    radii = np.array([0.5 * np.hypot(*p.extent[:2]) for p in prepared])
+    dist = np.linalg.norm(centers[:, None, :] - centers[None, :, :], axis=2)
+    near = dist <= radii[:, None] + radii[None, :] + cfg.next_to_max_gap_m
+    np.fill_diagonal(near, False)
+    edges: list[GraphEdge] = []
+    for i, j in zip(*np.nonzero(near), strict=True):
+        pred = _relation(prepared[i], prepared[j], cfg)
+        if pred is not None:
+            edges.append(GraphEdge(subject_id=ids[i], predicate=pred, object_id=ids[j]))  # type: ignore[arg-type]
+    edges.sort(key=lambda e: (e.subject_id, e.predicate, e.object_id))
+    return edges

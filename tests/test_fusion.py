@@ -1,0 +1,167 @@
+"""3D fusion on hand-made data: a tiny analytic ray caster of axis-aligned boxes stands in for geometry."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from mapper.fusion import (
+    FusionConfig,
+    ObjectMap,
+    dbscan_labels,
+    fit_box,
+    lift_detections,
+    main_cluster,
+    voxel_downsample,
+)
+from mapper.perception.base import Detection, label_descriptor
+from protocol.messages import Intrinsics
+from protocol.poses import look_at, transform_points
+
+INTR = Intrinsics.from_fov(96, 72, 90.0)
+
+
+def raycast(T_world_cam: np.ndarray, boxes: list[tuple[np.ndarray, np.ndarray]]) -> tuple[np.ndarray, np.ndarray]:
+    """(depth_m (H, W), box index per pixel (-1 = none)) of axis-aligned boxes (lo, hi) in the world."""
+    v, u = np.mgrid[0 : INTR.height, 0 : INTR.width].astype(np.float64)
+    d_cam = np.stack([(u - INTR.cx) / INTR.fx, (v - INTR.cy) / INTR.fy, np.ones_like(u)], -1)
+    d_world = d_cam @ T_world_cam[:3, :3].T
+    o = T_world_cam[:3, 3]
+    best = np.full(u.shape, np.inf)
+    idx = np.full(u.shape, -1)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        for k, (lo, hi) in enumerate(boxes):
+            t1 = (lo - o) / d_world
+            t2 = (hi - o) / d_world
+            tmin = np.nanmax(np.minimum(t1, t2), axis=-1)
+            tmax = np.nanmin(np.maximum(t1, t2), axis=-1)
+            hit = (tmax >= tmin) & (tmin > 0) & (tmin < best)
+            best[hit] = tmin[hit]
+            idx[hit] = k
+    depth = np.where(np.isfinite(best), best, 0.0)  # t along d_cam (z = 1) is the z-depth
+    return depth.astype(np.float32), idx
+
+
+def world_points(T_world_cam: np.ndarray, depth: np.ndarray) -> np.ndarray:
+    v, u = np.mgrid[0 : INTR.height, 0 : INTR.width].astype(np.float64)
+    pc = np.stack([(u - INTR.cx) / INTR.fx * depth, (v - INTR.cy) / INTR.fy * depth, depth], -1)
+    return transform_points(T_world_cam, pc).astype(np.float32)
+
+
+def detections(idx: np.ndarray, labels: list[str]) -> list[Detection]:
+    out = []
+    for k, lab in enumerate(labels):
+        m = idx == k
+        if m.any():
+            out.append(Detection(mask=m, label=lab, confidence=0.9, descriptor=label_descriptor(lab)))
+    return out
+
+
+def observe(omap: ObjectMap, T: np.ndarray, boxes, labels, source="cam0", stamp=1):
+    depth, idx = raycast(T, boxes)
+    objs, stats = lift_detections(
+        detections(idx, labels), world_points(T, depth), np.ones_like(depth), depth, omap.cfg
+    )
+    return omap.integrate(objs, source, stamp), stats
+
+
+CHAIR = (np.array([0.0, 0.0, 0.0]), np.array([0.5, 0.5, 0.9]))
+CHAIR2 = (np.array([0.56, 0.0, 0.0]), np.array([1.06, 0.5, 0.9]))  # 6 cm beside the first
+
+
+class TestHelpers:
+    def test_voxel_downsample(self) -> None:
+        pts = np.array([[0.01, 0.01, 0.01], [0.02, 0.02, 0.02], [0.5, 0.5, 0.5]], dtype=np.float32)
+        out = voxel_downsample(pts, 0.1)
+        assert len(out) == 2
+        assert np.allclose(sorted(out[:, 0]), [0.015, 0.5])
+        assert len(voxel_downsample(np.zeros((0, 3)), 0.1)) == 0
+
+    def test_dbscan_keeps_main_cluster(self) -> None:
+        rng = np.random.default_rng(0)
+        blob = rng.normal(0, 0.02, (200, 3))
+        small = rng.normal(1.0, 0.02, (20, 3))
+        outlier = np.array([[5.0, 5.0, 5.0]])
+        pts = np.concatenate([blob, small, outlier])
+        labels = dbscan_labels(pts, 0.1, 4)
+        assert labels[-1] == -1
+        assert len(set(labels[:200])) == 1 and len(set(labels[200:220])) == 1 and labels[0] != labels[200]
+        assert len(main_cluster(pts, 0.1, 4)) == 200
+        assert len(main_cluster(np.zeros((0, 3)), 0.1, 4)) == 0
+
+    def test_fit_box_rotated(self) -> None:
+        rng = np.random.default_rng(1)
+        local = rng.uniform([-1.0, -0.25, 0.0], [1.0, 0.25, 0.5], (2000, 3))
+        yaw = 0.3
+        c, s = np.cos(yaw), np.sin(yaw)
+        pts = local @ np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]]).T + [2.0, 1.0, 0.0]
+        b = fit_box(pts)
+        assert b.yaw_rad == pytest.approx(yaw, abs=0.03)
+        assert b.extent[0] == pytest.approx(2.0, abs=0.05) and b.extent[1] == pytest.approx(0.5, abs=0.05)
+        assert b.center == pytest.approx((2.0, 1.0, 0.25), abs=0.03)
+
+
+class TestFusion:
+    def test_same_object_two_views_merges(self) -> None:
+        omap = ObjectMap(FusionConfig())
+        r1, _ = observe(omap, look_at([2.0, -1.5, 1.5], [0.25, 0.25, 0.45]), [CHAIR], ["chair"], "cam0", 10)
+        r2, _ = observe(omap, look_at([-1.5, -1.2, 1.4], [0.25, 0.25, 0.45]), [CHAIR], ["chair"], "robot1", 20)
+        assert r1.created == 1 and r2.created == 0 and r2.associated == 1
+        assert len(omap.nodes) == 1
+        (msg,) = omap.messages()
+        assert msg.label == "chair" and msg.observation_count == 2
+        assert msg.sources == ["cam0", "robot1"]
+        assert (msg.first_seen_ns, msg.last_seen_ns) == (10, 20)
+        assert np.allclose(msg.box.center, [0.25, 0.25, 0.45], atol=0.06)
+
+    @pytest.mark.parametrize("labels", [["chair", "chair"], ["chair", "table"]])
+    def test_neighbouring_objects_stay_two(self, labels: list[str]) -> None:
+        omap = ObjectMap(FusionConfig())
+        for T in (look_at([0.5, -2.0, 1.6], [0.5, 0.25, 0.45]), look_at([0.6, -1.8, 1.2], [0.5, 0.25, 0.45])):
+            observe(omap, T, [CHAIR, CHAIR2], labels)
+        omap.maintain()
+        assert len(omap.nodes) == 2
+        centres = sorted(m.box.center[0] for m in omap.messages())
+        assert centres == pytest.approx([0.25, 0.81], abs=0.06)
+
+    def test_no_valid_depth_is_dropped_and_counted(self) -> None:
+        cfg = FusionConfig()
+        T = look_at([2.0, -1.5, 1.5], [0.25, 0.25, 0.45])
+        depth, idx = raycast(T, [CHAIR])
+        mask = np.zeros_like(idx, dtype=bool)
+        mask[:10, :10] = True  # sky: no depth there
+        dets = detections(idx, ["chair"]) + [
+            Detection(mask=mask, label="ghost", confidence=1.0, descriptor=label_descriptor("ghost"))
+        ]
+        conf = np.ones_like(depth)
+        objs, stats = lift_detections(dets, world_points(T, depth), conf, depth, cfg)
+        assert [o.label for o in objs] == ["chair"]
+        assert stats.dropped_no_depth == 1 and stats.lifted == 1
+        # Low-confidence depth counts as no depth.
+        objs, stats = lift_detections(dets[:1], world_points(T, depth), conf * 0.1, depth, cfg)
+        assert objs == [] and stats.dropped_no_depth == 1
+
+    def test_prune_and_duplicate_merge(self) -> None:
+        cfg = FusionConfig(merge_every_updates=1, min_observations=2, prune_after_updates=2, match_threshold=5.0)
+        omap = ObjectMap(cfg)
+        T = look_at([2.0, -1.5, 1.5], [0.25, 0.25, 0.45])
+        # match_threshold unreachable: every view creates a node; maintenance must fold the duplicate.
+        observe(omap, T, [CHAIR], ["chair"])
+        r, _ = observe(omap, T, [CHAIR], ["chair"])
+        assert r.merged_duplicates == 1 and len(omap.nodes) == 1 and r.removed == {"n000002"}
+        assert omap.messages()[0].observation_count == 2
+        # A lone sighting of something else is dropped once it is old enough.
+        observe(omap, look_at([3, 3, 1.5], [4, 4, 0.4]), [(np.array([4.0, 4, 0]), np.array([4.3, 4.3, 0.4]))], ["box"])
+        assert "n000003" in omap.nodes
+        r, _ = observe(omap, T, [], [])
+        r, _ = observe(omap, T, [], [])
+        assert "n000003" not in omap.nodes and "n000003" in r.removed
+
+    def test_points_capped_and_state_round_trip(self) -> None:
+        cfg = FusionConfig(max_points_per_node=50, voxel_m=0.01)
+        omap = ObjectMap(cfg)
+        observe(omap, look_at([2.0, -1.5, 1.5], [0.25, 0.25, 0.45]), [CHAIR], ["chair"])
+        assert max(len(n.points) for n in omap.nodes.values()) == 50
+        other = ObjectMap(cfg)
+        other.load_state(omap.state())
+        assert other.messages() == omap.messages() and other.next_id == omap.next_id

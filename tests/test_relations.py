@@ -1,0 +1,139 @@
+"""Relation predicates over hand-built oriented boxes."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from mapper.relations import (
+    RelationConfig,
+    compute_edges,
+    footprint,
+    footprint_gap,
+    footprint_intersection_area,
+    relation,
+)
+from protocol.messages import OrientedBox
+
+
+def box(cx: float, cy: float, zmin: float, ex: float, ey: float, ez: float, yaw: float = 0.0) -> OrientedBox:
+    return OrientedBox(center=(cx, cy, zmin + ez / 2), extent=(ex, ey, ez), yaw_rad=yaw)
+
+
+TABLE = box(0.0, 0.0, 0.0, 1.2, 0.8, 0.75)
+
+
+class TestFootprint:
+    def test_intersection_of_rotated_squares(self) -> None:
+        a = footprint(box(0, 0, 0, 2, 2, 1))
+        b = footprint(box(0, 0, 0, 2, 2, 1, yaw=math.pi / 4))
+        # A square and the same square turned 45 degrees share a regular octagon: 8 (sqrt2 - 1) for side 2.
+        assert footprint_intersection_area(a, b) == pytest.approx(8 * (math.sqrt(2) - 1), rel=1e-9)
+
+    def test_disjoint_and_gap(self) -> None:
+        a = footprint(box(0, 0, 0, 1, 1, 1))
+        b = footprint(box(3, 0, 0, 1, 1, 1))
+        assert footprint_intersection_area(a, b) == 0.0
+        assert footprint_gap(a, b) == pytest.approx(2.0)
+        assert footprint_gap(a, footprint(box(0.5, 0, 0, 1, 1, 1))) == 0.0
+
+
+class TestPredicates:
+    def test_on_top_of(self) -> None:
+        cup = box(0.1, 0.1, 0.75, 0.08, 0.08, 0.1)
+        assert relation(cup, TABLE) == "on_top_of"
+        # The reverse pair is not "on top of"; the table is below the cup in contact, so nothing else fires
+        # except it is not inside or next to the cup either.
+        assert relation(TABLE, cup) is None
+
+    def test_on_top_of_needs_footprint_overlap(self) -> None:
+        hanging = box(0.65, 0.0, 0.75, 0.3, 0.3, 0.1)  # mostly beyond the table's edge (x from 0.5 to 0.8)
+        assert relation(hanging, TABLE) != "on_top_of"
+
+    def test_over_and_under(self) -> None:
+        lamp = box(0.0, 0.0, 1.5, 0.3, 0.3, 0.2)  # 0.75 m above the table top
+        assert relation(lamp, TABLE) == "over"
+        assert relation(TABLE, lamp) == "under"
+        too_high = box(0.0, 0.0, 2.5, 0.3, 0.3, 0.2)
+        assert relation(too_high, TABLE) is None
+
+    def test_inside(self) -> None:
+        cabinet = box(0.0, 0.0, 0.0, 1.0, 0.5, 2.0)
+        book = box(0.1, 0.0, 0.9, 0.3, 0.2, 0.25)
+        assert relation(book, cabinet) == "inside"
+        assert relation(cabinet, book) is None
+
+    def test_next_to(self) -> None:
+        chair = box(0.9, 0.0, 0.0, 0.45, 0.45, 0.9)  # 0.075 m from the table's edge
+        assert relation(chair, TABLE) == "next_to"
+        assert relation(TABLE, chair) == "next_to"
+        far_chair = box(2.0, 0.0, 0.0, 0.45, 0.45, 0.9)
+        assert relation(far_chair, TABLE) is None
+
+    def test_next_to_needs_similar_height(self) -> None:
+        shelf = box(0.9, 0.0, 1.6, 0.4, 0.3, 0.3)  # beside the table but well above it
+        assert relation(shelf, TABLE) is None
+
+    def test_rotation_matters(self) -> None:
+        # A long thin bench centred 1.0 m from the table's axis: lying along x its near side is 0.45 m
+        # from the table (too far); turned along y it reaches to 0.1 m from the table.
+        bench = box(0.0, 1.0, 0.0, 1.2, 0.3, 0.45)
+        assert relation(bench, TABLE) is None
+        turned = box(0.0, 1.1, 0.0, 1.2, 0.3, 0.45, yaw=math.pi / 2)
+        assert relation(turned, TABLE) == "next_to"
+
+
+class TestPriority:
+    def test_on_top_of_beats_inside(self) -> None:
+        # A thin mat lying on the table, sunk slightly into its box: within the table's volume AND in
+        # contact with its top; on_top_of has priority over inside.
+        mat = box(0.0, 0.0, 0.70, 0.4, 0.3, 0.06)
+        cfg = RelationConfig()
+        assert relation(mat, TABLE, cfg) == "on_top_of"
+        no_contact = cfg.model_copy(update={"max_penetration_m": 0.0})
+        assert relation(mat, TABLE, no_contact) == "inside"
+
+    def test_over_beats_next_to(self) -> None:
+        # A small box above the table within next_to reach in z-overlap terms is still "over" first.
+        picture = box(0.3, 0.0, 0.9, 0.3, 0.05, 0.3)
+        cfg = RelationConfig(next_to_max_base_dz_m=5.0, next_to_min_vertical_overlap=0.0)
+        assert relation(picture, TABLE, cfg) == "over"
+
+    def test_one_edge_per_ordered_pair(self) -> None:
+        boxes = {
+            "table": TABLE,
+            "cup": box(0.1, 0.1, 0.75, 0.08, 0.08, 0.1),
+            "chair": box(0.9, 0.0, 0.0, 0.45, 0.45, 0.9),
+            "lamp": box(0.0, 0.0, 1.5, 0.3, 0.3, 0.2),
+            "far": box(10.0, 10.0, 0.0, 1.0, 1.0, 1.0),
+        }
+        edges = compute_edges(boxes)
+        pairs = [(e.subject_id, e.object_id) for e in edges]
+        assert len(pairs) == len(set(pairs))
+        triples = {(e.subject_id, e.predicate, e.object_id) for e in edges}
+        assert ("cup", "on_top_of", "table") in triples
+        assert ("chair", "next_to", "table") in triples
+        assert ("lamp", "over", "table") in triples
+        assert ("table", "under", "lamp") in triples
+        assert not any("far" in p for p in pairs)
+        # Deterministic: same input, same output, in sorted order.
+        assert compute_edges(dict(reversed(list(boxes.items())))) == edges
+        assert [(e.subject_id, e.predicate, e.object_id) for e in edges] == sorted(triples)
+
+    def test_empty_and_single(self) -> None:
+        assert compute_edges({}) == []
+        assert compute_edges({"a": TABLE}) == []
+
+    def test_matches_pairwise(self) -> None:
+        rng = np.random.default_rng(0)
+        boxes = {
+            f"n{i}": box(*rng.uniform(-2, 2, 2), rng.uniform(0, 1), *rng.uniform(0.1, 1.0, 3), rng.uniform(-3, 3))
+            for i in range(25)
+        }
+        got = {(e.subject_id, e.object_id): e.predicate for e in compute_edges(boxes)}
+        for a in boxes:
+            for b in boxes:
+                if a != b:
+                    assert got.get((a, b)) == relation(boxes[a], boxes[b])
