@@ -29,7 +29,9 @@ Launch file (TOML)::
     # [process.settings]
     # ...
 
-Strings in ``args`` and ``settings`` may use ``{endpoint}``, ``{site}`` and ``{launch_dir}``.
+Strings in ``args`` and ``settings`` may use ``{endpoint}``, ``{site}``, ``{launch_dir}`` and, with a
+``[world]`` table (``family``, ``seed`` of the simulated scene), ``{family}`` and ``{seed}``; a setting
+that is exactly ``"{seed}"`` becomes an integer.
 """
 
 from __future__ import annotations
@@ -54,15 +56,19 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator, model_valida
 
 from protocol.keys import Keys, validate_id
 
-# The liveliness role each Argus command declares (``alive/<role>/<id>``), used when a launch entry
-# does not name one.
-DEFAULT_ROLES: dict[str, str] = {
-    "router": "router",
-    "mapper": "mapper",
-    "planner": "planner",
-    "robot-agent": "robot",
-    "edge-camera": "camera",
-}
+# The liveliness role a command declares (``alive/<role>/<id>``) when it differs from the command
+# name; used when a launch entry does not name its role.
+DEFAULT_ROLES: dict[str, str] = {}
+
+
+class WorldSpec(BaseModel):
+    """The embedded simulated world a stack runs in (for sim sources and for scoring)."""
+
+    model_config = ConfigDict(extra="forbid")
+    family: Literal["apartment", "furnished_room"] = Field(
+        default="apartment", description="scene family ({family} in args/settings)"
+    )
+    seed: int = Field(default=0, ge=0, description="scene seed ({seed} in args/settings)")
 
 
 class ProcessSpec(BaseModel):
@@ -119,6 +125,9 @@ class LaunchFile(BaseModel):
     )
     health_timeout_s: float = Field(default=120.0, gt=0, description="warn when not all roles are up by then")
     stop_timeout_s: float = Field(default=10.0, gt=0, description="grace after SIGINT before SIGKILL")
+    world: WorldSpec | None = Field(
+        default=None, description="simulated world, if the stack runs on sim/ (demo scoring uses it)"
+    )
     process: list[ProcessSpec] = Field(description="the processes, started in this order")
 
     @model_validator(mode="after")
@@ -143,6 +152,8 @@ def load_launch(path: Path) -> LaunchFile:
 
 
 def _expand(value: Any, subs: dict[str, str]) -> Any:
+    if value == "{seed}" and "seed" in subs:
+        return int(subs["seed"])
     if isinstance(value, str):
         for k, v in subs.items():
             value = value.replace("{" + k + "}", v)
@@ -421,8 +432,7 @@ class Stack:
     # --- commands -----------------------------------------------------------------------------
     def argv_for(self, spec: ProcessSpec) -> list[str]:
         """The full command line of one process."""
-        subs = {"endpoint": self.launch.endpoint, "site": self.launch.site,
-                "launch_dir": str(self.launch_dir)}
+        subs = self.substitutions()
         argv = [self.python, "-m", "deploy.cli", spec.command, *_expand(spec.args, subs)]
         if spec.config is not None:
             cfg = Path(_expand(str(spec.config), subs))
@@ -432,6 +442,12 @@ class Stack:
             path.write_text(dump_toml(_expand(spec.settings, subs)))
             argv += ["--config", str(path)]
         return argv
+
+    def substitutions(self) -> dict[str, str]:
+        subs = {"endpoint": self.launch.endpoint, "site": self.launch.site, "launch_dir": str(self.launch_dir)}
+        if self.launch.world is not None:
+            subs.update(family=self.launch.world.family, seed=str(self.launch.world.seed))
+        return subs
 
     def _env_for(self, spec: ProcessSpec) -> dict[str, str]:
         env = dict(os.environ)

@@ -80,17 +80,17 @@ def test_launch_validation(tmp_path: Path) -> None:
 
 def test_settings_become_a_config_file_with_placeholders(tmp_path: Path) -> None:
     launch = LaunchFile.model_validate({
-        "site": "s1", "endpoint": "tcp/127.0.0.1:9999",
+        "site": "s1", "endpoint": "tcp/127.0.0.1:9999", "world": {"family": "furnished_room", "seed": 3},
         "process": [{"name": "m", "command": "mapper", "args": ["--connect", "{endpoint}"],
                      "settings": {"site": "{site}", "zenoh": {"connect": ["{endpoint}"]}, "rate": 2.5,
-                                  "on": True, "names": ["a", "b"]}}],
+                                  "on": True, "names": ["a", "b"], "seed": "{seed}", "fam": "{family}"}}],
     })
     stack = Stack(launch, tmp_path)
     argv = stack.argv_for(launch.process[0])
     assert argv[3:6] == ["mapper", "--connect", "tcp/127.0.0.1:9999"] and argv[6] == "--config"
     written = tomllib.loads(Path(argv[7]).read_text())
     assert written == {"site": "s1", "zenoh": {"connect": ["tcp/127.0.0.1:9999"]}, "rate": 2.5, "on": True,
-                       "names": ["a", "b"]}
+                       "names": ["a", "b"], "seed": 3, "fam": "furnished_room"}
     stack.stop()
 
 
@@ -105,11 +105,11 @@ def test_health_counts_roles_and_pinned_ids() -> None:
              ProcessSpec(name="log", command="query", role="")]
     h = Health(Keys("s"))
     assert h.missing(specs) == ["r", "c1", "c2"]
-    h.alive = {("router", "z1"), ("camera", "cam_b")}
+    h.alive = {("router", "z1"), ("edge-camera", "cam_b")}
     assert h.missing(specs) == ["c1"]
-    h.alive.add(("camera", "cam_a"))
+    h.alive.add(("edge-camera", "cam_a"))
     assert h.missing(specs) == []
-    h.alive.discard(("camera", "cam_b"))
+    h.alive.discard(("edge-camera", "cam_b"))
     assert h.missing(specs) == ["c2"]
 
 
@@ -143,7 +143,13 @@ def test_up_killed_hard_leaves_no_orphans(tmp_path: Path, procs: list[Proc]) -> 
     pids = [int(p) for p in ready.read_text().split(",")]
     os.kill(up.popen.pid, signal.SIGKILL)  # no chance to clean up: the children get SIGTERM from the kernel
     up.wait(10)
-    wait_for(lambda: all(_pid_gone(p) for p in pids), timeout=20, what="children exit after launcher death")
+    try:
+        wait_for(lambda: all(_pid_gone(p) for p in pids), timeout=20, what="children exit after launcher death")
+    finally:
+        for p in pids:  # never leave a stray router behind, even when the assertion fails
+            if not _pid_gone(p):
+                print(p, Path(f"/proc/{p}/status").read_text()[:400])
+                os.killpg(p, signal.SIGKILL)
 
 
 def test_required_process_failure_stops_the_stack_after_restarts(tmp_path: Path, procs: list[Proc]) -> None:
