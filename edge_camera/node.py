@@ -138,7 +138,6 @@ class FramePublisher:
         jpeg = encode_jpeg(rgb, self.config.publish.jpeg_quality)
         header = self.header_for(grab, size)
         t1 = time.perf_counter()
-        put_frame(self.frame_pub, header, jpeg)
         if grab.oracle is not None and self.oracle_pub is not None:
             o = grab.oracle
             oracle = OracleFrame(
@@ -150,7 +149,9 @@ class FramePublisher:
                 depth_png=depth_to_png(_resize_nearest(o.depth_m, size)),
                 labels={str(k): v for k, v in o.labels.items()},
             )
+            # The ORACLE sample goes first, so a consumer holding a frame can already match it.
             self.oracle_pub.put(encode(oracle))
+        put_frame(self.frame_pub, header, jpeg)
         t2 = time.perf_counter()
         self.seq += 1
         return Published(grab_ms, (t1 - t0) * 1e3, (t2 - t1) * 1e3, len(jpeg))

@@ -1,0 +1,362 @@
+"""The I/O shell of ``argus robot-agent``: goals in; frames, state and viewpoints out.
+
+One control thread owns the body. Zenoh callbacks only decode goals into a one-slot mailbox (the
+newest goal wins, so a new goal pre-empts the current one) and answer viewpoint queries from a
+cached encoding. Nothing a peer sends can stop the loop: undecodable goals are counted and dropped,
+bad goals are refused with a reason in the published state.
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import threading
+import time
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from protocol.codec import DecodeError, decode, encode
+from protocol.jpeg import encode_jpeg
+from protocol.keys import Keys
+from protocol.messages import FrameHeader, NbvGoal, OracleFrame, RobotState, RobotStatus, ViewpointSet
+from protocol.oracle import depth_to_png, ids_to_png
+from protocol.session import open_session
+from protocol.transport import Counters, StatusReporter, declare_frame_publisher, declare_message_publisher, put_frame
+from robot_agent.bodies import create_body
+from robot_agent.bodies.base import RobotBody
+from robot_agent.config import RobotAgentConfig
+from robot_agent.goals import Budget, goal_problem
+
+if TYPE_CHECKING:
+    import zenoh
+
+log = logging.getLogger("argus.robot_agent")
+ROLE = "robot-agent"
+
+
+class GoalMailbox:
+    """One slot, newest wins; ``superseded`` counts goals replaced before the loop took them."""
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._goal: NbvGoal | None = None
+        self.superseded = 0
+
+    def put(self, goal: NbvGoal) -> None:
+        with self._lock:
+            if self._goal is not None:
+                self.superseded += 1
+            self._goal = goal
+
+    def take(self) -> NbvGoal | None:
+        with self._lock:
+            goal, self._goal = self._goal, None
+            return goal
+
+
+def _ema(counters: Counters, name: str, value: float, alpha: float = 0.2) -> None:
+    old = counters.get(name)
+    counters.set(name, value if old == 0.0 else (1 - alpha) * old + alpha * value)
+
+
+class RobotAgent:
+    """One robot process. ``run(stop)`` blocks until ``stop`` is set; tests may call it directly."""
+
+    def __init__(self, config: RobotAgentConfig, body: RobotBody | None = None) -> None:
+        self.config = config
+        self.keys = Keys(config.site, config.key_prefix)
+        self.body: RobotBody = body if body is not None else create_body(config.body)
+        self.budget = Budget(config.budget.max_distance_m, config.budget.max_steps)
+        self.counters = Counters()
+        self.mailbox = GoalMailbox()
+        self.viewpoint_set = ViewpointSet(
+            robot_id=config.id,
+            camera_height_m=self.body.camera_height_m,
+            camera_pitch_deg=self.body.camera_pitch_deg,
+            intrinsics=self.body.intrinsics,
+            max_range_m=self.body.max_range_m,
+            viewpoints=self.body.viewpoints(),
+        )
+        self._viewpoints_bytes = encode(self.viewpoint_set)
+        self.status: RobotStatus = "idle"
+        self.goal: NbvGoal | None = None
+        self.goal_id: str | None = None
+        self.reason: str | None = None
+        self.steps = 0
+        self.viewpoint_id: int | None = None
+        self.exhausted: str | None = None
+        self.seq = 0
+        self._travel_cost: np.ndarray | None = None
+        self._session: zenoh.Session | None = None
+
+    # --- Zenoh callbacks (other threads) -----------------------------------------------------
+    def on_goal_bytes(self, data: bytes) -> None:
+        """Decode a goal payload into the mailbox; garbage is counted and dropped."""
+        self.counters.add("goals_received")
+        try:
+            goal = decode(data, NbvGoal)
+        except DecodeError as e:
+            self.counters.add("goals_garbage")
+            log.warning("ignoring undecodable goal payload (%d bytes): %s", len(data), e)
+            return
+        self.mailbox.put(goal)
+
+    def _on_goal_sample(self, sample: zenoh.Sample) -> None:
+        try:
+            self.on_goal_bytes(sample.payload.to_bytes())
+        except Exception as e:  # noqa: BLE001 - a callback must never raise into zenoh
+            self.counters.add("goals_garbage")
+            log.warning("goal callback failed: %s", e)
+
+    def _on_viewpoints_query(self, query: zenoh.Query) -> None:
+        try:
+            query.reply(self.keys.robot_viewpoints(self.config.id), self._viewpoints_bytes)
+            self.counters.add("viewpoint_queries")
+        except Exception as e:  # noqa: BLE001
+            log.warning("viewpoint query reply failed: %s", e)
+
+    # --- state ------------------------------------------------------------------------------
+    def _refresh_travel_cost(self) -> None:
+        t0 = time.perf_counter()
+        self._travel_cost = self.body.travel_costs_m(self.viewpoint_set.viewpoints)
+        _ema(self.counters, "travel_cost_ms", (time.perf_counter() - t0) * 1e3)
+
+    def state(self) -> RobotState:
+        x, y, yaw = self.body.pose_odom()
+        return RobotState(
+            robot_id=self.config.id,
+            stamp_ns=time.time_ns(),
+            status=self.status,
+            x=x,
+            y=y,
+            yaw_rad=yaw,
+            T_world_cam=self.body.T_world_cam_odom(),
+            goal_id=self.goal_id,
+            reason=self.reason,
+            distance_m=self.body.distance_m(),
+            steps=self.steps,
+            viewpoint_id=self.viewpoint_id,
+            travel_cost_m=None if self.status == "moving" else self._travel_cost,
+        )
+
+    def _set(self, status: RobotStatus, reason: str | None = None) -> None:
+        self.status, self.reason = status, reason
+        if status != "moving":
+            self._refresh_travel_cost()
+        self._publish_state()
+
+    # --- publishing -------------------------------------------------------------------------
+    def _publish_state(self) -> None:
+        try:
+            self._state_pub.put(encode(self.state()))
+            self.counters.add("states_sent")
+        except Exception as e:  # noqa: BLE001 - a closing session must not kill the loop
+            log.warning("state publish failed: %s", e)
+        self._last_state = time.monotonic()
+
+    def _publish_viewpoints(self) -> None:
+        try:
+            self._vp_pub.put(self._viewpoints_bytes)
+        except Exception as e:  # noqa: BLE001
+            log.warning("viewpoint publish failed: %s", e)
+        self._last_viewpoints = time.monotonic()
+
+    def publish_frame(self) -> None:
+        """Capture at the current pose; publish the ORACLE sample (if enabled) and then the frame."""
+        t0 = time.perf_counter()
+        try:
+            cap = self.body.capture()
+            t1 = time.perf_counter()
+            jpeg = encode_jpeg(cap.rgb, self.config.frames.jpeg_quality)
+            t2 = time.perf_counter()
+            h, w = cap.rgb.shape[:2]
+            stamp = time.time_ns()
+            cov = self.body.pose_covariance()
+            intr = self.body.intrinsics
+            header = FrameHeader(
+                source_id=self.config.id,
+                source_kind="robot",
+                seq=self.seq,
+                stamp_ns=stamp,
+                width=w,
+                height=h,
+                intrinsics=intr if (intr.width, intr.height) == (w, h) else intr.scaled(w, h),
+                T_world_cam=self.body.T_world_cam_odom(),
+                pose_covariance=cov,
+                pose_trusted=False,
+            )
+            if cap.oracle is not None and self._oracle_pub is not None:
+                o = cap.oracle
+                self._oracle_pub.put(encode(OracleFrame(
+                    source_id=self.config.id,
+                    seq=self.seq,
+                    stamp_ns=stamp,
+                    T_world_cam_true=np.asarray(o.T_world_cam_true, dtype=np.float64),
+                    ids_png=ids_to_png(o.instance_id),
+                    depth_png=depth_to_png(o.depth_m),
+                    labels={str(k): v for k, v in o.labels.items()},
+                )))
+            put_frame(self._frame_pub, header, jpeg)
+        except Exception as e:  # noqa: BLE001 - a failed frame is counted, the robot carries on
+            self.counters.add("frame_errors")
+            self._reporter.last_error = f"frame failed: {e}"
+            log.warning("frame failed: %s", e)
+            return
+        t3 = time.perf_counter()
+        self.seq += 1
+        self.counters.add("frames_sent")
+        _ema(self.counters, "render_ms", (t1 - t0) * 1e3)
+        _ema(self.counters, "encode_ms", (t2 - t1) * 1e3)
+        _ema(self.counters, "put_ms", (t3 - t2) * 1e3)
+        self._last_frame = time.monotonic()
+
+    # --- control ----------------------------------------------------------------------------
+    def handle_goal(self, goal: NbvGoal) -> None:
+        """Validate and start a goal (pre-empting any current one), or refuse it with a reason."""
+        problem = goal_problem(goal, self.config.id)
+        if problem is None and self.exhausted is not None:
+            self.body.stop()
+            self.goal_id = goal.goal_id
+            self.counters.add("goals_refused")
+            log.info("refusing goal %s: %s", goal.goal_id, self.exhausted)
+            self._set("budget_exhausted", self.exhausted)
+            return
+        if problem is None:
+            problem = self.body.drive_to(goal.x, goal.y, goal.yaw_rad)
+        self.goal_id = goal.goal_id
+        if problem is not None:
+            self.body.stop()
+            self.goal = None
+            self.counters.add("goals_refused")
+            log.info("refusing goal %s: %s", goal.goal_id, problem)
+            self._set("refused", problem)
+            return
+        if self.status == "moving":
+            self.counters.add("goals_preempted")
+        self.goal = goal
+        self.viewpoint_id = None
+        self.counters.add("goals_accepted")
+        log.info("goal %s: driving to (%.2f, %.2f, %.0f deg)", goal.goal_id, goal.x, goal.y,
+                 math.degrees(goal.yaw_rad))
+        self._set("moving")
+
+    def tick(self, dt_wall_s: float) -> None:
+        """One control step: take a goal, advance the body, publish what is due."""
+        goal = self.mailbox.take()
+        if goal is not None:
+            self.handle_goal(goal)
+        now = time.monotonic()
+        if self.status == "moving":
+            result = self.body.step(dt_wall_s * self.config.motion.time_scale)
+            driven_out = Budget(self.budget.max_distance_m).exhausted(self.body.distance_m(), 0)
+            if result == "arrived":
+                self.steps += 1
+                self.counters.add("arrivals")
+                self.viewpoint_id = self.goal.vp_id if self.goal is not None else None
+                self.publish_frame()  # always one frame on arrival, before the state says so
+                self._set("arrived")
+                self.exhausted = self.budget.exhausted(self.body.distance_m(), self.steps)
+                if self.exhausted is not None:
+                    self._set("budget_exhausted", self.exhausted)
+            elif result == "failed":
+                self.counters.add("failures")
+                self.publish_frame()
+                self._set("failed", "the body could not reach the goal")
+            elif driven_out is not None:
+                self.body.stop()
+                self.exhausted = driven_out
+                self.publish_frame()
+                self._set("budget_exhausted", driven_out)
+            else:
+                rate = self.config.frames.moving_rate_hz
+                if rate > 0 and now - self._last_frame >= 1.0 / rate:
+                    self.publish_frame()
+                    self._publish_state()
+        else:
+            idle = self.config.frames.idle_period_s
+            if idle > 0 and now - self._last_frame >= idle:
+                self.publish_frame()
+        if now - self._last_state >= self.config.state_period_s:
+            self._publish_state()
+        if now - self._last_viewpoints >= self.config.viewpoints_period_s:
+            self._publish_viewpoints()
+
+    # --- process ----------------------------------------------------------------------------
+    def _open_session(self, stop: threading.Event) -> zenoh.Session | None:
+        wait = 0.5
+        while not stop.is_set():
+            try:
+                return open_session(self.config.zenoh)
+            except Exception as e:  # noqa: BLE001 - zenoh raises ZError; retry whatever it is
+                log.warning("cannot reach Zenoh (%s); retrying in %.1f s", e, wait)
+                stop.wait(wait)
+                wait = min(10.0, wait * 2)
+        return None
+
+    def run(self, stop: threading.Event) -> int:
+        session = self._open_session(stop)
+        if session is None:
+            return 0
+        rid = self.config.id
+        with session:
+            token = session.liveliness().declare_token(self.keys.alive(ROLE, rid))
+            self._frame_pub = declare_frame_publisher(session, self.keys.robot_frame(rid))
+            self._oracle_pub = (
+                declare_message_publisher(session, self.keys.oracle("robot", rid), important=False)
+                if self.body.oracle
+                else None
+            )
+            self._state_pub = declare_message_publisher(session, self.keys.robot_state(rid), important=True)
+            self._vp_pub = declare_message_publisher(session, self.keys.robot_viewpoints(rid), important=True)
+            queryable = session.declare_queryable(self.keys.robot_viewpoints(rid), self._on_viewpoints_query)
+            goal_sub = session.declare_subscriber(self.keys.robot_goal(rid), self._on_goal_sample)
+            self._reporter = StatusReporter(
+                session, self.keys.status(ROLE, rid), ROLE, rid, self.counters, self.config.status_period_s,
+                extra=lambda: {"goals_superseded": self.mailbox.superseded, "distance_m": self.body.distance_m(),
+                               "steps": self.steps},
+            )
+            self._last_frame = self._last_state = self._last_viewpoints = time.monotonic()
+            x, y, yaw = self.body.pose_odom()
+            log.info("robot %s up at (%.2f, %.2f, %.0f deg) with %d viewpoints; goals on %s", rid, x, y,
+                     math.degrees(yaw), len(self.viewpoint_set.viewpoints), self.keys.robot_goal(rid))
+            try:
+                with self._reporter:
+                    self._publish_viewpoints()
+                    if self.config.frames.on_start:
+                        self.publish_frame()
+                    self._set("idle")
+                    self._loop(stop)
+            finally:
+                goal_sub.undeclare()
+                queryable.undeclare()
+                token.undeclare()
+                self.body.close()
+                log.info("robot %s stopped (%d steps, %.2f m)", rid, self.steps, self.body.distance_m())
+        return 0
+
+    def _loop(self, stop: threading.Event) -> None:
+        period = 1.0 / self.config.motion.tick_hz
+        last = time.monotonic()
+        while not stop.is_set():
+            now = time.monotonic()
+            dt, last = now - last, now
+            try:
+                self.tick(dt)
+            except Exception as e:  # noqa: BLE001 - a body bug must not take the robot agent down
+                self.counters.add("tick_errors")
+                self._reporter.last_error = f"control step failed: {e}"
+                log.exception("control step failed")
+                self.body.stop()
+                if self.status == "moving":
+                    self._set("failed", f"control step failed: {e}")
+            stop.wait(max(0.0, period - (time.monotonic() - now)))
+
+
+def run(config: RobotAgentConfig, stop: threading.Event | None = None) -> int:
+    """Run one robot agent until ``stop`` (default: SIGINT/SIGTERM). Raises on configuration errors."""
+    from protocol.runtime import install_stop_handlers
+
+    agent = RobotAgent(config)
+    stop_event = stop if stop is not None else install_stop_handlers()
+    return agent.run(stop_event)

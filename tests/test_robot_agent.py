@@ -1,0 +1,229 @@
+"""Integration tests of ``argus robot-agent`` (kinematic body: no simulator, fast)."""
+
+from __future__ import annotations
+
+import math
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from protocol.codec import DecodeError, decode, encode
+from protocol.jpeg import decode_jpeg
+from protocol.keys import Keys
+from protocol.messages import NbvGoal, RobotState, Status, ViewpointSet
+from protocol.session import ZenohSettings, open_session
+from protocol.transport import Frame, decode_frame_sample
+from tests.procs import Proc, wait_for
+
+KEYS = Keys("default")
+RID = "rob_t"
+
+
+class RobotClient:
+    """A planner-like peer: collects one robot's states, frames and Status; sends goals."""
+
+    def __init__(self, router: str, robot_id: str = RID) -> None:
+        self.robot_id = robot_id
+        self.session = open_session(ZenohSettings(mode="client", connect=[router]))
+        self.states: list[RobotState] = []
+        self.frames: list[Frame] = []
+        self.statuses: list[Status] = []
+        self.events: list[tuple[str, object]] = []  # arrival order of frames and states
+        self._lock = threading.Lock()
+        self._subs = [
+            self.session.declare_subscriber(KEYS.robot_state(robot_id), self._on_state),
+            self.session.declare_subscriber(KEYS.robot_frame(robot_id), self._on_frame),
+            self.session.declare_subscriber(KEYS.status("robot-agent", robot_id), self._on_status),
+        ]
+
+    def _on_state(self, sample) -> None:  # noqa: ANN001
+        msg = decode(sample.payload.to_bytes(), RobotState)
+        with self._lock:
+            self.states.append(msg)
+            self.events.append(("state", msg))
+
+    def _on_frame(self, sample) -> None:  # noqa: ANN001
+        frame = decode_frame_sample(sample)
+        with self._lock:
+            self.frames.append(frame)
+            self.events.append(("frame", frame))
+
+    def _on_status(self, sample) -> None:  # noqa: ANN001
+        try:
+            msg = decode(sample.payload.to_bytes(), Status)
+        except DecodeError:
+            return
+        with self._lock:
+            self.statuses.append(msg)
+
+    def send(self, payload: bytes) -> None:
+        self.session.put(KEYS.robot_goal(self.robot_id), payload)
+
+    def goal(self, goal_id: str, x: float, y: float, yaw: float = 0.0, vp_id: int | None = None,
+             robot_id: str | None = None) -> None:
+        self.send(encode(NbvGoal(goal_id=goal_id, robot_id=robot_id or self.robot_id, stamp_ns=time.time_ns(),
+                                 x=x, y=y, yaw_rad=yaw, vp_id=vp_id)))
+
+    def query_viewpoints(self, timeout: float = 5.0) -> ViewpointSet | None:
+        for reply in self.session.get(KEYS.robot_viewpoints(self.robot_id), timeout=timeout):
+            if reply.ok is not None:
+                return decode(reply.ok.payload.to_bytes(), ViewpointSet)
+        return None
+
+    def state_where(self, pred) -> RobotState | None:  # noqa: ANN001
+        with self._lock:
+            return next((s for s in self.states if pred(s)), None)
+
+    def counter(self, name: str) -> float:
+        with self._lock:
+            return max((s.counters.get(name, 0.0) for s in self.statuses), default=0.0)
+
+    def close(self) -> None:
+        for s in self._subs:
+            s.undeclare()
+        self.session.close()
+
+
+@pytest.fixture
+def client_factory():
+    made: list[RobotClient] = []
+
+    def make(router: str) -> RobotClient:
+        c = RobotClient(router)
+        made.append(c)
+        return c
+
+    yield make
+    for c in made:
+        c.close()
+
+
+def kinematic_config(path: Path, router: str, body_extra: str = "", extra: str = "") -> Path:
+    path.write_text(
+        f"""id = "{RID}"
+state_period_s = 0.5
+viewpoints_period_s = 1.0
+status_period_s = 0.2
+{extra}
+[body]
+type = "kinematic"
+bounds_m = [0.0, 0.0, 6.0, 4.0]
+obstacles = [[2.5, 0.0, 3.5, 2.5]]
+start = [1.0, 1.0, 0.0]
+speed_mps = 1.0
+turn_rate_dps = 180.0
+viewpoint_spacing_m = 1.0
+odom_trans_sigma = 0.01
+odom_yaw_sigma = 0.005
+{body_extra}
+[frames]
+moving_rate_hz = 5.0
+[motion]
+tick_hz = 50.0
+time_scale = 4.0
+[zenoh]
+mode = "client"
+connect = ["{router}"]
+"""
+    )
+    return path
+
+
+def start_agent(tmp_path: Path, router: str, procs: list[Proc], client_factory, args: tuple[str, ...] = (),
+                **kw) -> tuple[Proc, RobotClient]:
+    client = client_factory(router)
+    proc = Proc(["robot-agent", "--config", str(kinematic_config(tmp_path / "robot.toml", router, **kw)), *args])
+    procs.append(proc)
+    wait_for(lambda: client.state_where(lambda s: s.status == "idle") is not None, timeout=30,
+             what=f"an idle state; output:\n{proc.output}")
+    return proc, client
+
+
+def test_goal_drives_moving_then_arrived_with_arrival_frame(tmp_path, router, procs, client_factory):
+    proc, client = start_agent(tmp_path, router, procs, client_factory)
+    vps = client.query_viewpoints()
+    assert vps is not None and vps.robot_id == RID and len(vps.viewpoints) > 10
+    idle = client.state_where(lambda s: s.status == "idle")
+    assert idle.travel_cost_m is not None and idle.travel_cost_m.shape == (len(vps.viewpoints),)
+    # Viewpoints behind the obstacle cannot be reached in a straight line; pick a far reachable one.
+    assert np.isinf(idle.travel_cost_m).any()
+    target = next(v for v in vps.viewpoints if 2.5 < idle.travel_cost_m[v.vp_id] < np.inf
+                  and abs(v.yaw_rad - math.pi / 2) < 1e-6)
+    client.goal("g1", target.x, target.y, target.yaw_rad, vp_id=target.vp_id)
+    wait_for(lambda: client.state_where(lambda s: s.status == "arrived" and s.goal_id == "g1") is not None,
+             timeout=30, what=f"arrival; states {client.states[-2:]}; output:\n{proc.output}")
+    moving = client.state_where(lambda s: s.status == "moving" and s.goal_id == "g1")
+    arrived = client.state_where(lambda s: s.status == "arrived" and s.goal_id == "g1")
+    assert moving is not None and moving.stamp_ns < arrived.stamp_ns
+    assert moving.travel_cost_m is None
+    # Odometry noise: 1 cm per sqrt(m) over ~4 m of driving -> a few cm at most.
+    assert math.hypot(arrived.x - target.x, arrived.y - target.y) < 0.1
+    assert abs(math.remainder(arrived.yaw_rad - target.yaw_rad, 2 * math.pi)) < 0.05
+    assert arrived.steps == 1 and arrived.viewpoint_id == target.vp_id
+    assert arrived.distance_m == pytest.approx(idle.travel_cost_m[target.vp_id], abs=0.05)
+    assert arrived.travel_cost_m[target.vp_id] == pytest.approx(0.0, abs=1e-6)
+    # The arrival frame precedes the arrival state and carries the odometry pose.
+    events = list(client.events)
+    i_arrived = next(i for i, (kind, m) in enumerate(events) if kind == "state" and m.status == "arrived")
+    frames_before = [m for kind, m in events[:i_arrived] if kind == "frame"]
+    last = frames_before[-1]
+    assert np.allclose(np.asarray(last.header.T_world_cam), np.asarray(arrived.T_world_cam), atol=1e-9)
+    assert last.header.source_kind == "robot" and last.header.pose_trusted is False
+    assert last.header.pose_covariance is not None
+    assert decode_jpeg(last.jpeg).shape == (120, 160, 3)
+    assert len(frames_before) >= 3  # start frame, frames while moving, arrival frame
+
+
+def test_bad_goals_refused_garbage_counted_and_agent_carries_on(tmp_path, router, procs, client_factory):
+    proc, client = start_agent(tmp_path, router, procs, client_factory)
+    client.goal("far", 100.0, 100.0)
+    wait_for(lambda: client.state_where(lambda s: s.status == "refused" and s.goal_id == "far") is not None,
+             timeout=20, what="refusal of an off-map goal")
+    assert "outside" in client.state_where(lambda s: s.goal_id == "far").reason
+    client.goal("blocked", 3.0, 3.5 - 1.0)  # inside the obstacle
+    wait_for(lambda: client.state_where(lambda s: s.status == "refused" and s.goal_id == "blocked") is not None,
+             timeout=20, what="refusal of a goal inside an obstacle")
+    client.goal("other", 2.0, 2.0, robot_id="someone_else")
+    wait_for(lambda: client.state_where(lambda s: s.goal_id == "other") is not None, timeout=20,
+             what="refusal of a goal for another robot")
+    assert "addressed to" in client.state_where(lambda s: s.goal_id == "other").reason
+    client.goal("nan", float("nan"), 1.0)
+    wait_for(lambda: client.state_where(lambda s: s.goal_id == "nan" and s.status == "refused") is not None,
+             timeout=20, what="refusal of a NaN goal")
+    for junk in (b"", b"\x00garbage", b"\x95\xa4ARG1\xa8nbv_goal\x01\x00\x80", encode(Status(
+            role="x", node_id="y", stamp_ns=0))):
+        client.send(junk)
+    wait_for(lambda: client.counter("goals_garbage") >= 4, timeout=20, what="garbage counted")
+    assert proc.alive()
+    client.goal("ok", 1.5, 1.5, 0.0)
+    wait_for(lambda: client.state_where(lambda s: s.status == "arrived" and s.goal_id == "ok") is not None,
+             timeout=20, what="a good goal after the bad ones")
+
+
+def test_new_goal_preempts_the_current_one(tmp_path, router, procs, client_factory):
+    # Real time (1 m/s): the 2.5 m drive to "a" is still under way when "b" arrives.
+    proc, client = start_agent(tmp_path, router, procs, client_factory, args=("--time-scale", "1"))
+    client.goal("a", 1.0, 3.5, 0.0)
+    wait_for(lambda: client.state_where(lambda s: s.status == "moving" and s.goal_id == "a") is not None,
+             timeout=20, what="moving to a")
+    client.goal("b", 2.0, 1.0, 0.0)
+    wait_for(lambda: client.state_where(lambda s: s.status == "arrived" and s.goal_id == "b") is not None,
+             timeout=20, what="arrival at b")
+    assert client.state_where(lambda s: s.status == "arrived" and s.goal_id == "a") is None
+    wait_for(lambda: client.counter("goals_preempted") >= 1, timeout=10, what="goals_preempted counted")
+
+
+def test_step_budget(tmp_path, router, procs, client_factory):
+    proc, client = start_agent(tmp_path, router, procs, client_factory, extra="[budget]\nmax_steps = 1\n")
+    client.goal("g1", 1.5, 1.0, 0.0)
+    wait_for(lambda: client.state_where(lambda s: s.status == "budget_exhausted") is not None, timeout=20,
+             what="budget_exhausted after one step")
+    assert client.state_where(lambda s: s.status == "arrived" and s.goal_id == "g1") is not None
+    client.goal("g2", 2.0, 1.0, 0.0)
+    wait_for(lambda: client.state_where(lambda s: s.goal_id == "g2") is not None, timeout=20, what="g2 answered")
+    g2 = client.state_where(lambda s: s.goal_id == "g2")
+    assert g2.status == "budget_exhausted" and "budget" in g2.reason
+    assert client.state_where(lambda s: s.status == "moving" and s.goal_id == "g2") is None
