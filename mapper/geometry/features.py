@@ -1,0 +1,132 @@
+"""Sparse image features for pose refinement and registration: SIFT, ratio-test matching, epipolar check.
+
+Pure functions over arrays plus a small bounded cache object (owned by whoever uses it, never global).
+"""
+
+from __future__ import annotations
+
+from collections import OrderedDict
+from collections.abc import Hashable
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+F64 = NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class Features:
+    """Keypoints ``uv`` (K, 2) float64 in full-image pixels and their SIFT descriptors (K, 128) float32."""
+
+    uv: F64
+    desc: NDArray[np.float32]
+
+    def __len__(self) -> int:
+        return int(self.uv.shape[0])
+
+
+def to_gray(image_rgb: NDArray[np.uint8]) -> NDArray[np.uint8]:
+    """RGB uint8 to 8-bit grey."""
+    return cv2.cvtColor(np.ascontiguousarray(image_rgb), cv2.COLOR_RGB2GRAY)
+
+
+def extract_features(image_rgb: NDArray[np.uint8], max_features: int = 2000) -> Features:
+    """SIFT keypoints and descriptors of an RGB image (RootSIFT-normalised for better matching)."""
+    sift = cv2.SIFT_create(nfeatures=max_features, contrastThreshold=0.02)
+    kps, desc = sift.detectAndCompute(to_gray(image_rgb), None)
+    if desc is None or not kps:
+        return Features(np.zeros((0, 2)), np.zeros((0, 128), np.float32))
+    d = desc.astype(np.float32)
+    d /= np.maximum(d.sum(axis=1, keepdims=True), 1e-9)
+    d = np.sqrt(d)
+    return Features(np.array([k.pt for k in kps], dtype=np.float64), d)
+
+
+def match_features(a: Features, b: Features, ratio: float = 0.8) -> NDArray[np.int64]:
+    """Mutual nearest neighbours passing Lowe's ratio test: (M, 2) indices into ``a`` and ``b``."""
+    if len(a) < 2 or len(b) < 2:
+        return np.zeros((0, 2), np.int64)
+    bf = cv2.BFMatcher(cv2.NORM_L2)
+    ab = bf.knnMatch(a.desc, b.desc, k=2)
+    ba = bf.match(b.desc, a.desc)
+    back = np.full(len(b), -1, np.int64)
+    for m in ba:
+        back[m.queryIdx] = m.trainIdx
+    out = [
+        (m[0].queryIdx, m[0].trainIdx)
+        for m in ab
+        if len(m) == 2 and m[0].distance < ratio * m[1].distance and back[m[0].trainIdx] == m[0].queryIdx
+    ]
+    return np.array(out, dtype=np.int64).reshape(-1, 2)
+
+
+def normalise(uv: F64, K: F64) -> F64:
+    """Pixels to normalised image coordinates (z = 1)."""
+    return (uv - K[:2, 2]) / np.array([K[0, 0], K[1, 1]])
+
+
+def epipolar_inliers(uv_a: F64, uv_b: F64, K_a: F64, K_b: F64, thresh_px: float = 2.0) -> NDArray[np.bool_]:
+    """Inliers of an essential-matrix RANSAC between two calibrated views (all False if it fails)."""
+    n = uv_a.shape[0]
+    if n < 8:
+        return np.zeros(n, bool)
+    f = 0.5 * (K_a[0, 0] + K_b[0, 0])
+    E, mask = cv2.findEssentialMat(
+        normalise(uv_a, K_a), normalise(uv_b, K_b), np.eye(3), method=cv2.RANSAC, prob=0.999,
+        threshold=thresh_px / f,
+    )
+    if E is None or mask is None:
+        return np.zeros(n, bool)
+    return mask.reshape(-1).astype(bool)
+
+
+class LruCache:
+    """A small bounded least-recently-used cache."""
+
+    def __init__(self, capacity: int) -> None:
+        self.capacity = max(1, capacity)
+        self._d: OrderedDict[Hashable, object] = OrderedDict()
+
+    def get(self, key: Hashable) -> object | None:
+        if key in self._d:
+            self._d.move_to_end(key)
+            return self._d[key]
+        return None
+
+    def put(self, key: Hashable, value: object) -> None:
+        self._d[key] = value
+        self._d.move_to_end(key)
+        while len(self._d) > self.capacity:
+            self._d.popitem(last=False)
+
+    def __len__(self) -> int:
+        return len(self._d)
+
+
+def prior_consistent(
+    uv_a: F64, uv_b: F64, K_a: F64, K_b: F64, T_b_a: F64, depth_range_m: tuple[float, float], tol_px: float
+) -> NDArray[np.bool_]:
+    """Matches that the prior relative pose can explain: the point in view b lies within ``tol_px`` of the
+    segment that view a's ray traces in view b between the depths of ``depth_range_m``.
+
+    This removes matches on things fixed to the camera (a robot's gripper or body in view), which have
+    no image motion whatever the camera does and would otherwise pull a bundle adjustment to a
+    degenerate rotation-only solution, while the tolerance leaves room for the prior's error.
+    """
+    n = uv_a.shape[0]
+    if n == 0:
+        return np.zeros(0, bool)
+    rays = np.concatenate([normalise(uv_a, K_a), np.ones((n, 1))], axis=1)
+    ends = []
+    for d in depth_range_m:
+        p = (rays * d) @ T_b_a[:3, :3].T + T_b_a[:3, 3]
+        z = np.maximum(p[:, 2], 1e-6)
+        ends.append(p[:, :2] / z[:, None] * np.array([K_b[0, 0], K_b[1, 1]]) + K_b[:2, 2])
+    # Both ends behind camera b: no depth in range is visible there.
+    a, b = ends
+    ab = b - a
+    t = np.clip(np.sum((uv_b - a) * ab, axis=1) / np.maximum(np.sum(ab * ab, axis=1), 1e-9), 0.0, 1.0)
+    dist = np.linalg.norm(uv_b - (a + t[:, None] * ab), axis=1)
+    return dist < tol_px

@@ -1,0 +1,484 @@
+"""``mvs`` reconstructor (default, no weights): classical multi-view stereo on the CPU.
+
+Pipeline per call (a window of views, dense depth for ``targets``):
+
+1. Poses first. Odometry / recorded poses are priors, not truth: SIFT tracks across the window are
+   triangulated with the priors and a bundle adjustment refines every pose with its prior as a soft
+   constraint (which also keeps the metric scale). Surveyed calibrations (``pose_trusted``) stay fixed.
+   Views without any pose are registered by PnP + RANSAC against the triangulated tracks.
+2. Dense depth per target by plane sweep over its best neighbours (baseline, angle, overlap), census
+   cost, 4-path SGM aggregation, sub-plane refinement, over a depth range fitted to the sparse points,
+   at ~160 px width.
+3. Confidence = multi-view geometric consistency with neighbour depth maps (from this call or cached
+   from earlier calls), damped on textureless pixels; depth and confidence are upsampled edge-aware.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import cv2
+import numpy as np
+import torch
+from pydantic import BaseModel, ConfigDict, Field
+
+from mapper.geometry import bundle, features, planesweep
+from mapper.geometry.contract import FactoredReconstruction, View, factored_from_metric
+from protocol.messages import Intrinsics
+from protocol.poses import invert, rotation_angle_deg
+
+F64 = np.ndarray
+
+
+class MvsConfig(BaseModel):
+    """Options of the ``mvs`` reconstructor."""
+
+    model_config = ConfigDict(extra="forbid")
+    sweep_width: int = Field(default=160, ge=32, le=1280, description="plane-sweep resolution (width, px)")
+    output_width: int = Field(default=320, ge=32, le=4096, description="width of the returned depth maps, px")
+    n_planes: int = Field(default=64, ge=8, le=256, description="depth planes, uniform in inverse depth")
+    n_sources: int = Field(default=4, ge=1, le=8, description="neighbour views swept per target")
+    census_radius: int = Field(default=2, ge=1, le=4, description="census window radius at sweep resolution")
+    sgm_p1: float = Field(default=0.04, ge=0, description="SGM penalty for a one-plane step")
+    sgm_p2: float = Field(default=0.25, ge=0, description="SGM penalty for a larger jump (shrinks at edges)")
+    best_k_sources: int = Field(default=2, ge=1, le=8, description="average the k cheapest sources per pixel")
+    depth_min_m: float = Field(default=0.2, gt=0, description="lower clamp of the fitted depth range")
+    depth_max_m: float = Field(default=20.0, gt=0, description="upper clamp of the fitted depth range")
+    default_range_m: tuple[float, float] = Field(
+        default=(0.3, 8.0), description="depth range when too few sparse points see a view"
+    )
+    max_features: int = Field(default=2000, ge=50, description="SIFT keypoints per image")
+    ratio: float = Field(default=0.8, gt=0, lt=1, description="Lowe ratio test threshold")
+    max_pair_angle_deg: float = Field(default=80.0, description="skip matching prior views further apart")
+    refine_poses: bool = Field(default=True, description="bundle-adjust the pose priors before the sweep")
+    sigma_rot_deg: float = Field(default=2.0, gt=0, description="pose prior std-dev, rotation (deg)")
+    sigma_trans_m: float = Field(default=0.05, gt=0, description="pose prior std-dev, camera centre (m)")
+    prior_match_px: float = Field(
+        default=40.0, gt=0, description="matches farther than this from the prior's epipolar segment are dropped"
+    )
+    static_px: float = Field(
+        default=2.0, ge=0, description="matches moving less than this while the camera moved are dropped"
+    )
+    max_tracks: int = Field(default=3000, ge=10, description="cap on tracks in the bundle adjustment")
+    consistency_tol: float = Field(default=0.02, gt=0, description="relative depth tolerance of the check")
+    consistency_px: float = Field(default=1.5, gt=0, description="reprojection tolerance (sweep pixels)")
+    consistency_views: int = Field(default=2, ge=1, description="agreeing neighbours for full confidence")
+    fill_neighbours: bool = Field(
+        default=True, description="sweep neighbours without a depth map so targets can be cross-checked"
+    )
+    min_texture: float = Field(default=0.02, ge=0, description="grey std-dev (0-1) below which depth is unsure")
+    default_hfov_deg: float = Field(default=70.0, description="guessed field of view for views without intrinsics")
+    cache_size: int = Field(default=64, ge=1, description="views whose features/depth/pose are cached")
+    min_pnp_inliers: int = Field(default=25, ge=6, description="PnP inliers needed to accept an unposed view")
+    threads: int = Field(default=2, ge=1, description="torch CPU threads")
+
+
+@dataclass
+class _Prepared:
+    view: View
+    K: F64  # full resolution
+    intr: Intrinsics
+    T_prior: F64 | None
+    feats: features.Features
+
+
+def _guess_intrinsics(v: View, hfov_deg: float) -> Intrinsics:
+    h, w = v.image.shape[:2]
+    return Intrinsics.from_fov(w, h, hfov_deg)
+
+
+def _resize_gray(image: np.ndarray, width: int, height: int) -> torch.Tensor:
+    g = features.to_gray(image)
+    g = cv2.resize(g, (width, height), interpolation=cv2.INTER_AREA)
+    return torch.from_numpy(g.astype(np.float32) / 255.0)
+
+
+def _resize_rgb(image: np.ndarray, width: int, height: int) -> torch.Tensor:
+    im = cv2.resize(image, (width, height), interpolation=cv2.INTER_AREA)
+    return torch.from_numpy(im.astype(np.float32) / 255.0).permute(2, 0, 1).contiguous()
+
+
+def local_std(gray: torch.Tensor, radius: int) -> torch.Tensor:
+    """Standard deviation of grey values in a (2r+1)^2 window."""
+    k = 2 * radius + 1
+    x = gray.view(1, 1, *gray.shape)
+    m = torch.nn.functional.avg_pool2d(x, k, 1, radius, count_include_pad=False)
+    m2 = torch.nn.functional.avg_pool2d(x * x, k, 1, radius, count_include_pad=False)
+    return (m2 - m * m).clamp(min=0).sqrt()[0, 0]
+
+
+class MvsReconstructor:
+    """Classical RGB-only reconstruction: pose refinement then plane-sweep depth (see module docstring)."""
+
+    name = "mvs"
+
+    def __init__(self, **opts: Any) -> None:
+        self.config = MvsConfig(**opts)
+        self._feats = features.LruCache(self.config.cache_size)
+        self._matches = features.LruCache(self.config.cache_size * 8)
+        self._depth = features.LruCache(self.config.cache_size)  # key -> (depth at sweep res, K sweep)
+        self._pose = features.LruCache(self.config.cache_size)  # key -> refined T_world_cam
+
+    # ---- features -------------------------------------------------------------------------------------
+    def features_of(self, v: View) -> features.Features:
+        """SIFT features of a view, cached by (source_id, seq)."""
+        f = self._feats.get(v.key)
+        if f is None:
+            f = features.extract_features(v.image, self.config.max_features)
+            self._feats.put(v.key, f)
+        return f  # type: ignore[return-value]
+
+    def _verified_matches(self, a: _Prepared, b: _Prepared) -> np.ndarray:
+        key = (a.view.key, b.view.key)
+        m = self._matches.get(key)
+        if m is None:
+            m = features.match_features(a.feats, b.feats, self.config.ratio)
+            if len(m) and a.T_prior is not None and b.T_prior is not None:
+                T_b_a = invert(b.T_prior) @ a.T_prior
+                ok = np.ones(len(m), bool)
+                if rotation_angle_deg(np.eye(4), T_b_a) > 1.0 or np.linalg.norm(T_b_a[:3, 3]) > 0.01:
+                    # The camera moved, so features that did not move in the image are fixed to the camera
+                    # (robot body, gripper) and would drag the bundle adjustment to a degenerate answer.
+                    flow = np.linalg.norm(a.feats.uv[m[:, 0]] - b.feats.uv[m[:, 1]], axis=1)
+                    ok = flow > self.config.static_px
+                ok &= features.prior_consistent(
+                    a.feats.uv[m[:, 0]], b.feats.uv[m[:, 1]], a.K, b.K, T_b_a,
+                    (self.config.depth_min_m, self.config.depth_max_m), self.config.prior_match_px,
+                )
+                m = m[ok]
+            if len(m):
+                ok = features.epipolar_inliers(a.feats.uv[m[:, 0]], b.feats.uv[m[:, 1]], a.K, b.K, 2.0)
+                m = m[ok]
+            self._matches.put(key, m)
+        return m  # type: ignore[return-value]
+
+    # ---- poses ----------------------------------------------------------------------------------------
+    def _prepare(self, views: Sequence[View]) -> list[_Prepared]:
+        out = []
+        for v in views:
+            intr = v.intrinsics or _guess_intrinsics(v, self.config.default_hfov_deg)
+            prior = v.T_world_cam
+            if prior is not None and not v.pose_trusted:
+                refined = self._pose.get(v.key)
+                if refined is not None:
+                    prior = refined  # type: ignore[assignment]
+            out.append(_Prepared(v, intr.K(), intr, prior, self.features_of(v)))
+        return out
+
+    def _pairs(self, prep: list[_Prepared]) -> list[tuple[int, int]]:
+        pairs = []
+        for i in range(len(prep)):
+            for j in range(i + 1, len(prep)):
+                Ti, Tj = prep[i].T_prior, prep[j].T_prior
+                if Ti is not None and Tj is not None:
+                    ang = np.degrees(np.arccos(np.clip(Ti[:3, 2] @ Tj[:3, 2], -1, 1)))
+                    if ang > self.config.max_pair_angle_deg:
+                        continue
+                pairs.append((i, j))
+        return pairs
+
+    def refine_poses(self, prep: list[_Prepared], info: dict[str, Any]) -> tuple[list[F64 | None], np.ndarray]:
+        """Bundle-adjust the priors; register unposed views. Returns poses (None = failed) and sparse
+        world points with their observing views (for depth ranges): (P, 3) points, list per point."""
+        t0 = time.perf_counter()
+        n = len(prep)
+        pair_m = {p: self._verified_matches(prep[p[0]], prep[p[1]]) for p in self._pairs(prep)}
+        info["pair_matches"] = {f"{i}-{j}": int(len(m)) for (i, j), m in pair_m.items()}
+        posed = [i for i in range(n) if prep[i].T_prior is not None]
+        poses: list[F64 | None] = [p.T_prior for p in prep]
+        posed_pairs = {k: m for k, m in pair_m.items() if k[0] in posed and k[1] in posed}
+        tracks = bundle.build_tracks([len(p.feats) for p in prep], posed_pairs)
+        pts, obs = self._triangulate(prep, poses, tracks)
+        info["n_tracks"] = len(pts)
+        unposed = [i for i in range(n) if poses[i] is None]
+        if self.config.refine_poses and len(pts) >= 8 and len(posed) >= 2:
+            pts, obs = self._bundle(prep, poses, pts, obs, info, has_prior=[True] * n)
+        for i in unposed:
+            T, inl = self._register_against_tracks(i, prep, poses, pts, obs, pair_m)
+            info.setdefault("registered", {})[prep[i].view.source_id] = {"inliers": inl, "ok": T is not None}
+            poses[i] = T
+        if any(poses[i] is not None for i in unposed) and len(pts) >= 8:
+            has_prior = [i not in unposed for i in range(n)]
+            pts, obs = self._bundle(prep, poses, pts, obs, info, has_prior=has_prior)
+        info["t_poses_s"] = time.perf_counter() - t0
+        return poses, pts
+
+    def _triangulate(
+        self, prep: list[_Prepared], poses: list[F64 | None], tracks: list[np.ndarray]
+    ) -> tuple[np.ndarray, list[np.ndarray]]:
+        if not tracks:
+            return np.zeros((0, 3)), []
+        tracks = sorted(tracks, key=len, reverse=True)[: self.config.max_tracks]
+        Ps = [bundle.projection_matrix(p.K, T) if T is not None else None for p, T in zip(prep, poses, strict=True)]
+        pts, obs = [], []
+        for tr in tracks:
+            tr = np.array([o for o in tr if Ps[o[0]] is not None])
+            if len(tr) < 2:
+                continue
+            uvs = np.stack([prep[v].feats.uv[k] for v, k in tr])
+            X = bundle.triangulate([Ps[v] for v, _ in tr], uvs)
+            if not np.all(np.isfinite(X)):
+                continue
+            good = True
+            for (v, _), uv in zip(tr, uvs, strict=True):
+                pr, z = bundle.reproject(prep[v].K, poses[v], X[None])  # type: ignore[arg-type]
+                if z[0] <= 0 or np.linalg.norm(pr[0] - uv) > 25.0:
+                    good = False
+                    break
+            if good:
+                pts.append(X)
+                obs.append(tr)
+        return (np.array(pts).reshape(-1, 3), obs)
+
+    def _bundle(
+        self,
+        prep: list[_Prepared],
+        poses: list[F64 | None],
+        pts: np.ndarray,
+        obs: list[np.ndarray],
+        info: dict[str, Any],
+        has_prior: list[bool],
+    ) -> tuple[np.ndarray, list[np.ndarray]]:
+        idx = [i for i in range(len(prep)) if poses[i] is not None]
+        slot = {c: k for k, c in enumerate(idx)}
+        oc, op, ouv, orig = [], [], [], []
+        for p, tr in enumerate(obs):
+            for o in tr:
+                v, k = int(o[0]), int(o[1])
+                if v in slot:
+                    oc.append(slot[v])
+                    op.append(p)
+                    ouv.append(prep[v].feats.uv[k])
+                    orig.append(o)
+        prob = bundle.BundleProblem(
+            Ks=[prep[i].K for i in idx],
+            T_world_cam=[poses[i] for i in idx],  # type: ignore[misc]
+            points_world=pts,
+            obs_cam=np.array(oc, np.int64),
+            obs_pt=np.array(op, np.int64),
+            obs_uv=np.array(ouv, np.float64).reshape(-1, 2),
+            fixed=[prep[i].view.pose_trusted for i in idx],
+            has_prior=[has_prior[i] for i in idx],
+        )
+        res = bundle.bundle_adjust(prob, self.config.sigma_rot_deg, self.config.sigma_trans_m)
+        for k, i in enumerate(idx):
+            poses[i] = res.T_world_cam[k]
+        info.setdefault("ba", []).append(
+            {"rms_px_before": res.rms_px_before, "rms_px_after": res.rms_px_after, "nfev": res.n_iterations,
+             "n_obs": len(oc), "n_points": len(pts)}
+        )
+        # Drop observations that stayed far off, and points left with fewer than two views.
+        per_point: dict[int, list[np.ndarray]] = {}
+        for p, ok, o in zip(op, res.inlier_obs, orig, strict=True):
+            if ok:
+                per_point.setdefault(p, []).append(o)
+        keep = [p for p, lst in per_point.items() if len(lst) >= 2]
+        return res.points_world[keep].reshape(-1, 3), [np.array(per_point[p]) for p in keep]
+
+    def _register_against_tracks(
+        self,
+        i: int,
+        prep: list[_Prepared],
+        poses: list[F64 | None],
+        pts: np.ndarray,
+        obs: list[np.ndarray],
+        pair_m: dict[tuple[int, int], np.ndarray],
+    ) -> tuple[F64 | None, int]:
+        lookup: dict[tuple[int, int], int] = {}
+        for p, tr in enumerate(obs):
+            for v, k in tr:
+                lookup[(int(v), int(k))] = p
+        corr: dict[int, int] = {}  # query keypoint -> point
+        for (a, b), m in pair_m.items():
+            if i not in (a, b):
+                continue
+            other = b if a == i else a
+            for ka, kb in m:
+                kq, ko = (ka, kb) if a == i else (kb, ka)
+                p = lookup.get((other, int(ko)))
+                if p is not None:
+                    corr.setdefault(int(kq), p)
+        from mapper.geometry.register import pnp_pose
+
+        if len(corr) < 6:
+            return None, 0
+        kq = np.array(list(corr.keys()))
+        T, inl = pnp_pose(prep[i].feats.uv[kq], pts[np.array(list(corr.values()))], prep[i].K)
+        if T is None or inl < self.config.min_pnp_inliers:
+            return None, inl
+        return T, inl
+
+    # ---- dense ----------------------------------------------------------------------------------------
+    def _select_sources(self, r: int, prep: list[_Prepared], poses: list[F64 | None], pts: np.ndarray) -> list[int]:
+        T_r = poses[r]
+        assert T_r is not None
+        K = prep[r].K
+        w, h = prep[r].intr.width, prep[r].intr.height
+        if len(pts):
+            uv, z = bundle.reproject(K, T_r, pts)
+            vis = (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < w) & (uv[:, 1] >= 0) & (uv[:, 1] < h)
+            med = float(np.median(z[vis])) if vis.sum() >= 5 else 2.0
+        else:
+            med = 2.0
+        # Sample the reference view at its median depth to measure overlap with each candidate.
+        gu, gv = np.meshgrid(np.linspace(0, w - 1, 12), np.linspace(0, h - 1, 9))
+        rays = np.stack([(gu - K[0, 2]) / K[0, 0], (gv - K[1, 2]) / K[1, 1], np.ones_like(gu)], -1).reshape(-1, 3)
+        Xw = (rays * med) @ T_r[:3, :3].T + T_r[:3, 3]
+        scored = []
+        for s in range(len(prep)):
+            T_s = poses[s]
+            if s == r or T_s is None:
+                continue
+            uv, z = bundle.reproject(prep[s].K, T_s, Xw)
+            ws, hs = prep[s].intr.width, prep[s].intr.height
+            overlap = float(np.mean((z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < ws) & (uv[:, 1] >= 0) & (uv[:, 1] < hs)))
+            base = float(np.linalg.norm(T_s[:3, 3] - T_r[:3, 3]))
+            tri_deg = np.degrees(2 * np.arctan2(base / 2, med))
+            ang = rotation_angle_deg(T_r, T_s)
+            if overlap < 0.3 or tri_deg < 0.5 or ang > 60:
+                continue
+            # Prefer triangulation angles of ~4-20 deg, large overlap, small viewing-angle change.
+            q_tri = min(1.0, tri_deg / 4.0) * float(np.exp(-max(0.0, tri_deg - 20.0) / 10.0))
+            scored.append((overlap * q_tri * float(np.exp(-ang / 45.0)), s))
+        scored.sort(reverse=True)
+        return [s for _, s in scored[: self.config.n_sources]]
+
+    def _depth_range(
+        self, r: int, prep: list[_Prepared], poses: list[F64 | None], pts: np.ndarray
+    ) -> tuple[float, float]:
+        c = self.config
+        if len(pts) >= 10:
+            T_r = poses[r]
+            assert T_r is not None
+            uv, z = bundle.reproject(prep[r].K, T_r, pts)
+            w, h = prep[r].intr.width, prep[r].intr.height
+            vis = (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < w) & (uv[:, 1] >= 0) & (uv[:, 1] < h)
+            if vis.sum() >= 10:
+                lo, hi = np.percentile(z[vis], [2, 98])
+                lo, hi = 0.7 * lo, 1.5 * hi
+                return float(max(c.depth_min_m, lo)), float(min(c.depth_max_m, max(hi, lo * 1.5)))
+        return c.default_range_m
+
+    def _sweep(self, r: int, prep: list[_Prepared], poses: list[F64 | None], pts: np.ndarray,
+               grays: dict[int, torch.Tensor], sw: int, sh: int) -> tuple[np.ndarray, np.ndarray, list[int]]:
+        c = self.config
+        srcs = self._select_sources(r, prep, poses, pts)
+        if not srcs:
+            return np.zeros((sh, sw), np.float32), np.zeros((sh, sw), np.float32), []
+        for s in [r, *srcs]:
+            if s not in grays:
+                grays[s] = _resize_gray(prep[s].view.image, sw, sh)
+        K_r = prep[r].intr.scaled(sw, sh).K()
+        T_r = poses[r]
+        assert T_r is not None
+        lo, hi = self._depth_range(r, prep, poses, pts)
+        params = planesweep.SweepParams(c.n_planes, c.census_radius, c.sgm_p1, c.sgm_p2, c.best_k_sources)
+        depth, margin = planesweep.plane_sweep_depth(
+            grays[r], [grays[s] for s in srcs], K_r, [prep[s].intr.scaled(sw, sh).K() for s in srcs],
+            [invert(poses[s]) @ T_r for s in srcs], lo, hi, params,  # type: ignore[arg-type]
+        )
+        return depth.numpy().astype(np.float32), margin.numpy().astype(np.float32), srcs
+
+    def reconstruct(self, views: Sequence[View], targets: Sequence[int] | None = None) -> FactoredReconstruction:
+        if not views:
+            raise ValueError("reconstruct needs at least one view")
+        torch.set_num_threads(self.config.threads)
+        t_start = time.perf_counter()
+        c = self.config
+        info: dict[str, Any] = {"backend": self.name}
+        prep = self._prepare(views)
+        if all(p.T_prior is None for p in prep):
+            raise ValueError(
+                "no view has a pose prior or calibration: the metric frame is undefined "
+                "(give one view a pose, or use mapper.geometry.register.two_view_pose with a known baseline)"
+            )
+        poses, pts = self.refine_poses(prep, info)
+        n = len(views)
+        target_list = list(range(n)) if targets is None else sorted(set(targets))
+        for t in target_list:
+            if not 0 <= t < n:
+                raise ValueError(f"target {t} out of range for {n} views")
+        # Views that could not be posed get the first view's pose and no depth (confidence 0).
+        failed = [i for i in range(n) if poses[i] is None]
+        info["unposed"] = failed
+        T0 = poses[0] if poses[0] is not None else np.eye(4)
+        t_dense = time.perf_counter()
+        sw = c.sweep_width
+        grays: dict[int, torch.Tensor] = {}
+        depth_lo: dict[int, np.ndarray] = {}
+        margin_lo: dict[int, np.ndarray] = {}
+        sources: dict[int, list[int]] = {}
+        shapes = {}
+        for i in range(n):
+            h, w = views[i].image.shape[:2]
+            shapes[i] = (sw, max(8, round(h * sw / w)))
+        for r in target_list:
+            if poses[r] is None:
+                continue
+            depth_lo[r], margin_lo[r], sources[r] = self._sweep(r, prep, poses, pts, grays, *shapes[r])
+        # Neighbour depth maps for the consistency check: this call's, else cached, else swept now.
+        neigh_depth: dict[int, tuple[np.ndarray, F64]] = {}
+        for r in list(depth_lo):
+            for s in sources[r]:
+                if s in depth_lo or s in neigh_depth:
+                    continue
+                cached = self._depth.get(prep[s].view.key)
+                if cached is not None and cached[0].shape == (shapes[s][1], shapes[s][0]):  # type: ignore[index]
+                    neigh_depth[s] = cached  # type: ignore[assignment]
+        if c.fill_neighbours:
+            for r in list(depth_lo):
+                have = sum(1 for s in sources[r] if s in depth_lo or s in neigh_depth)
+                for s in sources[r]:
+                    if have >= c.consistency_views:
+                        break
+                    if s in depth_lo or s in neigh_depth:
+                        continue
+                    d, _, _ = self._sweep(s, prep, poses, pts, grays, *shapes[s])
+                    neigh_depth[s] = (d, prep[s].intr.scaled(*shapes[s]).K())
+                    have += 1
+        info["t_dense_s"] = time.perf_counter() - t_dense
+        out_depth, out_conf, out_intr = [], [], []
+        for i in range(n):
+            h, w = views[i].image.shape[:2]
+            ow = c.output_width
+            oh = max(8, round(h * ow / w))
+            intr_o = prep[i].intr.scaled(ow, oh)
+            out_intr.append(intr_o)
+            if i not in depth_lo:
+                out_depth.append(np.zeros((oh, ow), np.float32))
+                out_conf.append(np.zeros((oh, ow), np.float32))
+                continue
+            d = depth_lo[i]
+            K_lo = prep[i].intr.scaled(*shapes[i]).K()
+            nbs = []
+            for s in sources[i]:
+                if s in depth_lo:
+                    nbs.append((depth_lo[s], prep[s].intr.scaled(*shapes[s]).K(), poses[s]))
+                elif s in neigh_depth:
+                    nbs.append((neigh_depth[s][0], neigh_depth[s][1], poses[s]))
+            cnt = planesweep.consistency_count(d, K_lo, poses[i], nbs, c.consistency_tol, c.consistency_px)
+            need = max(1, min(c.consistency_views, len(nbs)))
+            conf = np.clip(cnt / need, 0.0, 1.0).astype(np.float32)
+            tex = local_std(grays[i], c.census_radius).numpy()
+            conf *= np.clip(tex / max(c.min_texture, 1e-6), 0.0, 1.0)
+            conf[d <= 0] = 0.0
+            self._depth.put(prep[i].view.key, (d, K_lo))
+            dh, ch = planesweep.joint_bilateral_upsample(
+                torch.from_numpy(d), torch.from_numpy(conf),
+                _resize_rgb(views[i].image, *shapes[i]), _resize_rgb(views[i].image, ow, oh),
+            )
+            out_depth.append(dh.numpy().astype(np.float32))
+            out_conf.append(ch.numpy().astype(np.float32))
+        for i in range(n):
+            if poses[i] is not None and not views[i].pose_trusted and views[i].T_world_cam is not None:
+                self._pose.put(views[i].key, poses[i])
+        world = [poses[i] if poses[i] is not None else T0 for i in range(n)]
+        info["sources"] = {int(k): [int(s) for s in v] for k, v in sources.items()}
+        info["T_world_cam"] = [None if p is None else np.asarray(p) for p in poses]
+        info["t_total_s"] = time.perf_counter() - t_start
+        recon = factored_from_metric(out_depth, world, out_conf, out_intr, info=info)
+        recon.info["T_world_first"] = world[0]
+        return recon

@@ -1,0 +1,275 @@
+"""Dense depth by plane-sweep stereo on the CPU with torch (pure tensor functions, no I/O).
+
+Per reference view: fronto-parallel planes uniform in inverse depth over a range fitted to the scene,
+each source image warped onto every plane, census-transform Hamming cost per source, the best half of
+the sources averaged (occlusion-robust), SGM-style aggregation along 4 scan-line paths, winner-take-all
+with a parabola fit between planes. Confidence comes later from multi-view geometric consistency
+(``consistency_count``), which measured best.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from numpy.typing import NDArray
+
+F64 = NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class SweepParams:
+    """Plane-sweep settings (see ``MvsConfig`` for their meaning)."""
+
+    n_planes: int = 64
+    census_radius: int = 2
+    p1: float = 0.04
+    p2: float = 0.25
+    best_k_sources: int = 2
+
+
+def census_bits(gray: torch.Tensor, radius: int) -> torch.Tensor:
+    """Census transform of (..., H, W): one bool per neighbour, (..., n, H, W), edge-replicated."""
+    padded = F.pad(gray.unsqueeze(-3), (radius,) * 4, mode="replicate").squeeze(-3)
+    h, w = gray.shape[-2:]
+    bits = []
+    for dy in range(-radius, radius + 1):
+        for dx in range(-radius, radius + 1):
+            if dx == 0 and dy == 0:
+                continue
+            nb = padded[..., radius + dy : radius + dy + h, radius + dx : radius + dx + w]
+            bits.append(nb > gray)
+    return torch.stack(bits, dim=-3)
+
+
+def _census_cost(warped: torch.Tensor, ref_bits: torch.Tensor, radius: int) -> torch.Tensor:
+    """Fraction of census bits that differ between each warped plane (D, H, W) and the reference."""
+    h, w = warped.shape[-2:]
+    padded = F.pad(warped.unsqueeze(1), (radius,) * 4, mode="replicate").squeeze(1)
+    cost = torch.zeros_like(warped)
+    k = 0
+    for dy in range(-radius, radius + 1):
+        for dx in range(-radius, radius + 1):
+            if dx == 0 and dy == 0:
+                continue
+            nb = padded[:, radius + dy : radius + dy + h, radius + dx : radius + dx + w]
+            cost += ((nb > warped) != ref_bits[k]).to(cost.dtype)
+            k += 1
+    return cost / k
+
+
+def warp_grid(K_ref: F64, K_src: F64, T_src_ref: F64, depths: torch.Tensor, h: int, w: int) -> torch.Tensor:
+    """Source-image pixel coordinates (D, H, W, 2) of every reference pixel on every depth plane."""
+    u = torch.arange(w, dtype=torch.float32)
+    v = torch.arange(h, dtype=torch.float32)
+    vv, uu = torch.meshgrid(v, u, indexing="ij")
+    rays = torch.stack([(uu - K_ref[0, 2]) / K_ref[0, 0], (vv - K_ref[1, 2]) / K_ref[1, 1], torch.ones_like(uu)], -1)
+    R = torch.as_tensor(T_src_ref[:3, :3], dtype=torch.float32)
+    t = torch.as_tensor(T_src_ref[:3, 3], dtype=torch.float32)
+    Rr = rays @ R.T  # (H, W, 3)
+    p = depths.view(-1, 1, 1, 1) * Rr.unsqueeze(0) + t  # (D, H, W, 3)
+    z = p[..., 2].clamp(min=1e-4)
+    us = p[..., 0] / z * float(K_src[0, 0]) + float(K_src[0, 2])
+    vs = p[..., 1] / z * float(K_src[1, 1]) + float(K_src[1, 2])
+    behind = p[..., 2] <= 1e-4
+    us = torch.where(behind, torch.full_like(us, -1e4), us)
+    return torch.stack([us, vs], dim=-1)
+
+
+def sweep_cost(
+    ref_gray: torch.Tensor,
+    src_grays: list[torch.Tensor],
+    K_ref: F64,
+    K_srcs: list[F64],
+    T_src_ref: list[F64],
+    depths: torch.Tensor,
+    params: SweepParams,
+) -> torch.Tensor:
+    """Matching cost volume (D, H, W) in [0, 1]: mean census cost of the best sources per pixel and plane."""
+    h, w = ref_gray.shape
+    ref_bits = census_bits(ref_gray, params.census_radius)
+    costs = []
+    for src, K_s, T in zip(src_grays, K_srcs, T_src_ref, strict=True):
+        hs, ws = src.shape
+        g = warp_grid(K_ref, K_s, T, depths, h, w)
+        inside = (g[..., 0] >= 0) & (g[..., 0] <= ws - 1) & (g[..., 1] >= 0) & (g[..., 1] <= hs - 1)
+        gn = torch.stack([g[..., 0] * (2.0 / (ws - 1)) - 1.0, g[..., 1] * (2.0 / (hs - 1)) - 1.0], -1)
+        warped = F.grid_sample(
+            src.view(1, 1, hs, ws), gn.view(1, -1, w, 2), mode="bilinear", padding_mode="border", align_corners=True
+        ).view(len(depths), h, w)
+        c = _census_cost(warped, ref_bits, params.census_radius)
+        # Outside the source image there is no evidence: a pessimistic cost lets other sources decide.
+        costs.append(torch.where(inside, c, torch.full_like(c, 0.6)))
+    stack = torch.stack(costs)
+    k = min(params.best_k_sources, len(costs))
+    if k < len(costs):
+        stack = torch.topk(stack, k, dim=0, largest=False).values
+    return stack.mean(dim=0)
+
+
+def _aggregate_path(cost: torch.Tensor, dim: int, reverse: bool, p1: torch.Tensor, p2: torch.Tensor) -> torch.Tensor:
+    """SGM recursion along one axis of (D, H, W); p1/p2 broadcast over the slice."""
+    n = cost.shape[dim]
+    out = torch.empty_like(cost)
+    order = range(n - 1, -1, -1) if reverse else range(n)
+    prev = None
+    big = torch.tensor(1e4, dtype=cost.dtype)
+    for i in order:
+        c = cost.select(dim, i)
+        if prev is None:
+            cur = c.clone()
+        else:
+            pmin = prev.min(dim=0, keepdim=True).values
+            up = torch.cat([prev[1:], big.expand_as(prev[:1])], 0)
+            down = torch.cat([big.expand_as(prev[:1]), prev[:-1]], 0)
+            pp2 = p2.select(dim - 1, i).unsqueeze(0) if p2.dim() > 0 else p2
+            best = torch.minimum(torch.minimum(prev, torch.minimum(up, down) + p1), pmin + pp2)
+            cur = c + best - pmin
+        out.select(dim, i).copy_(cur)
+        prev = cur
+    return out
+
+
+def sgm_aggregate(cost: torch.Tensor, ref_gray: torch.Tensor, p1: float, p2: float) -> torch.Tensor:
+    """Sum of 4-path SGM aggregation of a (D, H, W) cost; P2 shrinks across image edges."""
+    gy = torch.zeros_like(ref_gray)
+    gx = torch.zeros_like(ref_gray)
+    gx[:, 1:] = (ref_gray[:, 1:] - ref_gray[:, :-1]).abs()
+    gy[1:, :] = (ref_gray[1:, :] - ref_gray[:-1, :]).abs()
+    p1_t = torch.tensor(p1, dtype=cost.dtype)
+    # Intensities are in [0, 1]; an edge of ~0.1 halves P2 so depth may jump there.
+    p2x = p2 / (1.0 + gx / 0.1)
+    p2y = p2 / (1.0 + gy / 0.1)
+    total = _aggregate_path(cost, 2, False, p1_t, p2x)
+    total += _aggregate_path(cost, 2, True, p1_t, torch.cat([p2x[:, 1:], p2x[:, -1:]], 1))
+    total += _aggregate_path(cost, 1, False, p1_t, p2y)
+    total += _aggregate_path(cost, 1, True, p1_t, torch.cat([p2y[1:], p2y[-1:]], 0))
+    return total
+
+
+def winner_depth(agg: torch.Tensor, inv_depths: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Winner-take-all plane with a parabola fit between planes: depth (H, W) and the cost margin (H, W)
+    between the best plane and the best plane at least 2 planes away (larger = more distinctive)."""
+    d_n = agg.shape[0]
+    idx = agg.argmin(dim=0)
+    i0 = idx.clamp(1, d_n - 2)
+    c0 = agg.gather(0, i0.unsqueeze(0) - 1)[0]
+    c1 = agg.gather(0, i0.unsqueeze(0))[0]
+    c2 = agg.gather(0, i0.unsqueeze(0) + 1)[0]
+    denom = c0 - 2 * c1 + c2
+    offset = torch.where(denom > 1e-6, 0.5 * (c0 - c2) / denom.clamp(min=1e-6), torch.zeros_like(c1))
+    offset = offset.clamp(-0.5, 0.5)
+    edge = (idx == 0) | (idx == d_n - 1)
+    pos = torch.where(edge, idx.to(agg.dtype), i0.to(agg.dtype) + offset)
+    step = inv_depths[1] - inv_depths[0]
+    inv = inv_depths[0] + pos * step
+    depth = 1.0 / inv.clamp(min=1e-6)
+    planes = torch.arange(d_n).view(-1, 1, 1)
+    far = (planes - idx.unsqueeze(0)).abs() >= 2
+    second = torch.where(far, agg, torch.full_like(agg, 1e9)).min(dim=0).values
+    margin = second - agg.min(dim=0).values
+    depth = torch.where(edge, torch.zeros_like(depth), depth)
+    return depth, margin
+
+
+def plane_sweep_depth(
+    ref_gray: torch.Tensor,
+    src_grays: list[torch.Tensor],
+    K_ref: F64,
+    K_srcs: list[F64],
+    T_src_ref: list[F64],
+    depth_min_m: float,
+    depth_max_m: float,
+    params: SweepParams,
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Depth (H, W) in metres (0 where the winner sits on the range boundary) and its cost margin."""
+    inv = torch.linspace(1.0 / depth_max_m, 1.0 / depth_min_m, params.n_planes)
+    depths = 1.0 / inv
+    cost = sweep_cost(ref_gray, src_grays, K_ref, K_srcs, T_src_ref, depths, params)
+    agg = sgm_aggregate(cost, ref_gray, params.p1, params.p2)
+    return winner_depth(agg, inv)
+
+
+def consistency_count(
+    depth_ref: NDArray[np.float32],
+    K_ref: F64,
+    T_world_ref: F64,
+    neighbours: list[tuple[NDArray[np.float32], F64, F64]],
+    rel_tol: float = 0.02,
+    reproj_px: float = 1.5,
+) -> NDArray[np.int32]:
+    """How many neighbour depth maps agree with each reference pixel (forward-backward check).
+
+    A reference pixel's 3D point is projected into the neighbour; the neighbour's depth there is lifted
+    back and reprojected into the reference: it agrees when it lands within ``reproj_px`` pixels and its
+    depth is within ``rel_tol``. neighbours: (depth (h, w), K, T_world_cam) each.
+    """
+    h, w = depth_ref.shape
+    vv, uu = np.mgrid[0:h, 0:w].astype(np.float64)
+    d = depth_ref.astype(np.float64)
+    X_ref = np.stack([(uu - K_ref[0, 2]) / K_ref[0, 0] * d, (vv - K_ref[1, 2]) / K_ref[1, 1] * d, d], -1)
+    count = np.zeros((h, w), np.int32)
+    for depth_n, K_n, T_world_n in neighbours:
+        hn, wn = depth_n.shape
+        T_n_ref = np.linalg.inv(T_world_n) @ T_world_ref
+        p = X_ref @ T_n_ref[:3, :3].T + T_n_ref[:3, 3]
+        z = p[..., 2]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            un = p[..., 0] / z * K_n[0, 0] + K_n[0, 2]
+            vn = p[..., 1] / z * K_n[1, 1] + K_n[1, 2]
+        ui = np.round(un).astype(np.int64, copy=False) if np.all(np.isfinite(un)) else np.nan_to_num(
+            un, nan=-1).round().astype(np.int64)
+        vi = np.nan_to_num(vn, nan=-1).round().astype(np.int64)
+        ok = (d > 0) & (z > 1e-3) & (ui >= 0) & (ui < wn) & (vi >= 0) & (vi < hn)
+        dn = np.zeros((h, w))
+        dn[ok] = depth_n[vi[ok], ui[ok]]
+        ok &= dn > 0
+        # Lift the neighbour's depth at that pixel and bring it back into the reference view.
+        Xn = np.stack([(un - K_n[0, 2]) / K_n[0, 0] * dn, (vn - K_n[1, 2]) / K_n[1, 1] * dn, dn], -1)
+        T_ref_n = np.linalg.inv(T_n_ref)
+        q = Xn @ T_ref_n[:3, :3].T + T_ref_n[:3, 3]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            ur = q[..., 0] / q[..., 2] * K_ref[0, 0] + K_ref[0, 2]
+            vr = q[..., 1] / q[..., 2] * K_ref[1, 1] + K_ref[1, 2]
+            agree = (np.hypot(ur - uu, vr - vv) < reproj_px) & (np.abs(q[..., 2] - d) < rel_tol * d)
+        count += (ok & agree).astype(np.int32)
+    return count
+
+
+def joint_bilateral_upsample(
+    depth: torch.Tensor, conf: torch.Tensor, guide_lo: torch.Tensor, guide_hi: torch.Tensor, sigma_color: float = 0.08
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """Upsample depth and confidence (h, w) to the guide's (H, W), weighting the 3x3 low-res neighbours by
+    colour similarity to the high-res pixel (guides: (3, h, w) and (3, H, W) in [0, 1]) and by confidence,
+    so depth edges follow image edges instead of blurring across them."""
+    h, w = depth.shape
+    H, W = guide_hi.shape[-2:]
+    ys = (torch.arange(H, dtype=torch.float32) + 0.5) * h / H - 0.5
+    xs = (torch.arange(W, dtype=torch.float32) + 0.5) * w / W - 0.5
+    yi = ys.round().long().clamp(0, h - 1)
+    xi = xs.round().long().clamp(0, w - 1)
+    num_d = torch.zeros(H, W)
+    num_c = torch.zeros(H, W)
+    den = torch.zeros(H, W)
+    den_all = torch.zeros(H, W)
+    valid = (depth > 0).to(torch.float32)
+    for dy in (-1, 0, 1):
+        for dx in (-1, 0, 1):
+            yy = (yi + dy).clamp(0, h - 1)
+            xx = (xi + dx).clamp(0, w - 1)
+            g = guide_lo[:, yy][:, :, xx]
+            dist2 = (ys.view(-1, 1) - yy.view(-1, 1).float()) ** 2 + (xs.view(1, -1) - xx.view(1, -1).float()) ** 2
+            wc = torch.exp(-((g - guide_hi) ** 2).sum(0) / (2 * sigma_color**2)) * torch.exp(-dist2 / 2.0)
+            dd = depth[yy][:, xx]
+            cc = conf[yy][:, xx]
+            vv = valid[yy][:, xx]
+            wd = wc * vv * (0.05 + cc)
+            num_d += wd * dd
+            den += wd
+            num_c += wc * cc * vv
+            den_all += wc
+    depth_hi = torch.where(den > 1e-6, num_d / den.clamp(min=1e-6), torch.zeros_like(den))
+    conf_hi = num_c / den_all.clamp(min=1e-6)
+    return depth_hi, conf_hi
