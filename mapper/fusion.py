@@ -181,7 +181,8 @@ class LiftStats:
         return self.dropped_small_mask + self.dropped_no_depth + self.dropped_noise
 
 
-def _resize_mask(mask: np.ndarray, h: int, w: int) -> np.ndarray:
+def resize_mask(mask: np.ndarray, h: int, w: int) -> np.ndarray:
+    """``mask`` resized to (h, w) by nearest neighbour (bool)."""
     if mask.shape == (h, w):
         return mask
     import cv2
@@ -212,7 +213,7 @@ def lift_detections(
         if int(det.mask.sum()) < cfg.min_mask_pixels:
             stats.dropped_small_mask += 1
             continue
-        m = _resize_mask(det.mask, h, w) & valid
+        m = resize_mask(det.mask, h, w) & valid
         if int(m.sum()) < cfg.min_points:
             stats.dropped_no_depth += 1
             continue

@@ -47,15 +47,28 @@ class Detection:
     instance_key: int = 0
 
 
+@dataclass(frozen=True)
+class ViewGeometry:
+    """A view's reconstruction at the geometry's resolution (h, w), which may be below the image's.
+
+    points_world: (h, w, 3) float32 metres, world z up; depth_m: (h, w) float32 z-depth (0 = none);
+    confidence: (h, w) float32 in [0, 1].
+    """
+
+    points_world: np.ndarray
+    depth_m: np.ndarray
+    confidence: np.ndarray
+
+
 class Segmenter(Protocol):
     """Finds instance masks in one view."""
 
     name: str
     description: str
 
-    def segment(self, view: View, depth_m: np.ndarray | None = None) -> list[Mask2D]:
-        """Masks of ``view.image``; ``depth_m`` (any resolution, 0 = unknown) may guide class-agnostic
-        backends (depth edges, plane removal)."""
+    def segment(self, view: View, geometry: ViewGeometry | None = None) -> list[Mask2D]:
+        """Masks of ``view.image``; the view's reconstruction may guide class-agnostic backends (depth
+        edges, plane removal). Masks may come at the geometry's resolution instead of the image's."""
         ...
 
 

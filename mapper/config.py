@@ -1,0 +1,120 @@
+"""Configuration of the mapper: the in-process core (geometry, perception, fusion, relations) and the
+``argus mapper`` process around it (Zenoh, publishing, persistence, Rerun)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field
+
+from mapper.fusion import FusionConfig
+from mapper.relations import RelationConfig
+from protocol.session import ZenohSettings
+
+
+class GeometryConfig(BaseModel):
+    """Which reconstructor turns views into metric geometry."""
+
+    model_config = ConfigDict(extra="forbid")
+    backend: str = Field(default="mvs", description="reconstructor: mvs (RGB only), oracle (sim truth), mapanything")
+    options: dict[str, Any] = Field(default_factory=dict, description="backend options (see its config)")
+
+
+class PerceptionConfig(BaseModel):
+    """Which 2D perception backends find, describe and label objects."""
+
+    model_config = ConfigDict(extra="forbid")
+    segmenter: str = Field(
+        default="classical", description="masks: classical (no weights), sim (ORACLE semantic camera), sam"
+    )
+    segmenter_options: dict[str, Any] = Field(default_factory=dict, description="segmenter options")
+    embedder: str = Field(
+        default="classical", description="labels/descriptors: classical (appearance), sim (ORACLE labels), clip"
+    )
+    embedder_options: dict[str, Any] = Field(default_factory=dict, description="embedder options")
+
+
+class KeyframeConfig(BaseModel):
+    """Keyframe selection (motion / novelty) and the window of views handed to geometry."""
+
+    model_config = ConfigDict(extra="forbid")
+    min_translation_m: float = Field(default=0.3, ge=0.0, description="camera motion that makes a new keyframe")
+    min_rotation_deg: float = Field(default=20.0, ge=0.0, description="camera rotation that makes a new keyframe")
+    novelty_threshold: float = Field(
+        default=0.08, ge=0.0, description="mean abs. change of a 32x24 grey thumbnail (0..1) that counts as new"
+    )
+    refresh_s: float = Field(
+        default=30.0, ge=0.0, description="a static camera is reconsidered after this long (if its image changed)"
+    )
+    max_keyframes: int = Field(default=32, ge=2, description="keyframes kept for windows (oldest dropped)")
+    window_neighbours: int = Field(default=3, ge=0, description="neighbour keyframes per geometry window")
+    neighbour_max_distance_m: float = Field(default=3.0, gt=0.0, description="farthest neighbour camera")
+    neighbour_max_angle_deg: float = Field(default=70.0, gt=0.0, description="largest viewing-direction change")
+    neighbour_min_baseline_m: float = Field(
+        default=0.05, ge=0.0, description="neighbours closer than this (and barely rotated) add no parallax"
+    )
+
+
+class PointMapConfig(BaseModel):
+    """The global voxel map published for planners."""
+
+    model_config = ConfigDict(extra="forbid")
+    voxel_m: float = Field(default=0.08, gt=0.0, description="voxel size, metres")
+    max_voxels: int = Field(default=300_000, ge=1, description="memory bound (least observed dropped)")
+    min_confidence: float = Field(default=0.3, ge=0.0, le=1.0, description="depth confidence needed")
+    max_depth_m: float = Field(default=8.0, gt=0.0, description="farther points are not mapped")
+
+
+class MapperCoreConfig(BaseModel):
+    """The in-process mapping pipeline (no I/O)."""
+
+    model_config = ConfigDict(extra="forbid")
+    geometry: GeometryConfig = Field(default_factory=GeometryConfig, description="reconstructor")
+    perception: PerceptionConfig = Field(default_factory=PerceptionConfig, description="2D perception")
+    fusion: FusionConfig = Field(default_factory=FusionConfig, description="3D fusion of detections")
+    relations: RelationConfig = Field(default_factory=RelationConfig, description="relation edge thresholds")
+    keyframes: KeyframeConfig = Field(default_factory=KeyframeConfig, description="keyframes and windows")
+    point_map: PointMapConfig = Field(default_factory=PointMapConfig, description="global point map")
+    node_embeddings: bool = Field(default=True, description="publish each node's descriptor")
+    torch_threads: int = Field(default=2, ge=1, le=64, description="torch CPU threads")
+
+
+class PublishConfig(BaseModel):
+    """Publishing rates of the process."""
+
+    model_config = ConfigDict(extra="forbid")
+    snapshot_period_s: float = Field(default=2.0, ge=0.0, description="at most one snapshot per period (0: each)")
+    point_map_period_s: float = Field(default=2.0, ge=0.0, description="at most one point map per period")
+    point_map_max_points: int = Field(default=100_000, ge=1, description="points per published map")
+
+
+class RerunConfig(BaseModel):
+    """Optional Rerun output (points, labelled boxes, edges, camera frusta with images)."""
+
+    model_config = ConfigDict(extra="forbid")
+    file: Path | None = Field(default=None, description="write a .rrd recording here")
+    serve: bool = Field(default=False, description="serve a live viewer on 127.0.0.1 only (rerun CLI subprocess)")
+    port: int = Field(default=9876, ge=1, le=65535, description="port of the served viewer (127.0.0.1)")
+    image_width: int = Field(default=160, ge=16, description="logged images are downscaled to this width")
+
+
+class MapperConfig(MapperCoreConfig):
+    """``argus mapper``: the core plus Zenoh I/O, persistence and logging."""
+
+    id: str = Field(default="mapper", description="process id (liveliness and status keys)")
+    site: str = Field(default="default", description="Argus site name")
+    key_prefix: str = Field(default="argus", description="key expression prefix")
+    zenoh: ZenohSettings = Field(default_factory=ZenohSettings, description="how to join Zenoh")
+    publish: PublishConfig = Field(default_factory=PublishConfig, description="publishing rates")
+    state_dir: Path | None = Field(default=None, description="persist the graph here; a restart resumes it")
+    save_period_s: float = Field(default=5.0, ge=0.0, description="at most one save per period (0: each update)")
+    ring_depth: int = Field(default=2, ge=1, le=64, description="frames buffered per source (newest kept)")
+    max_sources: int = Field(default=64, ge=1, description="sources accepted (memory bound)")
+    oracle_wait_s: float = Field(
+        default=1.0, ge=0.0, description="how long a frame waits for its ORACLE sample (sim backends only)"
+    )
+    max_oracle_cache: int = Field(default=64, ge=1, description="ORACLE samples buffered (memory bound)")
+    status_period_s: float = Field(default=1.0, gt=0.0, description="status publishing period")
+    rerun: RerunConfig = Field(default_factory=RerunConfig, description="Rerun output")
+    log_level: Literal["DEBUG", "INFO", "WARNING", "ERROR"] = Field(default="INFO", description="log level")

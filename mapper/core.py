@@ -1,0 +1,208 @@
+"""``MapperCore``: the in-process mapping pipeline, with no Zenoh.
+
+``ingest(view)`` runs keyframe selection, geometry on a window of views (the new keyframe plus its best
+neighbour keyframes), 2D perception, 3D fusion and relation edges, and returns the resulting
+:class:`GraphDelta` (or None when the view was not a keyframe or changed nothing). ``argus mapper``
+(mapper/node.py) wraps it; benchmarks and the closed-loop explorer use it directly.
+
+Thread safety: one thread calls ``ingest``; ``snapshot``, ``query``, ``point_map`` and ``state`` may be
+called from other threads (they take the graph lock, which ``ingest`` holds only while committing).
+"""
+
+from __future__ import annotations
+
+import logging
+import threading
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+import cv2
+import numpy as np
+
+from mapper.config import MapperCoreConfig
+from mapper.fusion import LiftStats, ObjectMap, lift_detections
+from mapper.geometry.contract import Reconstructor, View, anchor_pose, compose
+from mapper.graph_store import GraphStore
+from mapper.keyframes import KeyframeSelector, KeyframeStore
+from mapper.perception.base import Embedder, Segmenter, ViewGeometry
+from mapper.pointmap import VoxelMap
+from mapper.relations import compute_edges
+from protocol.messages import GraphDelta, GraphNode, GraphSnapshot, PointMap
+from protocol.query import GraphQuery
+
+log = logging.getLogger(__name__)
+
+STATE_FORMAT = 1
+
+
+@dataclass
+class KeyframeResult:
+    """What the last keyframe did (for logs, Rerun and benchmarks)."""
+
+    view: View
+    T_world_cam: np.ndarray
+    geometry: ViewGeometry
+    n_detections: int
+    lift: LiftStats
+    timings_s: dict[str, float] = field(default_factory=dict)
+
+
+class MapperCore:
+    """Keyframes -> geometry -> perception -> fusion -> edges -> versioned graph."""
+
+    def __init__(
+        self,
+        config: MapperCoreConfig | None = None,
+        reconstructor: Reconstructor | None = None,
+        segmenter: Segmenter | None = None,
+        embedder: Embedder | None = None,
+    ) -> None:
+        self.config = cfg = config or MapperCoreConfig()
+        if reconstructor is None:
+            from mapper.geometry.registry import make_reconstructor
+
+            reconstructor = make_reconstructor(cfg.geometry.backend, **cfg.geometry.options)
+        if segmenter is None or embedder is None:
+            from mapper.perception.registry import make_embedder, make_segmenter
+
+            segmenter = segmenter or make_segmenter(cfg.perception.segmenter, **cfg.perception.segmenter_options)
+            embedder = embedder or make_embedder(cfg.perception.embedder, **cfg.perception.embedder_options)
+        self.reconstructor, self.segmenter, self.embedder = reconstructor, segmenter, embedder
+        self.objects = ObjectMap(cfg.fusion)
+        self.store = GraphStore()
+        self.voxels = VoxelMap(cfg.point_map.voxel_m, cfg.point_map.max_voxels)
+        self.selector = KeyframeSelector(cfg.keyframes)
+        self.keyframes = KeyframeStore(cfg.keyframes)
+        self.lock = threading.RLock()
+        self.counters: dict[str, float] = {}
+        self.last: KeyframeResult | None = None
+        self.update_times_s: list[float] = []
+
+    def _count(self, name: str, value: float = 1.0) -> None:
+        self.counters[name] = self.counters.get(name, 0.0) + value
+
+    # -- pipeline --------------------------------------------------------------------------------
+    def ingest(self, view: View, force_keyframe: bool = False) -> GraphDelta | None:
+        """Process one view; returns the graph delta it caused, if any. Bad views are counted, not raised."""
+        self._count("views_in")
+        if not (self.selector.consider(view) or force_keyframe):
+            self._count("views_not_keyframe")
+            return None
+        self._count("keyframes")
+        t0 = time.perf_counter()
+        try:
+            delta = self._process(view)
+        except Exception as e:  # noqa: BLE001 - one bad view must never stop the mapper
+            self._count("keyframe_errors")
+            log.warning("keyframe %s#%d failed: %s: %s", view.source_id, view.seq, type(e).__name__, e)
+            return None
+        dt = time.perf_counter() - t0
+        self.update_times_s.append(dt)
+        del self.update_times_s[:-256]
+        self.counters["last_update_s"] = dt
+        return delta
+
+    def _window(self, view: View) -> tuple[list[View], int]:
+        nbrs = self.keyframes.neighbours(view)
+        if view.T_world_cam is not None or self.config.geometry.backend == "oracle" or not nbrs:
+            return [view, *nbrs], 0
+        # An unposed view is registered against posed neighbours: put one first to anchor the window.
+        return [*nbrs, view], len(nbrs)
+
+    def _process(self, view: View) -> GraphDelta | None:
+        times: dict[str, float] = {}
+        t = time.perf_counter()
+        views, target = self._window(view)
+        recon = self.reconstructor.reconstruct(views, targets=[target])
+        try:
+            T_world_first = anchor_pose(recon, views)
+        except ValueError:
+            self._count("views_unposed_skipped")
+            return None
+        geo = compose(recon, T_world_first)
+        times["geometry"] = time.perf_counter() - t
+        vg = ViewGeometry(
+            points_world=geo.points_world[target], depth_m=geo.depth_m[target], confidence=geo.confidence[target]
+        )
+        T_world_cam = geo.T_world_cam[target]
+        self.keyframes.add(view, T_world_cam)
+        t = time.perf_counter()
+        masks = self.segmenter.segment(view, vg)
+        dets = self.embedder.embed(view, masks)
+        times["perception"] = time.perf_counter() - t
+        t = time.perf_counter()
+        objs, lift = lift_detections(dets, vg.points_world, vg.confidence, vg.depth_m, self.config.fusion)
+        self._count("detections", len(dets))
+        self._count("detections_dropped_no_depth", lift.dropped_no_depth)
+        self._count("detections_dropped_small", lift.dropped_small_mask)
+        self._count("detections_dropped_noise", lift.dropped_noise)
+        res = self.objects.integrate(objs, view.source_id, view.stamp_ns or time.time_ns())
+        self._count("nodes_created", res.created)
+        self._count("nodes_merged", res.merged_duplicates)
+        self._count("nodes_pruned", res.pruned)
+        self._add_points(view, vg)
+        times["fusion"] = time.perf_counter() - t
+        t = time.perf_counter()
+        edges = compute_edges(self.objects.boxes(), self.config.relations)
+        ups = self.objects.messages(sorted(res.changed), with_embedding=self.config.node_embeddings)
+        with self.lock:
+            delta = self.store.commit(ups, res.removed, edges, view.stamp_ns or time.time_ns())
+        times["edges"] = time.perf_counter() - t
+        self.last = KeyframeResult(view, T_world_cam, vg, len(dets), lift, times)
+        return delta
+
+    def _add_points(self, view: View, vg: ViewGeometry) -> None:
+        pm = self.config.point_map
+        d = vg.depth_m
+        ok = np.isfinite(d) & (d > 0) & (d <= pm.max_depth_m) & (vg.confidence >= pm.min_confidence)
+        if not ok.any():
+            return
+        h, w = d.shape
+        img = view.image if view.image.shape[:2] == (h, w) else cv2.resize(view.image, (w, h), cv2.INTER_AREA)
+        with self.lock:
+            self.voxels.add(vg.points_world[ok], img[ok])
+
+    # -- reads (any thread) ------------------------------------------------------------------------
+    @property
+    def version(self) -> int:
+        return self.store.version
+
+    def snapshot(self) -> GraphSnapshot:
+        with self.lock:
+            return self.store.snapshot()
+
+    def nodes(self) -> list[GraphNode]:
+        with self.lock:
+            return [self.store.nodes[k] for k in sorted(self.store.nodes)]
+
+    def query(self, q: GraphQuery) -> list[GraphNode]:
+        with self.lock:
+            return self.store.query(q)
+
+    def point_map(self, max_points: int | None = None) -> PointMap:
+        with self.lock:
+            return self.voxels.message(self.store.version, time.time_ns(), max_points)
+
+    # -- persistence -----------------------------------------------------------------------------
+    def state(self) -> dict[str, Any]:
+        """Everything a restart needs to resume the same graph (node ids, version, clouds)."""
+        with self.lock:
+            return {
+                "format": STATE_FORMAT,
+                "store": self.store.state(),
+                "objects": self.objects.state(),
+                "voxels": self.voxels.state(),
+            }
+
+    def load_state(self, state: dict[str, Any]) -> None:
+        """Resume from :meth:`state` output; raises ``ValueError`` when it is unusable."""
+        if state.get("format") != STATE_FORMAT:
+            raise ValueError(f"state format {state.get('format')!r} is not {STATE_FORMAT}")
+        with self.lock:
+            try:
+                self.store.load_state(state["store"])
+                self.objects.load_state(state["objects"])
+                self.voxels.load_state(state["voxels"])
+            except (KeyError, TypeError) as e:
+                raise ValueError(f"malformed state: {e!r}") from None

@@ -1,0 +1,381 @@
+"""The ``argus mapper`` process: Zenoh I/O around :class:`mapper.core.MapperCore`.
+
+Subscribes to every frame key of the site (a bounded newest-frames ring per source, so a slow mapper
+always works on fresh frames) and, when an ORACLE backend is configured, to the oracle keys; decodes
+the JPEGs; feeds the core; publishes each GraphDelta, each changed node under ``graph/node/<id>``
+(deleting removed ones), a GraphSnapshot and the PointMap at bounded rates; answers queries on
+``graph/**`` (``graph/snapshot``, ``graph/nodes?label=..;near=..;radius=..;id=..;since_version=..``,
+``graph/node/<id>``); reports status; persists the graph atomically so a restart resumes it.
+"""
+
+from __future__ import annotations
+
+import collections
+import logging
+import threading
+import time
+from typing import TYPE_CHECKING, Any
+
+import numpy as np
+
+from mapper.config import MapperConfig
+from mapper.core import MapperCore
+from mapper.geometry.contract import OracleData, View
+from protocol.codec import DecodeError, encode
+from protocol.jpeg import JpegError, decode_jpeg
+from protocol.keys import Keys
+from protocol.messages import GraphDelta, GraphSnapshot, OracleFrame
+from protocol.oracle import decode_u16_png, png_to_depth
+from protocol.query import GraphQuery
+from protocol.session import open_session
+from protocol.transport import (
+    Counters,
+    Frame,
+    LatestSlots,
+    StatusReporter,
+    declare_message_publisher,
+    decode_frame_sample,
+    decode_message_sample,
+)
+
+if TYPE_CHECKING:
+    import zenoh
+
+log = logging.getLogger(__name__)
+ROLE = "mapper"
+
+
+def needs_oracle(config: MapperConfig) -> bool:
+    """Whether the configured backends read simulator ground truth (ORACLE keys)."""
+    from mapper.perception.registry import ORACLE_BACKENDS
+
+    p = config.perception
+    return config.geometry.backend == "oracle" or p.segmenter in ORACLE_BACKENDS or p.embedder in ORACLE_BACKENDS
+
+
+def oracle_data(msg: OracleFrame) -> OracleData:
+    """Decode an OracleFrame's PNGs (raises JpegError on corrupt images)."""
+    depth = png_to_depth(msg.depth_png) if msg.depth_png is not None else None
+    ids = decode_u16_png(msg.ids_png).astype(np.int32) if msg.ids_png is not None else None
+    if depth is None:
+        depth = np.zeros(ids.shape if ids is not None else (1, 1), dtype=np.float32)
+    labels: dict[int, str] = {}
+    for k, v in msg.labels.items():
+        try:
+            labels[int(k)] = v
+        except ValueError:
+            continue
+    return OracleData(
+        depth_m=depth, T_world_cam_true=np.asarray(msg.T_world_cam_true), instance_id=ids, labels=labels
+    )
+
+
+class MapperNode:
+    """One mapper process. ``run(stop)`` blocks until ``stop`` is set; tests may call it directly."""
+
+    def __init__(self, config: MapperConfig, core: MapperCore | None = None) -> None:
+        self.config = config
+        self.keys = Keys(config.site, config.key_prefix)
+        self.core = core or MapperCore(config)
+        self.counters = Counters()
+        self.slots: LatestSlots[Frame] = LatestSlots(depth=config.ring_depth, max_keys=config.max_sources)
+        self.needs_oracle = needs_oracle(config)
+        self._oracle: collections.OrderedDict[tuple[str, int], OracleFrame] = collections.OrderedDict()
+        self._oracle_lock = threading.Lock()
+        self._pending: collections.deque[tuple[Frame, float]] = collections.deque(maxlen=2 * config.max_sources)
+        self._session: zenoh.Session | None = None
+        self._rerun: Any = None
+        self._last_snapshot = (-1, 0.0)
+        self._last_map = (-1, 0.0)
+        self._last_save = (-1, 0.0)
+        self._restore()
+
+    # -- persistence -----------------------------------------------------------------------------
+    def _restore(self) -> None:
+        if self.config.state_dir is None:
+            return
+        from mapper.persistence import load_state
+
+        state = load_state(self.config.state_dir)
+        if state is None:
+            return
+        try:
+            self.core.load_state(state)
+        except ValueError as e:
+            log.error("cannot resume from %s: %s; starting empty", self.config.state_dir, e)
+            return
+        self._last_save = (self.core.version, time.monotonic())
+        log.info("resumed graph version %d with %d nodes", self.core.version, len(self.core.store.nodes))
+
+    def save(self, force: bool = False) -> None:
+        if self.config.state_dir is None:
+            return
+        version, when = self._last_save
+        now = time.monotonic()
+        if self.core.version == version or (not force and now - when < self.config.save_period_s):
+            return
+        from mapper.persistence import save_state
+
+        try:
+            save_state(self.config.state_dir, self.core.state())
+            self._last_save = (self.core.version, now)
+            self.counters.add("saves")
+        except OSError as e:
+            self.counters.add("save_errors")
+            log.error("saving the graph to %s failed: %s", self.config.state_dir, e)
+
+    # -- subscriptions (Zenoh threads) -------------------------------------------------------------
+    def _on_frame(self, sample: zenoh.Sample) -> None:
+        self.counters.add("frames_in")
+        try:
+            frame = decode_frame_sample(sample)
+            kind, source_id = self.keys.parse_frame(frame.key)
+            if source_id != frame.header.source_id or kind != frame.header.source_kind:
+                raise DecodeError(f"header names {frame.header.source_id!r}, key {frame.key!r}")
+        except (DecodeError, ValueError) as e:
+            self.counters.add("header_errors")
+            log.debug("bad frame sample on %s: %s", sample.key_expr, e)
+            return
+        self.slots.put(frame.key, frame)
+
+    def _on_oracle(self, sample: zenoh.Sample) -> None:
+        try:
+            msg = decode_message_sample(sample, OracleFrame)
+        except DecodeError as e:
+            self.counters.add("oracle_errors")
+            log.debug("bad oracle sample on %s: %s", sample.key_expr, e)
+            return
+        with self._oracle_lock:
+            self._oracle[(msg.source_id, msg.seq)] = msg
+            while len(self._oracle) > self.config.max_oracle_cache:
+                self._oracle.popitem(last=False)
+
+    def _on_query(self, query: zenoh.Query) -> None:
+        try:
+            self._answer(query)
+        except Exception as e:  # noqa: BLE001 - a bad query gets an error reply, never a crash
+            self.counters.add("query_errors")
+            try:
+                query.reply_err(f"{type(e).__name__}: {e}")
+            except Exception:  # noqa: BLE001 - the querier may be gone
+                pass
+
+    def _answer(self, query: zenoh.Query) -> None:
+        import zenoh
+
+        t0 = time.perf_counter()
+        self.counters.add("queries")
+        key = str(query.key_expr)
+        params = str(query.parameters)
+        if key == self.keys.graph_snapshot:
+            query.reply(key, encode(self.core.snapshot()))
+        elif key == self.keys.graph_nodes:
+            q = GraphQuery.from_parameters(params)
+            nodes = self.core.query(q)
+            ids = {n.node_id for n in nodes}
+            snap = self.core.snapshot()
+            edges = [e for e in snap.edges if e.subject_id in ids and e.object_id in ids]
+            sel = GraphSnapshot(version=snap.version, stamp_ns=snap.stamp_ns, nodes=nodes, edges=edges)
+            query.reply(key, encode(sel))
+        else:
+            asked = zenoh.KeyExpr(key)
+            try:
+                node_id = self.keys.parse_node(key)
+            except ValueError:
+                node_id = None
+            if node_id is not None:
+                for n in self.core.query(GraphQuery(id=node_id)):
+                    query.reply(key, encode(n))
+            else:
+                # A wildcard such as graph/**: answer with everything it covers, each under its own key.
+                if asked.intersects(zenoh.KeyExpr(self.keys.graph_snapshot)):
+                    query.reply(self.keys.graph_snapshot, encode(self.core.snapshot()))
+                for n in self.core.nodes():
+                    nk = self.keys.graph_node(n.node_id)
+                    if asked.intersects(zenoh.KeyExpr(nk)):
+                        query.reply(nk, encode(n))
+        self.counters.set("last_query_ms", (time.perf_counter() - t0) * 1e3)
+
+    # -- frames -> views -----------------------------------------------------------------------------
+    def _take_oracle(self, frame: Frame) -> OracleFrame | None:
+        with self._oracle_lock:
+            return self._oracle.pop((frame.header.source_id, frame.header.seq), None)
+
+    def _to_view(self, frame: Frame, oracle: OracleFrame | None) -> View | None:
+        h = frame.header
+        try:
+            rgb = decode_jpeg(frame.jpeg)
+        except JpegError as e:
+            self.counters.add("decode_errors")
+            log.debug("bad JPEG from %s#%d: %s", h.source_id, h.seq, e)
+            return None
+        if rgb.shape[:2] != (h.height, h.width):
+            self.counters.add("decode_errors")
+            log.debug("JPEG from %s is %s, header says %dx%d", h.source_id, rgb.shape, h.width, h.height)
+            return None
+        try:
+            od = oracle_data(oracle) if oracle is not None else None
+            return View(
+                image=rgb,
+                source_id=h.source_id,
+                intrinsics=h.intrinsics,
+                T_world_cam=None if h.T_world_cam is None else np.asarray(h.T_world_cam),
+                pose_trusted=h.pose_trusted,
+                stamp_ns=h.stamp_ns,
+                seq=h.seq,
+                oracle=od,
+            )
+        except (ValueError, JpegError) as e:
+            self.counters.add("decode_errors")
+            log.debug("unusable frame from %s#%d: %s", h.source_id, h.seq, e)
+            return None
+
+    def _ready_frames(self, timeout_s: float) -> list[tuple[Frame, OracleFrame | None]]:
+        """Frames ready to process (with their ORACLE sample when one is needed)."""
+        fresh = [f for _, f in self.slots.take_all(timeout=timeout_s)]
+        if not self.needs_oracle:
+            return [(f, None) for f in fresh]
+        now = time.monotonic()
+        for f in fresh:
+            if len(self._pending) == self._pending.maxlen:
+                self.counters.add("frames_dropped")
+            self._pending.append((f, now + self.config.oracle_wait_s))
+        ready, waiting = [], collections.deque(maxlen=self._pending.maxlen)
+        while self._pending:
+            f, deadline = self._pending.popleft()
+            o = self._take_oracle(f)
+            if o is not None:
+                ready.append((f, o))
+            elif now >= deadline:
+                self.counters.add("frames_without_oracle")
+            else:
+                waiting.append((f, deadline))
+        self._pending = waiting
+        return ready
+
+    # -- publishing ----------------------------------------------------------------------------------
+    def _publish_delta(self, session: zenoh.Session, pubs: dict[str, Any], delta: GraphDelta) -> None:
+        pubs["delta"].put(encode(delta))
+        for n in delta.upserted:
+            session.put(self.keys.graph_node(n.node_id), encode(n))
+        for node_id in delta.removed:
+            session.delete(self.keys.graph_node(node_id))
+        self.counters.add("deltas")
+
+    def _publish_periodic(self, pubs: dict[str, Any], force: bool = False) -> None:
+        now = time.monotonic()
+        version = self.core.version
+        pc = self.config.publish
+        v, when = self._last_snapshot
+        if version != v and (force or now - when >= pc.snapshot_period_s):
+            pubs["snapshot"].put(encode(self.core.snapshot()))
+            self._last_snapshot = (version, now)
+            self.counters.add("snapshots")
+        v, when = self._last_map
+        if version != v and (force or now - when >= pc.point_map_period_s) and len(self.core.voxels):
+            pubs["map"].put(encode(self.core.point_map(pc.point_map_max_points)))
+            self._last_map = (version, now)
+            self.counters.add("point_maps")
+
+    # -- main loop -------------------------------------------------------------------------------------
+    def _extra_counters(self) -> dict[str, float]:
+        out = dict(self.core.counters)
+        out["frames_dropped"] = self.counters.get("frames_dropped") + self.slots.dropped
+        out["graph_version"] = self.core.version
+        out["nodes"] = len(self.core.store.nodes)
+        out["edges"] = len(self.core.store.edges)
+        times = self.core.update_times_s
+        if times:
+            out["update_s_mean"] = float(np.mean(times))
+            out["update_s_max"] = float(np.max(times))
+        return out
+
+    def run(self, stop: threading.Event) -> int:
+        cfg = self.config
+        with open_session(cfg.zenoh) as session:
+            self._session = session
+            token = session.liveliness().declare_token(self.keys.alive(ROLE, cfg.id))
+            pubs = {
+                "delta": declare_message_publisher(session, self.keys.graph_delta, important=True),
+                "snapshot": declare_message_publisher(session, self.keys.graph_snapshot, important=True),
+                "map": declare_message_publisher(session, self.keys.map_points, important=False),
+            }
+            subs = [session.declare_subscriber(self.keys.all_frames, self._on_frame)]
+            if self.needs_oracle:
+                subs.append(session.declare_subscriber(self.keys.all_oracle, self._on_oracle))
+            queryable = session.declare_queryable(self.keys.graph_all, self._on_query)
+            reporter = StatusReporter(
+                session, self.keys.status(ROLE, cfg.id), ROLE, cfg.id, self.counters, cfg.status_period_s,
+                extra=self._extra_counters,
+            )
+            self._open_rerun()
+            log.info(
+                "mapper %s: geometry=%s segmenter=%s embedder=%s%s, graph version %d",
+                cfg.id, cfg.geometry.backend, cfg.perception.segmenter, cfg.perception.embedder,
+                " (ORACLE inputs)" if self.needs_oracle else "", self.core.version,
+            )
+            try:
+                with reporter:
+                    self._publish_periodic(pubs, force=True)
+                    while not stop.is_set():
+                        self._step(session, pubs, timeout_s=0.2)
+            finally:
+                self.save(force=True)
+                queryable.undeclare()
+                for s in subs:
+                    s.undeclare()
+                token.undeclare()
+                self._close_rerun()
+        log.info("mapper stopped at graph version %d", self.core.version)
+        return 0
+
+    def _step(self, session: zenoh.Session, pubs: dict[str, Any], timeout_s: float) -> None:
+        for frame, oracle in self._ready_frames(timeout_s):
+            view = self._to_view(frame, oracle)
+            if view is None:
+                continue
+            self.counters.add("frames_processed")
+            delta = self.core.ingest(view)
+            if self.core.last is not None and self.core.last.view is view:
+                self._log_rerun()
+            if delta is not None:
+                self._publish_delta(session, pubs, delta)
+        self._publish_periodic(pubs)
+        self.save()
+
+    # -- Rerun -----------------------------------------------------------------------------------------
+    def _open_rerun(self) -> None:
+        rc = self.config.rerun
+        if rc.file is None and not rc.serve:
+            return
+        from mapper.rerun_log import RerunLogger
+
+        try:
+            self._rerun = RerunLogger(rc)
+        except Exception as e:  # noqa: BLE001 - visualisation must never stop mapping
+            log.error("Rerun output disabled: %s", e)
+            self._rerun = None
+
+    def _log_rerun(self) -> None:
+        if self._rerun is None:
+            return
+        try:
+            self._rerun.log(self.core)
+        except Exception as e:  # noqa: BLE001
+            self.counters.add("rerun_errors")
+            log.debug("Rerun logging failed: %s", e)
+
+    def _close_rerun(self) -> None:
+        if self._rerun is not None:
+            self._rerun.close()
+
+
+def run(config: MapperConfig, stop: threading.Event | None = None) -> int:
+    """Run the mapper until SIGINT/SIGTERM (or ``stop``)."""
+    import torch
+
+    from protocol.runtime import install_stop_handlers
+
+    torch.set_num_threads(config.torch_threads)
+    stop = stop or install_stop_handlers()
+    return MapperNode(config).run(stop)
