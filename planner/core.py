@@ -1,0 +1,527 @@
+"""The pure next-best-view planner: candidates in, one goal per robot out (no I/O).
+
+``Planner(config).plan(snapshot, point_map, robots)`` scores every robot's published viewpoints
+with the configured strategy and returns an :class:`~protocol.messages.NbvGoal` per robot:
+
+* ``see``: geometric baseline after Surface Edge Explorer: frontier points of the map (measurement
+  density), the view that sees most of them (frustum, range, occlusion) wins; travel cost breaks ties.
+* ``asp``: semantic: a completion sampler proposes K completions of the unobserved scene; each view
+  is scored by the expected information gain I(Y;G|x) of the label multiset it would observe
+  (with position jitter); utility = gain - travel_bits_per_m * travel distance.
+
+Both strategies share the candidate set, the view model, the revisit rule, travel costs and the
+multi-robot claims (no two robots sent to look at the same region at once).
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+
+from planner.completion import (
+    CompletionSampler,
+    PriorSampler,
+    SceneContext,
+    build_context,
+    rooms_from_viewpoints,
+)
+from planner.config import PlannerConfig
+from planner.frontier import classify_frontier
+from planner.gain import factored_gain, joint_gain
+from planner.geometry import Candidates, Panoramas, candidates_from_viewpoints, detect_matrix
+from planner.hypotheses import Hypotheses, realize
+from planner.prior import IndoorPrior, load_prior
+from protocol.messages import GraphSnapshot, Intrinsics, NbvGoal, PointMap, RobotState, ViewpointSet
+
+log = logging.getLogger(__name__)
+
+FLOOR_CELL_M = 0.2
+FLOOR_MAX_Z_M = 0.08
+
+
+@dataclass
+class _View:
+    T_world_cam: np.ndarray
+    K: np.ndarray
+    width: int
+    height: int
+    far_m: float
+
+
+@dataclass
+class PlanInfo:
+    """Diagnostics of the last ``plan`` call."""
+
+    decision_s: float = 0.0
+    n_candidates: int = 0
+    n_frontier: int = 0
+    n_hypotheses: int = 0
+    sampler: str = ""
+    sampler_fallback: bool = False
+    per_robot: dict[str, dict[str, Any]] = field(default_factory=dict)
+
+
+def make_sampler(config: PlannerConfig, prior: IndoorPrior) -> CompletionSampler:
+    """The configured completion sampler (the llm one imports lazily and falls back to the prior)."""
+    if config.sampler.kind == "prior":
+        return PriorSampler(prior)
+    if config.sampler.kind == "llm":
+        from planner.llm import LlmSampler
+
+        return LlmSampler(config.sampler.llm, fallback=PriorSampler(prior))
+    raise ValueError(f"unknown sampler {config.sampler.kind!r}")
+
+
+class Planner:
+    """Stateful NBV planner: remembers past views, issued goals (claims) and failed viewpoints."""
+
+    def __init__(
+        self,
+        config: PlannerConfig | None = None,
+        sampler: CompletionSampler | None = None,
+        prior: IndoorPrior | None = None,
+    ) -> None:
+        self.config = config or PlannerConfig()
+        self.prior = prior or load_prior(self.config.sampler.prior_path)
+        self.sampler = sampler or make_sampler(self.config, self.prior)
+        self.rng = np.random.default_rng(self.config.seed)
+        self.history: list[_View] = []
+        self.goals: dict[str, tuple[NbvGoal, np.ndarray]] = {}
+        self.blacklist: dict[str, set[int]] = {}
+        self.info = PlanInfo()
+        self._cand_cache: dict[str, tuple[int, Candidates]] = {}
+        self._frontier_cache: tuple[tuple[int, int, int], np.ndarray] | None = None
+        self._n_goals = 0
+
+    # -- memory -------------------------------------------------------------------------------
+    def record_view(self, T_world_cam: np.ndarray, intrinsics: Intrinsics, max_range_m: float = 6.0) -> None:
+        """Remember a view that was (or is being) taken: hypotheses it would have seen are ruled out."""
+        T = np.asarray(T_world_cam, dtype=np.float64)
+        for v in self.history[-50:]:
+            if (
+                np.linalg.norm(v.T_world_cam[:3, 3] - T[:3, 3]) < 0.05
+                and float(v.T_world_cam[:3, 2] @ T[:3, 2]) > 0.996
+            ):
+                return
+        self.history.append(_View(T, intrinsics.K(), intrinsics.width, intrinsics.height, float(max_range_m)))
+        if len(self.history) > self.config.max_history:
+            del self.history[0]
+
+    def mark_failed(self, robot_id: str, vp_id: int | None) -> None:
+        """A goal on this viewpoint failed or was refused: do not send the robot there again."""
+        if vp_id is not None:
+            self.blacklist.setdefault(robot_id, set()).add(int(vp_id))
+
+    def release(self, robot_id: str) -> None:
+        """Forget a robot's active goal (it arrived, failed or left)."""
+        self.goals.pop(robot_id, None)
+
+    # -- helpers ------------------------------------------------------------------------------
+    def _candidates(self, vps: ViewpointSet) -> Candidates:
+        key = hash(
+            (
+                vps.robot_id,
+                len(vps.viewpoints),
+                vps.camera_height_m,
+                vps.camera_pitch_deg,
+                tuple(
+                    (v.vp_id, v.x, v.y, v.yaw_rad)
+                    for v in vps.viewpoints[:: max(1, len(vps.viewpoints) // 64)]
+                ),
+            )
+        )
+        hit = self._cand_cache.get(vps.robot_id)
+        if hit is not None and hit[0] == key:
+            return hit[1]
+        c = candidates_from_viewpoints(vps)
+        self._cand_cache[vps.robot_id] = (key, c)
+        return c
+
+    @staticmethod
+    def _travel(state: RobotState, cands: Candidates) -> np.ndarray:
+        tc = state.travel_cost_m
+        if tc is not None and np.asarray(tc).reshape(-1).shape[0] == cands.size:
+            return np.asarray(tc, dtype=np.float64).reshape(-1)
+        return np.hypot(cands.xy_yaw[:, 0] - state.x, cands.xy_yaw[:, 1] - state.y)
+
+    def _frontier(self, pm: PointMap) -> np.ndarray:
+        key = (pm.version, int(pm.points.shape[0]), pm.stamp_ns)
+        if self._frontier_cache is not None and self._frontier_cache[0] == key:
+            return self._frontier_cache[1]
+        counts = None if pm.counts is None else np.asarray(pm.counts).reshape(-1)
+        if counts is not None and counts.shape[0] != pm.points.shape[0]:
+            counts = None
+        mask = classify_frontier(np.asarray(pm.points, dtype=np.float64), counts, pm.voxel_m, self.config.see)
+        self._frontier_cache = (key, mask)
+        return mask
+
+    def _valid(
+        self, rid: str, cands: Candidates, travel: np.ndarray, claimed_xy: list[np.ndarray]
+    ) -> np.ndarray:
+        ok = np.isfinite(travel)
+        bl = self.blacklist.get(rid)
+        if bl:
+            ok &= ~np.isin(cands.vp_ids, np.fromiter(bl, dtype=np.int64))
+        if self.history:
+            Hp = np.stack([v.T_world_cam[:3, 3] for v in self.history])
+            Hz = np.stack([v.T_world_cam[:3, 2] for v in self.history])
+            Cp = cands.T_world_cam[:, :3, 3]
+            Cz = cands.T_world_cam[:, :3, 2]
+            near = np.linalg.norm(Cp[:, None, :2] - Hp[None, :, :2], axis=2) < self.config.revisit_xy_m
+            aligned = Cz @ Hz.T > np.cos(np.radians(self.config.revisit_yaw_deg))
+            ok &= ~np.any(near & aligned, axis=1)
+        for xy in claimed_xy:
+            ok &= (
+                np.hypot(cands.xy_yaw[:, 0] - xy[0], cands.xy_yaw[:, 1] - xy[1]) >= self.config.claim_radius_m
+            )
+        return ok
+
+    def _history_detect(
+        self,
+        pano: Panoramas,
+        rows: list[int],
+        targets: np.ndarray,
+        sizes: np.ndarray | None,
+        min_px: float,
+        margin: float,
+        far_frac: float = 1.0,
+    ) -> np.ndarray:
+        """(V, T) detections of ``targets`` by the remembered views (rows: their panorama rows)."""
+        out = np.zeros((len(self.history), targets.shape[0]), bool)
+        if not self.history or targets.shape[0] == 0:
+            return out
+        vcfg = self.config.visibility
+        groups: dict[tuple, list[int]] = {}
+        for i, v in enumerate(self.history):
+            groups.setdefault((v.width, v.height, v.far_m, tuple(v.K.ravel())), []).append(i)
+        for (w, h, far, Kt), idx in groups.items():
+            T = np.stack([self.history[i].T_world_cam for i in idx])
+            det = detect_matrix(
+                T,
+                np.array([rows[i] for i in idx]),
+                pano,
+                np.array(Kt).reshape(3, 3),
+                w,
+                h,
+                targets,
+                far * far_frac,
+                vcfg,
+                sizes,
+                min_px,
+                margin,
+            )
+            out[idx] = det
+        return out
+
+    # -- planning -----------------------------------------------------------------------------
+    def plan(
+        self,
+        snapshot: GraphSnapshot,
+        point_map: PointMap | None,
+        robots: dict[str, tuple[RobotState, ViewpointSet]],
+    ) -> list[NbvGoal]:
+        """Next goal for each robot in ``robots`` (goals of other robots stay claimed)."""
+        t0 = time.perf_counter()
+        cfg = self.config
+        self.info = PlanInfo(sampler=getattr(self.sampler, "name", ""))
+        for rid in robots:
+            self.release(rid)
+        cands = {rid: self._candidates(vps) for rid, (_, vps) in robots.items()}
+        for state, vps in robots.values():
+            self.record_view(np.asarray(state.T_world_cam), vps.intrinsics, vps.max_range_m)
+        self.info.n_candidates = sum(c.size for c in cands.values())
+
+        # Map, occluders and one panorama per distinct camera position (candidates, history, claims).
+        if point_map is not None and point_map.points.size:
+            pts = np.asarray(point_map.points, dtype=np.float64).reshape(-1, 3)
+            pts = pts[np.all(np.isfinite(pts), axis=1)]
+        else:
+            pts = np.zeros((0, 3))
+        occ = pts
+        if occ.shape[0] > cfg.visibility.max_occluder_points:
+            occ = occ[:: int(np.ceil(occ.shape[0] / cfg.visibility.max_occluder_points))]
+        positions: list[np.ndarray] = []
+        row_of: dict[tuple[float, float, float], int] = {}
+
+        def row(p: np.ndarray) -> int:
+            key = (round(float(p[0]), 3), round(float(p[1]), 3), round(float(p[2]), 3))
+            if key not in row_of:
+                row_of[key] = len(positions)
+                positions.append(np.asarray(p, dtype=np.float64))
+            return row_of[key]
+
+        cand_rows = {
+            rid: np.array([row(p) for p in c.positions], dtype=np.int64)[c.pos_index]
+            for rid, c in cands.items()
+        }
+        hist_rows = [row(v.T_world_cam[:3, 3]) for v in self.history]
+        claim_rows = {rid: row(T[:3, 3]) for rid, (_, T) in self.goals.items()}
+        pano = Panoramas(np.array(positions).reshape(-1, 3), occ, cfg.visibility)
+
+        # Floor cells the map has seen (rules out floor-standing hypotheses there).
+        floor_pts = pts[pts[:, 2] < FLOOR_MAX_Z_M] if pts.shape[0] else pts
+        floor_cells = np.unique(_cell_keys(floor_pts[:, :2])) if floor_pts.shape[0] else np.zeros(0, np.int64)
+
+        def floor_seen(xy: np.ndarray) -> np.ndarray:
+            return np.isin(_cell_keys(xy), floor_cells)
+
+        # Strategy targets.
+        frontier_pts: np.ndarray | None = None
+        hyps: Hypotheses | None = None
+        ctx: SceneContext | None = None
+        if cfg.strategy == "asp":
+            all_vps = [vps for _, vps in robots.values()]
+            room_names = [v.room for vps in all_vps for v in vps.viewpoints]
+            xy = np.array([[v.x, v.y] for vps in all_vps for v in vps.viewpoints]).reshape(-1, 2)
+            rooms = rooms_from_viewpoints(room_names, xy, self.prior)
+            ctx = build_context(snapshot.nodes, snapshot.edges, rooms, self.prior, snapshot.version)
+            completions = self.sampler.sample(ctx, cfg.asp.n_completions, self.rng)
+            info = getattr(self.sampler, "info", None)
+            self.info.sampler_fallback = bool(getattr(info, "fallback", False))
+            acfg = cfg.asp
+
+            def seen(targets: np.ndarray, sizes: np.ndarray) -> np.ndarray:
+                return self._history_detect(pano, hist_rows, targets, sizes, acfg.min_pixels, 0.05).any(
+                    axis=0
+                )
+
+            hyps = realize(
+                completions,
+                ctx,
+                self.prior,
+                n_jitter=acfg.n_jitter,
+                jitter_m=acfg.jitter_m,
+                proposals=acfg.proposals_per_object,
+                detect_reject=acfg.detect_reject,
+                seen=seen,
+                floor_seen=floor_seen,
+                rng=self.rng,
+            )
+            self.info.n_hypotheses = hyps.size
+
+        def frontier() -> np.ndarray:
+            nonlocal frontier_pts
+            if frontier_pts is None:
+                if point_map is None or not pts.shape[0] or point_map.points.shape[0] != pts.shape[0]:
+                    frontier_pts = np.zeros((0, 3))
+                else:
+                    f = pts[self._frontier(point_map)]
+                    if f.shape[0]:
+                        att = self._history_detect(
+                            pano, hist_rows, f, None, 0.0, 0.1, cfg.see.attempt_range_frac
+                        ).sum(axis=0)
+                        f = f[att < cfg.see.max_attempts]
+                    frontier_pts = f
+                self.info.n_frontier = int(frontier_pts.shape[0])
+            return frontier_pts
+
+        goals: list[NbvGoal] = []
+        for rid in sorted(robots):
+            state, vps = robots[rid]
+            c = cands[rid]
+            if c.size == 0:
+                continue
+            travel = self._travel(state, c)
+            claimed = [(g, T) for r, (g, T) in self.goals.items() if r != rid]
+            valid = self._valid(rid, c, travel, [np.array([g.x, g.y]) for g, _ in claimed])
+            if not valid.any():
+                valid = np.isfinite(travel)
+                if not valid.any():
+                    continue
+            claim_T = np.stack([T for _, T in claimed]) if claimed else np.zeros((0, 4, 4))
+            claim_r = np.array([claim_rows[r] for r in self.goals if r != rid], dtype=np.int64)
+            if cfg.strategy == "asp" and hyps is not None:
+                idx, gain, reason = self._choose_asp(
+                    c, cand_rows[rid], pano, hyps, travel, valid, claim_T, claim_r, vps
+                )
+                if idx is None:
+                    idx, gain, reason = self._choose_see(
+                        c,
+                        cand_rows[rid],
+                        pano,
+                        frontier(),
+                        travel,
+                        valid,
+                        claim_T,
+                        claim_r,
+                        prefix="asp fallback (no semantic gain): ",
+                    )
+            else:
+                idx, gain, reason = self._choose_see(
+                    c, cand_rows[rid], pano, frontier(), travel, valid, claim_T, claim_r
+                )
+            self._n_goals += 1
+            goal = NbvGoal(
+                goal_id=f"{rid}-{self._n_goals}",
+                robot_id=rid,
+                stamp_ns=time.time_ns(),
+                x=float(c.xy_yaw[idx, 0]),
+                y=float(c.xy_yaw[idx, 1]),
+                yaw_rad=float(c.xy_yaw[idx, 2]),
+                vp_id=int(c.vp_ids[idx]),
+                strategy=cfg.strategy,
+                expected_gain=float(gain),
+                reason=f"{reason}; travel {travel[idx]:.1f} m",
+                graph_version=snapshot.version,
+            )
+            self.goals[rid] = (goal, c.T_world_cam[idx])
+            claim_rows[rid] = int(cand_rows[rid][idx])
+            goals.append(goal)
+            self.info.per_robot[rid] = {
+                "gain": float(gain),
+                "travel_m": float(travel[idx]),
+                "vp_id": int(goal.vp_id),
+                "reason": goal.reason,
+            }
+        self.info.decision_s = time.perf_counter() - t0
+        return goals
+
+    def _claimed_mask(
+        self,
+        pano: Panoramas,
+        claim_T: np.ndarray,
+        claim_r: np.ndarray,
+        K: np.ndarray,
+        w: int,
+        h: int,
+        targets: np.ndarray,
+        far: float,
+        sizes: np.ndarray | None = None,
+        min_px: float = 0.0,
+    ) -> np.ndarray:
+        if claim_T.shape[0] == 0 or targets.shape[0] == 0:
+            return np.zeros(targets.shape[0], bool)
+        return detect_matrix(
+            claim_T, claim_r, pano, K, w, h, targets, far, self.config.visibility, sizes, min_px
+        ).any(axis=0)
+
+    def _choose_see(
+        self,
+        c: Candidates,
+        rows: np.ndarray,
+        pano: Panoramas,
+        targets: np.ndarray,
+        travel: np.ndarray,
+        valid: np.ndarray,
+        claim_T: np.ndarray,
+        claim_r: np.ndarray,
+        prefix: str = "",
+    ) -> tuple[int, float, str]:
+        scfg = self.config.see
+        if targets.shape[0]:
+            targets = targets[
+                ~self._claimed_mask(pano, claim_T, claim_r, c.K, c.width, c.height, targets, c.max_range_m)
+            ]
+        score = np.zeros(c.size)
+        if targets.shape[0]:
+            sub = np.flatnonzero(valid)
+            det = detect_matrix(
+                c.T_world_cam[sub],
+                rows[sub],
+                pano,
+                c.K,
+                c.width,
+                c.height,
+                targets,
+                c.max_range_m,
+                self.config.visibility,
+            )
+            score[sub] = det.sum(axis=1)
+        best = float(score[valid].max()) if valid.any() else 0.0
+        if best <= 0.0:
+            # No frontier left in reach: go where no view has been taken yet (coverage), nearest first.
+            if self.history:
+                Hp = np.stack([v.T_world_cam[:3, 3] for v in self.history])
+                dist = np.min(np.linalg.norm(c.T_world_cam[:, None, :2, 3] - Hp[None, :, :2], axis=2), axis=1)
+            else:
+                dist = np.zeros(c.size)
+            util = np.where(valid, dist - 0.1 * np.nan_to_num(travel, posinf=1e6), -np.inf)
+            i = int(np.argmax(util))
+            return (
+                i,
+                0.0,
+                prefix + f"see: no frontier in view; coverage move ({dist[i]:.1f} m from past views)",
+            )
+        tie = valid & (score >= (1.0 - scfg.tie_tolerance) * best)
+        i = int(np.flatnonzero(tie)[np.argmin(travel[tie])])
+        return i, float(score[i]), prefix + f"see: {int(score[i])} frontier points in view (best {int(best)})"
+
+    def _choose_asp(
+        self,
+        c: Candidates,
+        rows: np.ndarray,
+        pano: Panoramas,
+        hyps: Hypotheses,
+        travel: np.ndarray,
+        valid: np.ndarray,
+        claim_T: np.ndarray,
+        claim_r: np.ndarray,
+        vps: ViewpointSet,
+    ) -> tuple[int | None, float, str]:
+        acfg = self.config.asp
+        if hyps.size == 0 or not valid.any():
+            return None, 0.0, ""
+        keep = ~self._claimed_mask(
+            pano,
+            claim_T,
+            claim_r,
+            c.K,
+            c.width,
+            c.height,
+            hyps.xyz,
+            c.max_range_m,
+            hyps.size_m,
+            acfg.min_pixels,
+        )
+        sub = np.flatnonzero(valid)
+        V = np.zeros((c.size, hyps.size), bool)
+        V[sub] = detect_matrix(
+            c.T_world_cam[sub],
+            rows[sub],
+            pano,
+            c.K,
+            c.width,
+            c.height,
+            hyps.xyz,
+            c.max_range_m,
+            self.config.visibility,
+            hyps.size_m,
+            acfg.min_pixels,
+        )
+        V &= keep[None, :]
+        if not acfg.cross_room_visibility:
+            cand_room = np.array([r or "" for r in c.rooms], dtype=object)
+            hyp_room = np.array([r or "" for r in hyps.room], dtype=object)
+            gate = (
+                (cand_room[:, None] == hyp_room[None, :])
+                | (cand_room[:, None] == "")
+                | (hyp_room[None, :] == "")
+            )
+            V &= gate
+        fn = joint_gain if acfg.observation == "joint" else factored_gain
+        gain = fn(V, hyps.label_idx, hyps.sample_idx, len(hyps.labels), hyps.n_completions, hyps.n_jitter)
+        best = float(gain[valid].max())
+        if best < acfg.min_gain_bits:
+            return None, 0.0, ""
+        penalty = acfg.travel_weight_per_m * best * np.nan_to_num(travel, posinf=1e6)
+        util = np.where(valid, gain - penalty, -np.inf)
+        i = int(np.argmax(util))
+        seen_labels = sorted({hyps.labels[hyps.label_idx[j]] for j in np.flatnonzero(V[i])})[:4]
+        return (
+            i,
+            float(gain[i]),
+            (
+                f"asp: {gain[i]:.2f} bits over {hyps.n_completions} completions"
+                f" ({getattr(self.sampler, 'name', '')})"
+                f", may see {', '.join(seen_labels)}"
+            ),
+        )
+
+
+def _cell_keys(xy: np.ndarray) -> np.ndarray:
+    ij = np.floor(np.asarray(xy, dtype=np.float64).reshape(-1, 2) / FLOOR_CELL_M).astype(np.int64) + (1 << 20)
+    return (ij[:, 0] << 21) | ij[:, 1]

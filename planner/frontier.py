@@ -1,0 +1,58 @@
+"""Frontier points from measurement density (after Surface Edge Explorer), pure numpy.
+
+A map voxel is *observed* (core) when its 26-neighbourhood is well populated and its summed
+observation count is high; otherwise it is a *frontier*: the edge of an observed surface, or a
+surface seen too sparsely (far away, grazing). Views that see frontier points extend the surfaces.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from planner.config import SeeConfig
+
+_OFF = 1 << 20
+_OFFSETS = np.array(
+    [(i, j, k) for i in (-1, 0, 1) for j in (-1, 0, 1) for k in (-1, 0, 1) if (i, j, k) != (0, 0, 0)]
+)
+
+
+def _encode(ijk: np.ndarray) -> np.ndarray:
+    a = ijk.astype(np.int64) + _OFF
+    return (a[:, 0] << 42) | (a[:, 1] << 21) | a[:, 2]
+
+
+def neighbour_stats(
+    points: np.ndarray, counts: np.ndarray | None, voxel_m: float
+) -> tuple[np.ndarray, np.ndarray]:
+    """Per point: occupied 26-neighbour voxels (N,) and summed counts of the voxel and its neighbours (N,)."""
+    P = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    N = P.shape[0]
+    c = np.ones(N) if counts is None else np.asarray(counts, dtype=np.float64).reshape(N)
+    if N == 0:
+        return np.zeros(0, np.int64), np.zeros(0)
+    ijk = np.round(P / voxel_m).astype(np.int64)
+    keys = _encode(ijk)
+    order = np.argsort(keys, kind="stable")
+    skeys = keys[order]
+    # Collapse duplicate voxels (a map may hold more than one point per voxel).
+    uk, start = np.unique(skeys, return_index=True)
+    ucount = np.add.reduceat(c[order], start)
+    n_occ = np.zeros(N, np.int64)
+    dens = c.copy()
+    for off in _OFFSETS:
+        nk = _encode(ijk + off)
+        pos = np.searchsorted(uk, nk)
+        pos = np.minimum(pos, uk.shape[0] - 1)
+        hit = uk[pos] == nk
+        n_occ += hit
+        dens += np.where(hit, ucount[pos], 0.0)
+    return n_occ, dens
+
+
+def classify_frontier(
+    points: np.ndarray, counts: np.ndarray | None, voxel_m: float, cfg: SeeConfig
+) -> np.ndarray:
+    """(N,) bool: frontier (sparse or surface-edge) points of the map."""
+    n_occ, dens = neighbour_stats(points, counts, voxel_m)
+    return (n_occ < cfg.min_neighbors) | (dens < cfg.min_density)
