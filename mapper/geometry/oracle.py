@@ -20,7 +20,7 @@ class OracleConfig(BaseModel):
 
     model_config = ConfigDict(extra="forbid")
     width: int | None = Field(
-        default=None, ge=8, description="output width in pixels (height keeps the aspect); None = full size"
+        default=None, ge=2, description="output width in pixels (height keeps the aspect); None = full size"
     )
 
 
