@@ -82,7 +82,9 @@ class MapperNode:
         self.needs_oracle = needs_oracle(config)
         self._oracle: collections.OrderedDict[tuple[str, int], OracleFrame] = collections.OrderedDict()
         self._oracle_lock = threading.Lock()
-        self._pending: collections.deque[tuple[Frame, float]] = collections.deque(maxlen=2 * config.max_sources)
+        self._pending: collections.deque[tuple[Frame, np.ndarray, float]] = collections.deque(
+            maxlen=2 * config.max_sources
+        )
         self._session: zenoh.Session | None = None
         self._rerun: Any = None
         self._last_snapshot = (-1, 0.0)
@@ -201,7 +203,7 @@ class MapperNode:
         with self._oracle_lock:
             return self._oracle.pop((frame.header.source_id, frame.header.seq), None)
 
-    def _to_view(self, frame: Frame, oracle: OracleFrame | None) -> View | None:
+    def _decode(self, frame: Frame) -> np.ndarray | None:
         h = frame.header
         try:
             rgb = decode_jpeg(frame.jpeg)
@@ -213,6 +215,10 @@ class MapperNode:
             self.counters.add("decode_errors")
             log.debug("JPEG from %s is %s, header says %dx%d", h.source_id, rgb.shape, h.width, h.height)
             return None
+        return rgb
+
+    def _to_view(self, frame: Frame, rgb: np.ndarray, oracle: OracleFrame | None) -> View | None:
+        h = frame.header
         try:
             od = oracle_data(oracle) if oracle is not None else None
             return View(
@@ -230,26 +236,31 @@ class MapperNode:
             log.debug("unusable frame from %s#%d: %s", h.source_id, h.seq, e)
             return None
 
-    def _ready_frames(self, timeout_s: float) -> list[tuple[Frame, OracleFrame | None]]:
-        """Frames ready to process (with their ORACLE sample when one is needed)."""
-        fresh = [f for _, f in self.slots.take_all(timeout=timeout_s)]
+    def _ready_frames(self, timeout_s: float) -> list[tuple[Frame, np.ndarray, OracleFrame | None]]:
+        """Decoded frames ready to process (with their ORACLE sample when one is needed)."""
+        fresh = []
+        for _, f in self.slots.take_all(timeout=timeout_s):
+            rgb = self._decode(f)
+            if rgb is not None:
+                fresh.append((f, rgb))
         if not self.needs_oracle:
-            return [(f, None) for f in fresh]
+            return [(f, rgb, None) for f, rgb in fresh]
         now = time.monotonic()
-        for f in fresh:
+        for f, rgb in fresh:
             if len(self._pending) == self._pending.maxlen:
                 self.counters.add("frames_dropped")
-            self._pending.append((f, now + self.config.oracle_wait_s))
-        ready, waiting = [], collections.deque(maxlen=self._pending.maxlen)
+            self._pending.append((f, rgb, now + self.config.oracle_wait_s))
+        ready = []
+        waiting: collections.deque[tuple[Frame, np.ndarray, float]] = collections.deque(maxlen=self._pending.maxlen)
         while self._pending:
-            f, deadline = self._pending.popleft()
+            f, rgb, deadline = self._pending.popleft()
             o = self._take_oracle(f)
             if o is not None:
-                ready.append((f, o))
+                ready.append((f, rgb, o))
             elif now >= deadline:
                 self.counters.add("frames_without_oracle")
             else:
-                waiting.append((f, deadline))
+                waiting.append((f, rgb, deadline))
         self._pending = waiting
         return ready
 
@@ -330,8 +341,8 @@ class MapperNode:
         return 0
 
     def _step(self, session: zenoh.Session, pubs: dict[str, Any], timeout_s: float) -> None:
-        for frame, oracle in self._ready_frames(timeout_s):
-            view = self._to_view(frame, oracle)
+        for frame, rgb, oracle in self._ready_frames(timeout_s):
+            view = self._to_view(frame, rgb, oracle)
             if view is None:
                 continue
             self.counters.add("frames_processed")
