@@ -1,0 +1,385 @@
+"""``argus bench system``: N simulated cameras at F fps into one ``argus mapper`` process.
+
+A real router and a real mapper run as their own processes (through :class:`deploy.up.Stack`); this
+process plays the cameras (frames pre-rendered by the simulator along navigable paths, so every frame
+is new to the mapper, JPEG-encoded once, re-stamped at each put) and the consumers. Three phases of
+equal length measure, with 0, 1 and 10 concurrent query consumers:
+
+- offered and sustained ingest (frames the mapper received / turned into keyframes per second, from
+  its Status counters), frames dropped (sent but never processed);
+- end-to-end latency capture -> graph delta: delta receipt time minus the newest ``last_seen_ns`` (the
+  capture stamp of the frame that updated a node) among the delta's nodes, p50 / p99;
+- mapper CPU (cores used, from ``/proc/<pid>/stat``) and peak memory (``VmHWM`` of
+  ``/proc/<pid>/status``; psutil is not needed);
+- query latency (``graph/nodes?label=...`` and ``graph/snapshot`` gets), p50 / p99.
+
+Example::
+
+    argus bench system --cameras 2 --fps 2 --phase-s 30 --out bench_out/system
+    argus bench system --quick
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+import threading
+import time
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from bench.report import write_report
+from protocol.codec import DecodeError, decode
+from protocol.keys import Keys
+from protocol.messages import FrameHeader, GraphDelta, Status
+
+_CLK_TCK = os.sysconf("SC_CLK_TCK") if hasattr(os, "sysconf") else 100
+
+
+# --- /proc sampling ------------------------------------------------------------------------------
+def proc_cpu_s(pid: int) -> float:
+    """User + system CPU seconds of a process (Linux ``/proc/<pid>/stat``)."""
+    text = Path(f"/proc/{pid}/stat").read_text()
+    fields = text[text.rindex(")") + 2 :].split()
+    return (int(fields[11]) + int(fields[12])) / _CLK_TCK
+
+
+def proc_mem_mb(pid: int) -> dict[str, float]:
+    """Resident (``VmRSS``) and peak resident (``VmHWM``) memory in MiB."""
+    out: dict[str, float] = {}
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        if line.startswith(("VmRSS:", "VmHWM:")):
+            name, value = line.split(":", 1)
+            out[name] = int(value.split()[0]) / 1024.0
+    return {"rss_mb": out.get("VmRSS", 0.0), "peak_rss_mb": out.get("VmHWM", 0.0)}
+
+
+def _pct(values: list[float], q: float) -> float | None:
+    return float(np.percentile(values, q)) if values else None
+
+
+# --- frames --------------------------------------------------------------------------------------
+@dataclass
+class CameraFrames:
+    """Pre-encoded frames of one simulated camera, replayed in a loop."""
+
+    source_id: str
+    kind: str
+    jpegs: list[bytes]
+    poses: list[np.ndarray]
+    intrinsics: Any
+    oracle: list[Any] = field(default_factory=list)
+
+
+def render_cameras(n: int, frames_per_camera: int, width: int, height: int, family: str, seed: int,
+                   oracle: bool = False) -> list[CameraFrames]:
+    """Frames of ``n`` cameras walking different navigable paths of one simulated scene."""
+    from sim.nav import NavMap
+
+    from protocol.jpeg import encode_jpeg
+    from protocol.messages import Intrinsics
+    from protocol.poses import camera_pose_from_base
+    from sim.render import Renderer
+    from sim.scene import generate_scene
+
+    scene = generate_scene(family, seed)
+    nav = NavMap(scene)
+    renderer = Renderer(scene)
+    intr = Intrinsics.from_fov(width, height, 90.0)
+    vps = nav.viewpoints(spacing_m=0.6, n_headings=8)
+    rng = np.random.default_rng(seed)
+    cams: list[CameraFrames] = []
+    for i in range(n):
+        # A slow sweep: consecutive frames turn 15 degrees and step along a random walk of viewpoints,
+        # so each frame is a new keyframe for the mapper (the worst case for ingest).
+        start = vps[int(rng.integers(len(vps)))]
+        x, y, yaw = start.x, start.y, start.yaw_rad
+        jpegs, poses, oracles = [], [], []
+        for _k in range(frames_per_camera):
+            T = camera_pose_from_base(x, y, yaw, 1.0, -15.0)
+            out = renderer.render(intr, T)
+            jpegs.append(encode_jpeg(out.rgb, 85))
+            poses.append(T)
+            oracles.append(out if oracle else None)
+            yaw += np.radians(15.0)
+            nx, ny = x + 0.15 * np.cos(yaw), y + 0.15 * np.sin(yaw)
+            if nav.is_free(nx, ny):
+                x, y = nx, ny
+        cams.append(CameraFrames(f"simcam{i}", "robot", jpegs, poses, intr,
+                                 [o for o in oracles if o is not None]))
+    return cams
+
+
+class CameraPlayer:
+    """Publishes one camera's frames at ``fps`` on its frame key, stamped at the put."""
+
+    def __init__(self, session: Any, keys: Keys, cam: CameraFrames, fps: float) -> None:
+        from protocol.transport import declare_frame_publisher
+
+        self.cam, self.fps = cam, fps
+        self.pub = declare_frame_publisher(session, keys.frame(cam.kind, cam.source_id))  # type: ignore[arg-type]
+        self.sent = 0
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True, name=f"cam-{cam.source_id}")
+
+    def start(self) -> None:
+        self._thread.start()
+
+    def stop(self) -> None:
+        self._stop.set()
+        self._thread.join(timeout=5)
+
+    def _run(self) -> None:
+        from protocol.transport import put_frame
+
+        period = 1.0 / self.fps
+        next_t = time.monotonic()
+        cam = self.cam
+        while not self._stop.is_set():
+            k = self.sent % len(cam.jpegs)
+            header = FrameHeader(
+                source_id=cam.source_id, source_kind=cam.kind, seq=self.sent, stamp_ns=time.time_ns(),  # type: ignore[arg-type]
+                width=cam.intrinsics.width, height=cam.intrinsics.height, intrinsics=cam.intrinsics,
+                T_world_cam=cam.poses[k], pose_trusted=False,
+            )
+            put_frame(self.pub, header, cam.jpegs[k])
+            self.sent += 1
+            next_t += period
+            delay = next_t - time.monotonic()
+            if delay > 0:
+                self._stop.wait(delay)
+            else:
+                next_t = time.monotonic()
+
+
+class Consumer:
+    """A graph consumer with its own session, issuing queries back to back (up to ``rate_hz``)."""
+
+    def __init__(self, endpoint: str, keys: Keys, rate_hz: float = 10.0) -> None:
+        from protocol.session import ZenohSettings, open_session
+
+        self.session = open_session(ZenohSettings(mode="client", connect=[endpoint]))
+        self.keys, self.rate_hz = keys, rate_hz
+        self.latencies_ms: list[float] = []
+        self.failures = 0
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._run, daemon=True, name="consumer")
+
+    def start(self) -> None:
+        self._thread.start()
+
+    def stop(self) -> None:
+        self._stop.set()
+        self._thread.join(timeout=10)
+        self.session.close()
+
+    def _run(self) -> None:
+        from deploy.query import QueryError, get_nodes, get_snapshot
+        from protocol.query import GraphQuery
+
+        i = 0
+        while not self._stop.is_set():
+            t0 = time.perf_counter()
+            try:
+                if i % 2 == 0:
+                    get_nodes(self.session, self.keys, GraphQuery(label="chair"), timeout_s=5.0)
+                else:
+                    get_snapshot(self.session, self.keys, timeout_s=5.0)
+                self.latencies_ms.append((time.perf_counter() - t0) * 1000.0)
+            except QueryError:
+                self.failures += 1
+            i += 1
+            self._stop.wait(max(0.0, 1.0 / self.rate_hz - (time.perf_counter() - t0)))
+
+
+class GraphWatch:
+    """Delta latencies and the mapper's Status counters."""
+
+    def __init__(self, session: Any, keys: Keys) -> None:
+        self._lock = threading.Lock()
+        self.latencies_ms: list[float] = []
+        self.deltas = 0
+        self.status: dict[str, float] = {}
+        self.status_pid: int | None = None
+        self._subs = [session.declare_subscriber(keys.graph_delta, self._on_delta),
+                      session.declare_subscriber(keys.status("mapper", "*"), self._on_status)]
+
+    def _on_delta(self, sample: Any) -> None:
+        now = time.time_ns()
+        try:
+            d = decode(sample.payload.to_bytes(), GraphDelta)
+        except DecodeError:
+            return
+        with self._lock:
+            self.deltas += 1
+            if d.upserted:
+                newest = max(n.last_seen_ns for n in d.upserted)
+                if newest > 0:
+                    self.latencies_ms.append((now - newest) / 1e6)
+
+    def _on_status(self, sample: Any) -> None:
+        try:
+            st = decode(sample.payload.to_bytes(), Status)
+        except DecodeError:
+            return
+        with self._lock:
+            self.status = dict(st.counters)
+
+    def take(self) -> tuple[list[float], int, dict[str, float]]:
+        with self._lock:
+            lat, self.latencies_ms = self.latencies_ms, []
+            n, self.deltas = self.deltas, 0
+            return lat, n, dict(self.status)
+
+    def close(self) -> None:
+        for s in self._subs:
+            s.undeclare()
+
+
+def _counter(status: dict[str, float], name: str) -> float:
+    return float(status.get(name, float("nan")))
+
+
+def run(cameras: int, fps: float, phase_s: float, warmup_s: float, width: int, height: int,
+        frames_per_camera: int, consumers: list[int], mapper_settings: dict[str, Any], out: Path,
+        family: str = "apartment", seed: int = 0) -> dict[str, Any]:
+    """Run the benchmark and write ``system.json`` / ``system.md`` under ``out``."""
+    from deploy.up import LaunchFile, Stack
+    from protocol.session import ZenohSettings, open_session
+
+    def log(msg: str) -> None:
+        print(f"[bench system] {msg}", flush=True)
+
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        endpoint = f"tcp/127.0.0.1:{s.getsockname()[1]}"
+    site = "benchsys"
+    keys = Keys(site)
+    t_render = time.monotonic()
+    cams = render_cameras(cameras, frames_per_camera, width, height, family, seed)
+    log(f"rendered {cameras} x {frames_per_camera} frames at {width}x{height} in "
+        f"{time.monotonic() - t_render:.1f}s")
+    settings = {"site": site, "zenoh": {"mode": "client", "connect": [endpoint]}, **mapper_settings}
+    launch = LaunchFile.model_validate({
+        "site": site, "endpoint": endpoint, "stop_timeout_s": 10,
+        "process": [{"name": "router", "command": "router", "args": ["--listen", endpoint, "--site", site]},
+                    {"name": "mapper", "command": "mapper", "settings": settings}],
+    })
+    lines: list[str] = []
+    stack = Stack(launch, Path.cwd(), emit=lines.append)
+    results: dict[str, Any] = {"cameras": cameras, "fps": fps, "width": width, "height": height,
+                               "phase_s": phase_s, "mapper_settings": mapper_settings, "phases": []}
+    players: list[CameraPlayer] = []
+    session = None
+    watch = None
+    try:
+        stack.start()
+        if not stack.wait_healthy(120):
+            raise RuntimeError("mapper did not come up:\n" + "\n".join(lines[-30:]))
+        mapper_pid = next(c.pid for c in stack.children if c.spec.name == "mapper")
+        assert mapper_pid is not None
+        session = open_session(ZenohSettings(mode="client", connect=[endpoint]))
+        watch = GraphWatch(session, keys)
+        players = [CameraPlayer(session, keys, cam, fps) for cam in cams]
+        for p in players:
+            p.start()
+        log(f"{cameras} cameras at {fps:g} fps into the mapper (pid {mapper_pid}); warm-up {warmup_s:.0f}s")
+        time.sleep(warmup_s)
+        for n_consumers in consumers:
+            cons = [Consumer(endpoint, keys) for _ in range(n_consumers)]
+            for c in cons:
+                c.start()
+            watch.take()
+            sent0 = sum(p.sent for p in players)
+            cpu0, t0 = proc_cpu_s(mapper_pid), time.monotonic()
+            status0 = watch.take()[2]
+            time.sleep(phase_s)
+            dt = time.monotonic() - t0
+            cpu1, sent1 = proc_cpu_s(mapper_pid), sum(p.sent for p in players)
+            lat, n_deltas, status1 = watch.take()
+            for c in cons:
+                c.stop()
+            qlat = [x for c in cons for x in c.latencies_ms]
+            def diff(name: str, s0: dict[str, float] = status0, s1: dict[str, float] = status1) -> float:
+                return _counter(s1, name) - _counter(s0, name)
+
+            received, processed, keyframes = diff("frames_in"), diff("frames_processed"), diff("keyframes")
+            dropped = diff("frames_dropped")
+            mem = proc_mem_mb(mapper_pid)
+            phase = {
+                "consumers": n_consumers,
+                "offered_fps": (sent1 - sent0) / dt,
+                "received_fps": received / dt,
+                "processed_fps": processed / dt,
+                "keyframes_per_s": keyframes / dt,
+                "dropped": dropped,
+                "dropped_frac": dropped / max(received, 1.0),
+                "deltas": n_deltas,
+                "latency_p50_ms": _pct(lat, 50), "latency_p99_ms": _pct(lat, 99),
+                "query_p50_ms": _pct(qlat, 50), "query_p99_ms": _pct(qlat, 99),
+                "queries": len(qlat), "query_failures": sum(c.failures for c in cons),
+                "mapper_cpu_cores": (cpu1 - cpu0) / dt,
+                "mapper_rss_mb": mem["rss_mb"], "mapper_peak_rss_mb": mem["peak_rss_mb"],
+                "mapper_status": status1,
+            }
+            results["phases"].append(phase)
+            log(f"{n_consumers:2d} consumers: offered {phase['offered_fps']:.1f} fps, keyframes "
+                f"{phase['keyframes_per_s']:.2f}/s, delta p50 {phase['latency_p50_ms'] or float('nan'):.0f} ms, "
+                f"query p50 {phase['query_p50_ms'] or float('nan'):.1f} ms, cpu {phase['mapper_cpu_cores']:.2f}, "
+                f"peak {mem['peak_rss_mb']:.0f} MiB")
+    finally:
+        for p in players:
+            p.stop()
+        if watch is not None:
+            watch.close()
+        if session is not None:
+            session.close()
+        stack.stop()
+    rows = [{k: v for k, v in ph.items() if k != "mapper_status"} for ph in results["phases"]]
+    write_report(out, "system", results, rows,
+                 title=f"System: {cameras} simulated cameras at {fps:g} fps into one mapper")
+    return results
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(
+        prog="argus bench system",
+        description="N simulated cameras at F fps into one argus mapper process: ingest, drops, "
+        "capture->delta latency, mapper CPU and memory, query latency with 0/1/10 consumers.",
+        epilog="example: argus bench system --cameras 2 --fps 2 --phase-s 30 --out bench_out/system",
+    )
+    p.add_argument("--cameras", type=int, default=2, help="simulated cameras")
+    p.add_argument("--fps", type=float, default=2.0, help="frames per second per camera")
+    p.add_argument("--phase-s", type=float, default=30.0, help="seconds per measured phase")
+    p.add_argument("--warmup-s", type=float, default=15.0, help="seconds before measuring")
+    p.add_argument("--width", type=int, default=640)
+    p.add_argument("--height", type=int, default=480)
+    p.add_argument("--frames-per-camera", type=int, default=24, help="distinct frames per camera (looped)")
+    p.add_argument("--consumers", default="0,1,10", help="consumer counts, one phase each")
+    p.add_argument("--geometry", default="mvs", help="mapper geometry backend")
+    p.add_argument("--segmenter", default="classical", help="mapper segmenter")
+    p.add_argument("--quick", action="store_true", help="short run (1 camera, 10 s phases)")
+    p.add_argument("--out", type=Path, default=Path("bench_out/system"))
+    a = p.parse_args(argv)
+    if a.quick:
+        a.cameras, a.phase_s, a.warmup_s, a.frames_per_camera = min(a.cameras, 2), 10.0, 8.0, 8
+    consumers = [int(c) for c in a.consumers.split(",") if c.strip()]
+    mapper_settings = {"geometry": {"backend": a.geometry},
+                       "perception": {"segmenter": a.segmenter, "embedder": a.segmenter}}
+    try:
+        run(a.cameras, a.fps, a.phase_s, a.warmup_s, a.width, a.height, a.frames_per_camera, consumers,
+            mapper_settings, a.out)
+    except Exception as e:  # noqa: BLE001
+        print(f"argus bench system: {type(e).__name__}: {e}", file=sys.stderr)
+        return 1
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
