@@ -162,8 +162,11 @@ class RobotAgent:
             log.warning("viewpoint publish failed: %s", e)
         self._last_viewpoints = time.monotonic()
 
-    def publish_frame(self) -> None:
-        """Capture at the current pose; publish the ORACLE sample (if enabled) and then the frame."""
+    def publish_frame(self, reliable: bool = False) -> None:
+        """Capture at the current pose; publish the ORACLE sample (if enabled) and then the frame.
+
+        ``reliable`` frames (arrival, stop) use the blocking publisher ordered with the state.
+        """
         t0 = time.perf_counter()
         try:
             cap = self.body.capture()
@@ -197,7 +200,7 @@ class RobotAgent:
                     depth_png=depth_to_png(o.depth_m),
                     labels={str(k): v for k, v in o.labels.items()},
                 )))
-            put_frame(self._frame_pub, header, jpeg)
+            put_frame(self._arrival_pub if reliable else self._frame_pub, header, jpeg)
         except Exception as e:  # noqa: BLE001 - a failed frame is counted, the robot carries on
             self.counters.add("frame_errors")
             self._reporter.last_error = f"frame failed: {e}"
@@ -254,19 +257,19 @@ class RobotAgent:
                 self.steps += 1
                 self.counters.add("arrivals")
                 self.viewpoint_id = self.goal.vp_id if self.goal is not None else None
-                self.publish_frame()  # always one frame on arrival, before the state says so
+                self.publish_frame(reliable=True)  # always one frame on arrival, before the state says so
                 self._set("arrived")
                 self.exhausted = self.budget.exhausted(self.body.distance_m(), self.steps)
                 if self.exhausted is not None:
                     self._set("budget_exhausted", self.exhausted)
             elif result == "failed":
                 self.counters.add("failures")
-                self.publish_frame()
+                self.publish_frame(reliable=True)
                 self._set("failed", "the body could not reach the goal")
             elif driven_out is not None:
                 self.body.stop()
                 self.exhausted = driven_out
-                self.publish_frame()
+                self.publish_frame(reliable=True)
                 self._set("budget_exhausted", driven_out)
             else:
                 rate = self.config.frames.moving_rate_hz
@@ -295,6 +298,8 @@ class RobotAgent:
         return None
 
     def run(self, stop: threading.Event) -> int:
+        import zenoh
+
         session = self._open_session(stop)
         if session is None:
             return 0
@@ -302,12 +307,24 @@ class RobotAgent:
         with session:
             token = session.liveliness().declare_token(self.keys.alive(ROLE, rid))
             self._frame_pub = declare_frame_publisher(session, self.keys.robot_frame(rid))
-            self._oracle_pub = (
-                declare_message_publisher(session, self.keys.oracle("robot", rid), important=False)
+            # Arrival frames must not be dropped and must reach a subscriber before the arrival
+            # state: same priority as the state publisher (Zenoh keeps order within a priority), BLOCK.
+            self._arrival_pub = session.declare_publisher(
+                self.keys.robot_frame(rid), encoding=zenoh.Encoding.IMAGE_JPEG,
+                congestion_control=zenoh.CongestionControl.BLOCK, priority=zenoh.Priority.DATA,
+            )
+            self._oracle_pub = (  # sim only; BLOCK so the arrival frame's ORACLE sample is never lost
+                session.declare_publisher(
+                    self.keys.oracle("robot", rid), encoding=zenoh.Encoding.APPLICATION_OCTET_STREAM,
+                    congestion_control=zenoh.CongestionControl.BLOCK, priority=zenoh.Priority.DATA,
+                )
                 if self.body.oracle
                 else None
             )
-            self._state_pub = declare_message_publisher(session, self.keys.robot_state(rid), important=True)
+            self._state_pub = session.declare_publisher(
+                self.keys.robot_state(rid), encoding=zenoh.Encoding.APPLICATION_OCTET_STREAM,
+                congestion_control=zenoh.CongestionControl.BLOCK, priority=zenoh.Priority.DATA,
+            )
             self._vp_pub = declare_message_publisher(session, self.keys.robot_viewpoints(rid), important=True)
             queryable = session.declare_queryable(self.keys.robot_viewpoints(rid), self._on_viewpoints_query)
             goal_sub = session.declare_subscriber(self.keys.robot_goal(rid), self._on_goal_sample)
@@ -324,7 +341,7 @@ class RobotAgent:
                 with self._reporter:
                     self._publish_viewpoints()
                     if self.config.frames.on_start:
-                        self.publish_frame()
+                        self.publish_frame(reliable=True)
                     self._set("idle")
                     self._loop(stop)
             finally:
