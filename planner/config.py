@@ -41,7 +41,7 @@ class SeeConfig(_Model):
     """Geometric baseline after Surface Edge Explorer: frontier points from measurement density."""
 
     min_neighbors: int = Field(
-        default=7, ge=1, le=26, description="occupied 26-neighbours below which a voxel is a surface edge"
+        default=6, ge=1, le=26, description="occupied 26-neighbours below which a voxel is a surface edge"
     )
     min_density: float = Field(
         default=3.0,

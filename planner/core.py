@@ -96,6 +96,8 @@ class Planner:
         self._cand_cache: dict[str, tuple[int, Candidates]] = {}
         self._frontier_cache: tuple[tuple[int, int, int], np.ndarray] | None = None
         self._n_goals = 0
+        self.last_scores: dict[str, np.ndarray] = {}
+        """Per robot, the score of every candidate in the last plan (frontier points or bits)."""
 
     # -- memory -------------------------------------------------------------------------------
     def record_view(self, T_world_cam: np.ndarray, intrinsics: Intrinsics, max_range_m: float = 6.0) -> None:
@@ -431,6 +433,7 @@ class Planner:
                 self.config.visibility,
             )
             score[sub] = det.sum(axis=1)
+        self.last_scores[c.robot_id] = score
         best = float(score[valid].max()) if valid.any() else 0.0
         if best <= 0.0:
             # No frontier left in reach: go where no view has been taken yet (coverage), nearest first.
@@ -504,6 +507,7 @@ class Planner:
             V &= gate
         fn = joint_gain if acfg.observation == "joint" else factored_gain
         gain = fn(V, hyps.label_idx, hyps.sample_idx, len(hyps.labels), hyps.n_completions, hyps.n_jitter)
+        self.last_scores[c.robot_id] = gain
         best = float(gain[valid].max())
         if best < acfg.min_gain_bits:
             return None, 0.0, ""

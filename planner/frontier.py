@@ -31,7 +31,7 @@ def neighbour_stats(
     c = np.ones(N) if counts is None else np.asarray(counts, dtype=np.float64).reshape(N)
     if N == 0:
         return np.zeros(0, np.int64), np.zeros(0)
-    ijk = np.round(P / voxel_m).astype(np.int64)
+    ijk = np.floor(P / voxel_m).astype(np.int64)  # same voxel keys as the mapper (floor)
     keys = _encode(ijk)
     order = np.argsort(keys, kind="stable")
     skeys = keys[order]

@@ -152,7 +152,11 @@ def realize(
         item = prior.item(label)
         w, d, h = item.size_m
         if obj.xyz is not None:
-            base = np.asarray(obj.xyz, dtype=np.float64)
+            base = np.asarray(obj.xyz, dtype=np.float64).copy()
+            if base[2] <= 0.0:  # no height given: from the catalogue's placement
+                base[2] = {"wall_mounted": 1.4, "ceiling": CEILING_Z_M, "on": 0.9 + h / 2}.get(
+                    item.placement, h / 2
+                )
             props = base + np.column_stack([rng.normal(0, 0.3, (proposals, 2)), np.zeros(proposals)])
             props[0] = base
             return _Pending(k, obj, label, w, d, h, props, item.placement in ("floor", "floor_wall"))

@@ -72,7 +72,7 @@ def point_map(
     points: np.ndarray, voxel_m: float, counts: float | np.ndarray = 5.0, version: int = 1
 ) -> PointMap:
     """A PointMap of voxel-rounded unique points with the given observation counts."""
-    P = np.round(np.asarray(points, dtype=np.float64) / voxel_m) * voxel_m
+    P = (np.round(np.asarray(points, dtype=np.float64) / voxel_m) + 0.5) * voxel_m  # voxel centres
     P, idx = np.unique(P, axis=0, return_index=True)
     cnt = (
         np.broadcast_to(np.asarray(counts, dtype=np.float64), (points.shape[0],))[idx]
