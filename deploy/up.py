@@ -633,7 +633,11 @@ def run(
     stack = Stack(launch, launch_path.parent, only=only, log_dir=log_dir)
     if dry_run:
         for spec in stack.local:
-            print(f"[{spec.name}] ({spec.host}) {shlex.join(stack.argv_for(spec))}")
+            argv = stack.argv_for(spec)
+            print(f"[{spec.name}] ({spec.host}) {shlex.join(argv)}")
+            if spec.settings is not None:  # the generated config file is temporary: show it
+                print("\n".join(f"    | {line}" for line in Path(argv[-1]).read_text().splitlines()))
+        stack.stop()
         return 0
     stop = install_stop_handlers()
     code = 0
