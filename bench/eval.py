@@ -143,9 +143,8 @@ def _mapper_views(scene: Any, poses_true: Sequence[np.ndarray], priors: Sequence
 def scan_walk(scene: Any, cfg: FramesConfig, seed: int) -> tuple[list[np.ndarray], list[np.ndarray]]:
     """True camera poses of a robot walking a covering route, its head scanning left and right, and the
     odometry priors (true poses with Gaussian noise) the RGB-only path starts from."""
-    from sim.nav import NavMap
-
     from protocol.poses import camera_pose_from_base
+    from sim.nav import NavMap
 
     rng = np.random.default_rng(seed)
     nav = NavMap(scene)
@@ -187,9 +186,8 @@ def scan_walk(scene: Any, cfg: FramesConfig, seed: int) -> tuple[list[np.ndarray
 
 def fixed_camera_views(scene: Any, n: int, seed: int, width: int, height: int) -> list[Any]:
     """One frame from each of ``n`` fixed cameras placed high in room corners (calibrated when known)."""
-    from sim.cameras import place_fixed_cameras
-
     from protocol.messages import Intrinsics
+    from sim.cameras import place_fixed_cameras
 
     intr = Intrinsics.from_fov(width, height, 90.0)
     views = []
