@@ -5,6 +5,7 @@ from __future__ import annotations
 import json
 import threading
 import time
+from pathlib import Path
 from typing import Any
 
 import pytest
@@ -149,3 +150,61 @@ def test_formatting() -> None:
     assert "3 node(s)" in table and "office chair" in table and "0.00" in table
     line = format_delta(GraphDelta(version=3, stamp_ns=0, upserted=SNAP.nodes, removed=["x"]))
     assert line.startswith("v3: 3 upserted, 1 removed")
+
+
+def test_cli_returns_what_a_real_mapper_holds(router: str, procs: list[Proc], tmp_path: Path) -> None:
+    """A graph built in-process is persisted, a real ``argus mapper`` resumes it, ``argus query`` reads it."""
+    from bench.eval import FramesConfig, _mapper_views, scan_walk
+    from mapper.core import MapperCore
+    from mapper.persistence import save_state
+    from protocol.messages import Intrinsics
+    from sim.scene import generate_scene
+
+    scene = generate_scene("furnished_room", 0)
+    frames = FramesConfig(n_frames=3, width=160, height=120)
+    poses, _ = scan_walk(scene, frames, 0)
+    views = _mapper_views(scene, poses, poses, Intrinsics.from_fov(160, 120, 90.0), "robot0", trusted=True)
+    core = MapperCore(core_config_oracle())
+    for v in views:
+        core.ingest(v, force_keyframe=True)
+    held = core.snapshot()
+    assert held.nodes, "the in-process mapper found nothing to serve"
+    save_state(tmp_path / "state", core.state())
+
+    site = "qreal"
+    mapper = Proc(["mapper", "--connect", router, "--site", site, "--state-dir", str(tmp_path / "state")])
+    procs.append(mapper)
+    base = ["query", "--connect", router, "--site", site, "--timeout", "2"]
+
+    def snapshot_served() -> bool:
+        p = Proc([*base, "snapshot", "--json"])
+        procs.append(p)
+        return p.wait(30) == 0
+
+    wait_for(snapshot_served, timeout=90, interval=0.5, what="mapper serving its resumed graph")
+    p = Proc([*base, "snapshot", "--json"])
+    procs.append(p)
+    assert p.wait(30) == 0, p.output
+    got = GraphSnapshot.model_validate_json(p.output[p.output.index("{"):])
+    assert got.version == held.version
+    assert [(n.node_id, n.label) for n in got.nodes] == [(n.node_id, n.label) for n in held.nodes]
+    assert {(e.subject_id, e.predicate, e.object_id) for e in got.edges} == {
+        (e.subject_id, e.predicate, e.object_id) for e in held.edges}
+
+    target = held.nodes[0]
+    p = Proc([*base, "nodes", "--label", target.label, "--near", ",".join(f"{v:.3f}" for v in target.centroid),
+              "--radius", "0.5", "--json"])
+    procs.append(p)
+    assert p.wait(30) == 0, p.output
+    ids = [n["node_id"] for n in json.loads(p.output[p.output.index("["):])]
+    assert target.node_id in ids
+    expected = {n.node_id for n in held.nodes
+                if target.label.lower() in n.label.lower()
+                and sum((a - b) ** 2 for a, b in zip(n.centroid, target.centroid, strict=True)) <= 0.25}
+    assert set(ids) == expected
+
+
+def core_config_oracle() -> Any:
+    from bench.eval import core_config
+
+    return core_config("oracle", "sim", 1)
