@@ -52,7 +52,7 @@ def _intrinsics_from_matrix(K: Any, width: Any, height: Any) -> Intrinsics:
 def _from_yaml(path: Path) -> Calibration:
     try:
         fs = cv2.FileStorage(str(path), cv2.FILE_STORAGE_READ)
-    except cv2.error as e:
+    except Exception as e:  # noqa: BLE001 - cv2 raises cv2.error or SystemError on a bad file
         raise CalibrationError(f"cannot parse calibration file {path}: {e}") from None
     if not fs.isOpened():
         raise CalibrationError(f"cannot parse calibration file {path} as OpenCV YAML/XML")
@@ -114,7 +114,7 @@ def load_calibration(path: Path) -> Calibration:
         calib = _from_json(path) if path.suffix.lower() == ".json" else _from_yaml(path)
     except CalibrationError:
         raise
-    except (OSError, ValueError, TypeError) as e:
+    except Exception as e:  # noqa: BLE001 - pydantic, numpy or cv2 errors on a hostile file
         raise CalibrationError(f"calibration file {path}: {e}") from None
     if calib.intrinsics is None and calib.T_world_cam is None:
         raise CalibrationError(f"calibration file {path} holds neither camera_matrix nor T_world_cam")

@@ -204,3 +204,42 @@ def test_configuration_errors_exit_nonzero_with_a_message(tmp_path, source, extr
         proc.stop()
     assert rc == 2
     assert message in proc.output
+
+
+def test_sim_source_publishes_frames_and_oracle(tmp_path, router, procs, listener_factory):
+    pytest.importorskip("sim.scene")
+    from protocol.messages import OracleFrame
+    from protocol.oracle import png_to_depth
+
+    cfg = write_config(
+        tmp_path / "cam.toml", router,
+        'type = "sim"\nfamily = "furnished_room"\nseed = 1\nwidth = 160\nheight = 120\nrate_hz = 10.0\n'
+        "oracle = true\n",
+    )
+    lst = listener_factory(router, "cam_t")
+    oracles: list[OracleFrame] = []
+    sub = lst.session.declare_subscriber(
+        KEYS.oracle("fixed", "cam_t"), lambda s: oracles.append(decode(s.payload.to_bytes(), OracleFrame))
+    )
+    try:
+        proc = Proc(["edge-camera", "--config", str(cfg)])
+        procs.append(proc)
+        wait_for(lambda: lst.n_frames() >= 2 and len(oracles) >= 2, timeout=60,
+                 what=f"sim frames and ORACLE samples; output:\n{proc.output}")
+    finally:
+        sub.undeclare()
+    f = lst.frames[0]
+    rgb = decode_jpeg(f.jpeg)
+    assert rgb.shape == (120, 160, 3) and rgb.std() > 5  # a rendered room, not a blank image
+    h = f.header
+    assert (h.width, h.height, h.source_kind) == (160, 120, "fixed")
+    assert h.intrinsics is not None and h.intrinsics.fx == pytest.approx(80.0)  # 90 deg over 160 px
+    assert h.pose_trusted is True and h.T_world_cam is not None
+    T = np.asarray(h.T_world_cam)
+    assert T[2, 3] > 1.5  # high in a room corner
+    assert T[2, 2] < 0  # optical axis (camera z) pointing down
+    match = next(o for o in oracles if o.seq == h.seq)
+    assert np.allclose(np.asarray(match.T_world_cam_true), T)
+    depth = png_to_depth(match.depth_png)
+    assert depth.shape == (120, 160) and (depth > 0).mean() > 0.9
+    assert len(match.labels) > 5

@@ -227,3 +227,68 @@ def test_step_budget(tmp_path, router, procs, client_factory):
     g2 = client.state_where(lambda s: s.goal_id == "g2")
     assert g2.status == "budget_exhausted" and "budget" in g2.reason
     assert client.state_where(lambda s: s.status == "moving" and s.goal_id == "g2") is None
+
+
+def test_sim_body_goal_arrives_within_odometry_noise(tmp_path, router, procs, client_factory):
+    pytest.importorskip("sim.scene")
+    cfg = tmp_path / "sim.toml"
+    cfg.write_text(
+        f"""id = "{RID}"
+state_period_s = 0.5
+status_period_s = 0.2
+[body]
+type = "sim"
+family = "furnished_room"
+seed = 0
+width = 160
+height = 120
+speed_mps = 1.0
+odom_trans_std_per_m = 0.01
+odom_rot_std_deg_per_m = 0.5
+[frames]
+moving_rate_hz = 2.0
+[motion]
+tick_hz = 50.0
+time_scale = 10.0
+[zenoh]
+connect = ["{router}"]
+"""
+    )
+    client = client_factory(router)
+    proc = Proc(["robot-agent", "--config", str(cfg)])
+    procs.append(proc)
+    wait_for(lambda: client.state_where(lambda s: s.status == "idle") is not None, timeout=60,
+             what=f"an idle state; output:\n{proc.output}")
+    vps = client.query_viewpoints()
+    assert vps is not None and len(vps.viewpoints) > 50 and vps.camera_height_m == 1.0
+    idle = client.state_where(lambda s: s.status == "idle")
+    cost = idle.travel_cost_m
+    assert cost is not None and cost.shape == (len(vps.viewpoints),)
+    # The farthest reachable viewpoint: a real geodesic drive of several metres.
+    far = int(np.argmax(np.where(np.isfinite(cost), cost, -1)))
+    target = vps.viewpoints[far]
+    assert cost[far] > 2.0
+    client.goal("g1", target.x, target.y, target.yaw_rad, vp_id=target.vp_id)
+    wait_for(lambda: client.state_where(lambda s: s.status == "arrived" and s.goal_id == "g1") is not None,
+             timeout=60, what=f"arrival; output:\n{proc.output}")
+    assert client.state_where(lambda s: s.status == "moving" and s.goal_id == "g1") is not None
+    arrived = client.state_where(lambda s: s.status == "arrived")
+    # Drift std: 1 cm/sqrt(m) in position plus 0.5 deg/sqrt(m) in heading over the path (< ~8 m):
+    # generous 4-sigma bounds.
+    d = arrived.distance_m
+    # The travel cost is the nav grid's geodesic (8-connected cells); the driven path is string-pulled.
+    assert 0.85 * cost[far] <= d <= 1.1 * cost[far]
+    pos_sigma = math.sqrt(0.01**2 * d + math.radians(0.5) ** 2 * d**3 / 3)
+    assert math.hypot(arrived.x - target.x, arrived.y - target.y) < 4 * pos_sigma + 0.02
+    assert abs(math.remainder(arrived.yaw_rad - target.yaw_rad, 2 * math.pi)) < 4 * math.radians(0.5) * math.sqrt(
+        d) + 0.02
+    last_frame = [m for kind, m in client.events if kind == "frame"][-1]
+    assert decode_jpeg(last_frame.jpeg).shape == (120, 160, 3)
+    assert last_frame.header.pose_covariance is not None
+    client.goal("out", 50.0, -50.0)
+    wait_for(lambda: client.state_where(lambda s: s.goal_id == "out") is not None, timeout=20, what="refusal")
+    out = client.state_where(lambda s: s.goal_id == "out")
+    assert out.status == "refused" and "free floor" in out.reason
+    client.send(b"\xc1\xc1 not msgpack")
+    wait_for(lambda: client.counter("goals_garbage") >= 1, timeout=20, what="garbage counted")
+    assert proc.alive()

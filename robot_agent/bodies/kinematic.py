@@ -137,6 +137,8 @@ class KinematicBody:
 
     def drive_to(self, x: float, y: float, yaw_rad: float) -> str | None:
         self.stop()
+        if not all(math.isfinite(v) for v in (x, y, yaw_rad)):
+            return "goal pose is not finite"
         if not self.is_free(x, y):
             return f"goal ({x:.2f}, {y:.2f}) is outside the free space"
         x0, y0, _ = self._true
