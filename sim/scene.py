@@ -358,10 +358,17 @@ _ITEMS: dict[str, list[tuple[str, float]]] = {
     "chair": [("backpack", 0.5)],
     "dining_chair": [],
 }
+# Appliances and screens a room has at most one of.
+_ONE_PER_ROOM = {"television", "kettle", "toaster", "coffee_maker", "microwave", "printer", "monitor", "laptop",
+                 "keyboard", "computer_mouse", "globe", "alarm_clock", "clock", "frying_pan"}
+# Items that face the front of their support (screens, frames, appliances).
+_FACING = {"television", "monitor", "laptop", "keyboard", "picture_frame", "speaker", "microwave", "alarm_clock",
+           "clock", "coffee_maker", "printer", "toaster"}
 # Items big enough for the furnished_room family ("larger objects").
 _LARGE_ITEMS = {"television", "monitor", "laptop", "table_lamp", "desk_lamp", "pillow", "microwave", "kettle",
                 "coffee_maker", "toaster", "vase", "printer", "speaker", "storage_box", "fruit_bowl", "blanket",
-                "cooking_pot", "globe", "basket", "backpack", "small_plant", "towel", "picture_frame"}
+                "cooking_pot", "globe", "basket", "backpack", "small_plant", "towel", "picture_frame", "book",
+                "cutting_board", "bowl", "standing_book", "alarm_clock", "wine_bottle", "plate", "laundry_basket"}
 
 
 @dataclass
@@ -774,6 +781,8 @@ def _try_place_item(b: _Builder, parent_idx: int, cat: str, occupied: dict[tuple
     surfaces = parent.model.surfaces
     if not surfaces:
         return False
+    if cat in _ONE_PER_ROOM and any(p.cat == cat and p.room == parent.room for p in b.placed):
+        return False
     model = CATEGORIES[cat].build(rng)
     mb = _local_bounds(model)
     h = float(mb[1, 2] - mb[0, 2])
@@ -790,6 +799,8 @@ def _try_place_item(b: _Builder, parent_idx: int, cat: str, occupied: dict[tuple
         for _ in range(10 if not shelf_row else 6):
             if cat in ("standing_book",):
                 yaw_l = 0.0
+            elif cat in _FACING:
+                yaw_l = float(rng.uniform(-0.1, 0.1))
             elif shelf_row or s.kind == "in" and s.x1 - s.x0 < 0.4:
                 yaw_l = float(rng.uniform(-0.15, 0.15))
             else:
@@ -811,7 +822,7 @@ def _try_place_item(b: _Builder, parent_idx: int, cat: str, occupied: dict[tuple
                 x = float(rng.uniform(*xr))
                 y = float(rng.uniform(*yr))
             rect = (x + lo[0], y + lo[1], x + hi[0], y + hi[1])
-            if any(_rects_overlap(rect, r, 0.01) for r in occ):
+            if any(_rects_overlap(rect, r, 0.0 if cat == "standing_book" else 0.01) for r in occ):
                 continue
             occ.append(rect)
             T_local = _pose(x, y, s.z - mb[0, 2], yaw_l)
@@ -849,14 +860,18 @@ def _fill_items(b: _Builder, target: int, large_only: bool) -> None:
         hosts = [k for k, p in enumerate(b.placed) if p.model.surfaces and choices(p.cat)]
         if not hosts:
             break
-        area = np.array([sum((s.x1 - s.x0) * (s.y1 - s.y0) for s in b.placed[k].model.surfaces) + 0.05
-                         for k in hosts])
+        # balance rooms first (so a bookshelf-heavy office does not take every item), then surface area
+        host_rooms = sorted({b.placed[k].room for k in hosts})
+        room = host_rooms[int(rng.integers(len(host_rooms)))]
+        hosts = [k for k in hosts if b.placed[k].room == room]
+        area = np.array([sum((s.x1 - s.x0) * (s.y1 - s.y0) * (0.35 if s.kind == "in" else 1.0)
+                             for s in b.placed[k].model.surfaces) + 0.05 for k in hosts])
         k = hosts[int(rng.choice(len(hosts), p=area / area.sum()))]
         opts = choices(b.placed[k].cat)
         w = np.array([x[1] for x in opts])
         cat = opts[int(rng.choice(len(opts), p=w / w.sum()))][0]
         if cat == "standing_book":  # a run of books on one shelf
-            n_ok = sum(_try_place_item(b, k, cat, occupied) for _ in range(int(rng.integers(2, 6)))
+            n_ok = sum(_try_place_item(b, k, cat, occupied) for _ in range(int(rng.integers(2, 5)))
                        if len(b.placed) < target)
             failures += n_ok == 0
         elif not _try_place_item(b, k, cat, occupied):
@@ -1009,7 +1024,9 @@ def generate_scene(family: str, seed: int) -> Scene:
     for room in rooms:
         plan = list(_PLANS[room.kind])
         if family == "furnished_room":
-            plan += [("potted_plant", "corner", 0.6), ("floor_lamp", "corner", 0.5), ("bookshelf", "wall", 0.5)]
+            plan += [("potted_plant", "corner", 0.7), ("floor_lamp", "corner", 0.6), ("bookshelf", "wall", 0.6),
+                     ("armchair", "wall", 0.5), ("side_table", "wall", 0.6), ("dresser", "wall", 0.5),
+                     ("trash_can", "corner", 0.5), ("chair", "wall", 0.4), ("potted_plant", "corner", 0.5)]
         _place_furniture(b, room, doors, plan, H)
     _fill_items(b, target, large_only=family == "furnished_room")
     return _finalise(b, family, seed, rooms, doors, structure, H)
