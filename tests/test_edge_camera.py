@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import shutil
+import signal
 import threading
 from pathlib import Path
 
@@ -243,3 +244,30 @@ def test_sim_source_publishes_frames_and_oracle(tmp_path, router, procs, listene
     depth = png_to_depth(match.depth_png)
     assert depth.shape == (120, 160) and (depth > 0).mean() > 0.9
     assert len(match.labels) > 5
+
+
+def test_video_end_without_loop_keeps_process_up_and_router_may_come_later(tmp_path, procs, listener_factory):
+    from tests.procs import endpoint, free_port, wait_port
+
+    video = tmp_path / "v.avi"
+    vw = cv2.VideoWriter(str(video), cv2.VideoWriter_fourcc(*"MJPG"), 10.0, (64, 48))
+    for i in range(3):
+        vw.write(np.full((48, 64, 3), 40 * i, np.uint8))
+    vw.release()
+    ep = endpoint(free_port())
+    cfg = write_config(tmp_path / "cam.toml", ep, f'type = "video"\npath = "{video}"\nloop = false\n')
+    proc = Proc(["edge-camera", "--config", str(cfg)])
+    procs.append(proc)
+    # No router yet: the camera keeps retrying instead of exiting.
+    wait_for(lambda: "cannot reach Zenoh" in proc.output, timeout=30, what=f"a retry message:\n{proc.output}")
+    assert proc.alive()
+    router = Proc(["router", "--listen", ep])
+    procs.append(router)
+    wait_port(int(ep.rsplit(":", 1)[1]))
+    lst = listener_factory(ep, "cam_t")
+    wait_for(lambda: any(s.last_error and "end of video" in s.last_error and
+                         s.counters.get("frames_sent", 0) == 3 for s in list(lst.statuses)),
+             timeout=30, what=f"Status: 3 frames then end of video:\n{proc.output}")
+    assert proc.alive()
+    proc.signal(signal.SIGTERM)
+    assert proc.wait(timeout=15) == 0

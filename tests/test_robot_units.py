@@ -1,0 +1,174 @@
+"""Unit tests of the robot agent's pure parts and the kinematic body (no Zenoh, no simulator)."""
+
+from __future__ import annotations
+
+import math
+import time
+
+import numpy as np
+import pytest
+
+from protocol.codec import encode
+from protocol.messages import NbvGoal, Status
+from protocol.poses import camera_pose_from_base
+from robot_agent.bodies import BODIES, create_body, parse_body_config
+from robot_agent.bodies.base import BodyConfigError, RobotBody
+from robot_agent.config import RobotAgentConfig
+from robot_agent.goals import Budget, goal_problem
+from robot_agent.node import GoalMailbox, RobotAgent
+
+
+def goal(**kw) -> NbvGoal:
+    base = dict(goal_id="g", robot_id="r", stamp_ns=0, x=1.0, y=1.0, yaw_rad=0.0)
+    base.update(kw)
+    return NbvGoal(**base)
+
+
+class TestGoalProblem:
+    def test_good_goal(self):
+        assert goal_problem(goal(), "r") is None
+
+    @pytest.mark.parametrize(
+        ("kw", "match"),
+        [({"robot_id": "other"}, "addressed to"), ({"x": math.nan}, "non-finite"),
+         ({"yaw_rad": math.inf}, "non-finite"), ({"y": 1e9}, "far away")],
+    )
+    def test_bad_goals(self, kw, match):
+        assert match in goal_problem(goal(**kw), "r")
+
+
+def test_budget():
+    assert Budget().exhausted(1e9, 10**6) is None
+    assert Budget(max_distance_m=5).exhausted(4.9, 100) is None
+    assert "distance" in Budget(max_distance_m=5).exhausted(5.0, 0)
+    assert "step" in Budget(max_steps=3).exhausted(0.0, 3)
+
+
+def test_mailbox_newest_wins():
+    box = GoalMailbox()
+    assert box.take() is None
+    box.put(goal(goal_id="a"))
+    box.put(goal(goal_id="b"))
+    assert box.take().goal_id == "b" and box.superseded == 1 and box.take() is None
+
+
+def kinematic(**kw) -> RobotBody:
+    cfg = {"type": "kinematic", "start": [1.0, 1.0, 0.0], "speed_mps": 1.0, "turn_rate_dps": 90.0, **kw}
+    body = create_body(parse_body_config(cfg))
+    assert isinstance(body, RobotBody)
+    return body
+
+
+class TestKinematicBody:
+    def test_noise_free_drive_is_exact_and_timed(self):
+        body = kinematic(odom_trans_sigma=0.0, odom_yaw_sigma=0.0)
+        assert body.drive_to(4.0, 1.0, math.pi / 2) is None
+        statuses = [body.step(0.5) for _ in range(8)]
+        # 3 m at 1 m/s = 6 steps of 0.5 s, then a 90 deg turn at 90 deg/s = 2 more.
+        assert statuses[:7] == ["moving"] * 7 and statuses[7] == "arrived"
+        assert body.step(0.5) == "idle"
+        assert body.pose_odom() == pytest.approx((4.0, 1.0, math.pi / 2))
+        assert body.distance_m() == pytest.approx(3.0)
+        assert np.allclose(body.T_world_cam_odom(), camera_pose_from_base(4.0, 1.0, math.pi / 2, 1.0, -15.0))
+
+    def test_odometry_drifts_with_distance_and_covariance_grows(self):
+        body = kinematic(odom_trans_sigma=0.05, seed=3)
+        cov0 = body.pose_covariance()
+        body.drive_to(5.0, 3.0, 0.0)
+        while body.step(0.1) == "moving":
+            pass
+        x, y, _ = body.pose_odom()
+        err = math.hypot(x - 5.0, y - 3.0)
+        assert 0.0 < err < 5 * 0.05 * math.sqrt(body.distance_m())
+        assert body.pose_covariance()[0, 0] > cov0[0, 0]
+
+    def test_refusals_and_stop(self):
+        body = kinematic(obstacles=[[2.5, 0.0, 3.5, 2.5]])
+        assert "outside" in body.drive_to(10.0, 1.0, 0.0)
+        assert "outside" in body.drive_to(3.0, 1.0, 0.0)  # inside the obstacle
+        assert "no straight path" in body.drive_to(5.0, 1.0, 0.0)
+        assert "finite" in body.drive_to(math.nan, 1.0, 0.0)
+        assert body.drive_to(1.0, 3.0, 0.0) is None
+        body.step(0.3)
+        body.stop()
+        assert body.step(1.0) == "idle"
+
+    def test_viewpoints_and_costs(self):
+        body = kinematic(obstacles=[[2.5, 0.0, 3.5, 2.5]])
+        vps = body.viewpoints()
+        assert vps and all(body.is_free(v.x, v.y) for v in vps)
+        assert [v.vp_id for v in vps] == list(range(len(vps)))
+        cost = body.travel_costs_m(vps)
+        assert cost.shape == (len(vps),) and np.isinf(cost).any() and (cost[np.isfinite(cost)] >= 0).all()
+
+    def test_capture_depends_on_pose(self):
+        body = kinematic(width=64, height=48)
+        a = body.capture().rgb
+        body.drive_to(1.0, 1.0, math.pi)
+        while body.step(0.5) == "moving":
+            pass
+        b = body.capture().rgb
+        assert a.shape == (48, 64, 3) and a.dtype == np.uint8 and not np.array_equal(a, b)
+
+    def test_bad_config(self):
+        with pytest.raises(BodyConfigError, match="not in free space"):
+            kinematic(start=[-1.0, 0.0, 0.0])
+        with pytest.raises(ValueError, match="xmin < xmax"):
+            parse_body_config({"type": "kinematic", "bounds_m": [1, 0, 0, 1]})
+        with pytest.raises(BodyConfigError, match="unknown body type"):
+            parse_body_config({"type": "hovercraft"})
+        assert set(BODIES) >= {"sim", "kinematic"}
+
+
+class FakePub:
+    def __init__(self) -> None:
+        self.puts: list[bytes] = []
+
+    def put(self, payload, attachment=None) -> None:  # noqa: ANN001
+        self.puts.append(bytes(payload))
+
+
+class FakeReporter:
+    last_error = None
+
+
+def agent_with_fakes(**cfg) -> RobotAgent:
+    config = RobotAgentConfig(id="r", body={"type": "kinematic", "start": [1.0, 1.0, 0.0], "speed_mps": 1.0,
+                                            "odom_trans_sigma": 0.0, "odom_yaw_sigma": 0.0}, **cfg)
+    agent = RobotAgent(config)
+    for name in ("_frame_pub", "_arrival_pub", "_state_pub", "_vp_pub"):
+        setattr(agent, name, FakePub())
+    agent._oracle_pub = None
+    agent._reporter = FakeReporter()
+    agent._last_frame = agent._last_state = agent._last_viewpoints = time.monotonic()
+    return agent
+
+
+def test_agent_tick_drives_publishes_arrival_frame_then_state_and_counts_garbage():
+    agent = agent_with_fakes()
+    agent.on_goal_bytes(b"junk")
+    agent.on_goal_bytes(encode(Status(role="x", node_id="y", stamp_ns=0)))
+    assert agent.counters.get("goals_garbage") == 2
+    agent.on_goal_bytes(encode(goal(robot_id="r", x=2.0, y=1.0, vp_id=7)))
+    agent.tick(0.0)
+    assert agent.status == "moving"
+    for _ in range(100):
+        agent.tick(0.1)
+        if agent.status != "moving":
+            break
+    assert agent.status == "arrived" and agent.steps == 1 and agent.viewpoint_id == 7
+    assert len(agent._arrival_pub.puts) == 1
+    assert agent.state().travel_cost_m is not None
+
+
+def test_agent_distance_budget_stops_the_robot():
+    agent = agent_with_fakes(budget={"max_distance_m": 1.0})
+    agent.handle_goal(goal(robot_id="r", x=4.0, y=1.0))
+    for _ in range(100):
+        agent.tick(0.1)
+        if agent.status != "moving":
+            break
+    assert agent.status == "budget_exhausted" and "distance" in agent.reason
+    assert agent.body.distance_m() == pytest.approx(1.0, abs=0.11)
+    agent.handle_goal(goal(robot_id="r", goal_id="later", x=1.0, y=1.0))
+    assert agent.status == "budget_exhausted" and agent.goal_id == "later"
