@@ -27,7 +27,7 @@ from mapper.graph_store import GraphStore
 from mapper.keyframes import KeyframeSelector, KeyframeStore
 from mapper.perception.base import Embedder, Segmenter, ViewGeometry
 from mapper.pointmap import VoxelMap
-from mapper.relations import compute_edges
+from mapper.relations import compute_edges, refine_with_points
 from protocol.messages import GraphDelta, GraphNode, GraphSnapshot, PointMap
 from protocol.query import GraphQuery
 
@@ -144,7 +144,10 @@ class MapperCore:
         self._add_points(view, vg)
         times["fusion"] = time.perf_counter() - t
         t = time.perf_counter()
-        edges = compute_edges(self.objects.boxes(), self.config.relations)
+        boxes = self.objects.boxes()
+        edges = compute_edges(boxes, self.config.relations)
+        clouds = {i: n.points for i, n in self.objects.nodes.items()}
+        edges = refine_with_points(edges, boxes, clouds, self.config.relations)
         ups = self.objects.messages(sorted(res.changed), with_embedding=self.config.node_embeddings)
         with self.lock:
             delta = self.store.commit(ups, res.removed, edges, view.stamp_ns or time.time_ns())

@@ -50,7 +50,13 @@ class RelationConfig(BaseModel):
         default=0.8, ge=0.0, le=1.0, description="inside: fraction of a's volume within b's box"
     )
     next_to_max_gap_m: float = Field(
-        default=0.35, ge=0.0, description="next_to: largest horizontal gap between the footprints"
+        default=0.3, ge=0.0, description="next_to: largest horizontal gap between the footprints"
+    )
+    next_to_max_gap_items_m: float = Field(
+        default=0.12, ge=0.0, description="next_to: largest gap when both stand off the floor (items on furniture)"
+    )
+    item_min_base_z_m: float = Field(
+        default=0.15, description="objects whose bottom is higher than this stand on furniture (items)"
     )
     next_to_max_base_dz_m: float = Field(
         default=0.25, ge=0.0, description="next_to: largest difference between the two bottoms"
@@ -63,6 +69,12 @@ class RelationConfig(BaseModel):
         description="next_to: footprints overlapping more than this (of the smaller) are not 'next to'",
     )
     min_extent_m: float = Field(default=0.01, gt=0.0, description="extents are clamped to at least this")
+    enclosure_min_sides: int = Field(
+        default=3, ge=0, le=4,
+        description="inside (with point clouds): b must cover a from above or wall it in on this many sides; "
+        "otherwise a rests on an inner surface of b (pillow on a bed with a tall headboard): on_top_of",
+    )
+    enclosure_margin_m: float = Field(default=0.4, gt=0.0, description="how far around a b's walls are sought")
 
 
 @dataclass(frozen=True)
@@ -196,12 +208,18 @@ def _relation(a: _Box, b: _Box, cfg: RelationConfig) -> str | None:
     # 3. inside: a's volume mostly within the larger b.
     if a.volume < b.volume and _inside_fraction(a, b) >= cfg.min_inside_fraction:
         return "inside"
-    # 4. next_to: close footprints at a similar height.
+    # 4. next_to: close footprints at a similar height. Items on furniture use a tighter gap, and the
+    # centres must be close relative to the sizes (a long bed is not "next to" what lies beyond its foot).
     if inter <= cfg.next_to_max_footprint_overlap * min_area and abs(a.zmin - b.zmin) <= cfg.next_to_max_base_dz_m:
+        items = min(a.zmin, b.zmin) > cfg.item_min_base_z_m
+        gap_max = cfg.next_to_max_gap_items_m if items else cfg.next_to_max_gap_m
         dz = min(a.zmax, b.zmax) - max(a.zmin, b.zmin)
         min_h = min(a.zmax - a.zmin, b.zmax - b.zmin)
-        if dz >= cfg.next_to_min_vertical_overlap * min_h and footprint_gap(a.corners_xy, b.corners_xy) <= (
-            cfg.next_to_max_gap_m
+        reach = (max(a.extent[0], a.extent[1]) + max(b.extent[0], b.extent[1])) / 2.0 + gap_max
+        if (
+            dz >= cfg.next_to_min_vertical_overlap * min_h
+            and np.hypot(*(a.center[:2] - b.center[:2])) <= reach
+            and footprint_gap(a.corners_xy, b.corners_xy) <= gap_max
         ):
             return "next_to"
     return None
@@ -227,3 +245,53 @@ def compute_edges(boxes: Mapping[str, OrientedBox], cfg: RelationConfig | None =
             edges.append(GraphEdge(subject_id=ids[i], predicate=pred, object_id=ids[j]))  # type: ignore[arg-type]
     edges.sort(key=lambda e: (e.subject_id, e.predicate, e.object_id))
     return edges
+
+
+def refine_with_points(
+    edges: list[GraphEdge],
+    boxes: Mapping[str, OrientedBox],
+    clouds: Mapping[str, np.ndarray],
+    cfg: RelationConfig | None = None,
+) -> list[GraphEdge]:
+    """Tell ``inside`` from resting on an inner surface using the nodes' points (world, metres).
+
+    A box test alone cannot: a pillow on a bed whose headboard makes the box tall is "inside" the bed's
+    box. ``a inside b`` is kept when b has points above a (a shelf board, a lid) or walls around a at
+    a's height on at least ``enclosure_min_sides`` of its four sides (a bathtub, a basket); otherwise
+    the edge becomes ``a on_top_of b``. Other edges pass through unchanged.
+    """
+    cfg = cfg or RelationConfig()
+    out = []
+    for e in edges:
+        if e.predicate == "inside" and e.object_id in clouds and not _encloses(
+            boxes[e.subject_id], clouds[e.object_id], cfg
+        ):
+            e = GraphEdge(subject_id=e.subject_id, predicate="on_top_of", object_id=e.object_id)
+        out.append(e)
+    return out
+
+
+def _encloses(a_box: OrientedBox, b_points: np.ndarray, cfg: RelationConfig) -> bool:
+    a = _prep(a_box, cfg.min_extent_m)
+    if len(b_points) == 0:
+        return True
+    c, s = math.cos(a.yaw), math.sin(a.yaw)
+    rel = np.asarray(b_points[:, :2], dtype=np.float64) - a.center[:2]
+    local = rel @ np.array([[c, -s], [s, c]])  # into a's box axes
+    hx, hy = a.extent[0] / 2.0, a.extent[1] / 2.0
+    z = np.asarray(b_points[:, 2], dtype=np.float64)
+    over = (np.abs(local[:, 0]) <= hx) & (np.abs(local[:, 1]) <= hy) & (z > a.zmax + 0.02)
+    if int(over.sum()) >= 5:
+        return True
+    # Walls: points beside a, above its lower third (so the surface a rests on does not count).
+    band = (z > a.zmin + (a.zmax - a.zmin) / 3.0) & (z <= a.zmax + 0.1)
+    m = cfg.enclosure_margin_m
+    sides = 0
+    for axis, half in ((0, hx), (1, hy)):
+        other, ohalf = 1 - axis, (hy if axis == 0 else hx)
+        lateral = band & (np.abs(local[:, other]) <= ohalf)
+        for sign in (1.0, -1.0):
+            d = sign * local[:, axis]
+            if int((lateral & (d >= half - 0.02) & (d <= half + m)).sum()) >= 5:
+                sides += 1
+    return sides >= cfg.enclosure_min_sides

@@ -13,6 +13,7 @@ from mapper.relations import (
     footprint,
     footprint_gap,
     footprint_intersection_area,
+    refine_with_points,
     relation,
 )
 from protocol.messages import OrientedBox
@@ -137,3 +138,37 @@ class TestPriority:
             for b in boxes:
                 if a != b:
                     assert got.get((a, b)) == relation(boxes[a], boxes[b])
+
+
+class TestRefineWithPoints:
+    def _grid(self, x0, x1, y0, y1, z0, z1, step=0.05):
+        g = np.mgrid[x0:x1:step, y0:y1:step, z0:z1:step].reshape(3, -1).T
+        return g
+
+    def test_pillow_on_bed_with_headboard_is_on_top_of(self) -> None:
+        bed = box(0.0, 0.0, 0.0, 2.0, 1.6, 1.0)
+        pillow = box(-0.6, 0.0, 0.5, 0.4, 0.5, 0.15)
+        assert relation(pillow, bed) == "inside"
+        mattress = self._grid(-1.0, 1.0, -0.8, 0.8, 0.45, 0.5)
+        headboard = self._grid(-1.0, -0.95, -0.8, 0.8, 0.0, 1.0)
+        bed_pts = np.concatenate([mattress, headboard])
+        edges = compute_edges({"pillow": pillow, "bed": bed})
+        got = refine_with_points(edges, {"pillow": pillow, "bed": bed}, {"bed": bed_pts})
+        assert ("pillow", "on_top_of", "bed") in {(e.subject_id, e.predicate, e.object_id) for e in got}
+
+    def test_book_in_shelf_and_bottle_in_tub_stay_inside(self) -> None:
+        shelf = box(0.0, 0.0, 0.0, 1.0, 0.4, 1.8)
+        book = box(0.0, 0.0, 0.62, 0.2, 0.25, 0.25)
+        boards = np.concatenate([self._grid(-0.5, 0.5, -0.2, 0.2, z, z + 0.02) for z in (0.6, 1.2, 1.78)])
+        e = compute_edges({"book": book, "shelf": shelf})
+        got = refine_with_points(e, {"book": book, "shelf": shelf}, {"shelf": boards})
+        assert ("book", "inside", "shelf") in {(x.subject_id, x.predicate, x.object_id) for x in got}
+        tub = box(0.0, 0.0, 0.0, 1.7, 0.8, 0.6)
+        bottle = box(0.2, 0.0, 0.05, 0.08, 0.08, 0.25)
+        walls = np.concatenate([
+            self._grid(-0.85, 0.85, -0.4, -0.35, 0.0, 0.6), self._grid(-0.85, 0.85, 0.35, 0.4, 0.0, 0.6),
+            self._grid(-0.85, -0.8, -0.4, 0.4, 0.0, 0.6), self._grid(0.8, 0.85, -0.4, 0.4, 0.0, 0.6),
+        ])
+        e = compute_edges({"bottle": bottle, "tub": tub})
+        got = refine_with_points(e, {"bottle": bottle, "tub": tub}, {"tub": walls})
+        assert ("bottle", "inside", "tub") in {(x.subject_id, x.predicate, x.object_id) for x in got}
