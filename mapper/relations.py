@@ -74,7 +74,6 @@ class RelationConfig(BaseModel):
         description="inside (with point clouds): b must cover a from above or wall it in on this many sides; "
         "otherwise a rests on an inner surface of b (pillow on a bed with a tall headboard): on_top_of",
     )
-    enclosure_margin_m: float = Field(default=0.4, gt=0.0, description="how far around a b's walls are sought")
 
 
 @dataclass(frozen=True)
@@ -256,8 +255,8 @@ def refine_with_points(
     """Tell ``inside`` from resting on an inner surface using the nodes' points (world, metres).
 
     A box test alone cannot: a pillow on a bed whose headboard makes the box tall is "inside" the bed's
-    box. ``a inside b`` is kept when b has points above a (a shelf board, a lid) or walls around a at
-    a's height on at least ``enclosure_min_sides`` of its four sides (a bathtub, a basket); otherwise
+    box. ``a inside b`` is kept when b has points above a (a shelf board, a lid) or walls beside a (anywhere
+    within b) at a's height on at least ``enclosure_min_sides`` of its four sides (a bathtub, a basket); otherwise
     the edge becomes ``a on_top_of b``. Other edges pass through unchanged.
     """
     cfg = cfg or RelationConfig()
@@ -285,13 +284,12 @@ def _encloses(a_box: OrientedBox, b_points: np.ndarray, cfg: RelationConfig) -> 
         return True
     # Walls: points beside a, above its lower third (so the surface a rests on does not count).
     band = (z > a.zmin + (a.zmax - a.zmin) / 3.0) & (z <= a.zmax + 0.1)
-    m = cfg.enclosure_margin_m
     sides = 0
     for axis, half in ((0, hx), (1, hy)):
         other, ohalf = 1 - axis, (hy if axis == 0 else hx)
         lateral = band & (np.abs(local[:, other]) <= ohalf)
         for sign in (1.0, -1.0):
             d = sign * local[:, axis]
-            if int((lateral & (d >= half - 0.02) & (d <= half + m)).sum()) >= 5:
+            if int((lateral & (d >= half - 0.02)).sum()) >= 5:
                 sides += 1
     return sides >= cfg.enclosure_min_sides
