@@ -364,6 +364,9 @@ def run(config: DemoConfig) -> int:
         if session is not None:
             session.close()
         stack.stop()
+        alive = [c.spec.name for c in stack.children if c.group_alive()]
+        print("argus demo: all processes stopped" if not alive else f"argus demo: still running: {alive}",
+              flush=True)
         if recorder is not None:
             recorder.close()
             print(f"recording: {config.rrd}  (watch: rerun {config.rrd}; in a browser, offline: "

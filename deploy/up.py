@@ -214,12 +214,12 @@ _PR_SET_PDEATHSIG = 1
 
 
 def _set_parent_death_signal() -> None:
-    """In the child: get SIGTERM if ``argus up`` dies without cleaning up (Linux), so none is orphaned.
+    """In the child: get SIGKILL if ``argus up`` dies without cleaning up (Linux), so none is orphaned.
 
     Runs between fork and exec, so it only calls the prctl function resolved in the parent.
     """
     if _PRCTL is not None:
-        _PRCTL(_PR_SET_PDEATHSIG, int(signal.SIGTERM))
+        _PRCTL(_PR_SET_PDEATHSIG, int(signal.SIGKILL))
 
 
 def _group_alive(pgid: int) -> bool:

@@ -64,5 +64,5 @@ def test_demo_runs_the_stack_and_scores_it(tmp_path: Path, procs: list[Proc]) ->
     res = json.loads((tmp_path / "d.json").read_text())
     assert res["steps"] >= 2 and res["nodes"] > 0 and 0 < res["recall"] <= 1 and res["precision"] > 0
     assert (tmp_path / "d.rrd").stat().st_size > 10_000
-    assert "[up] all stopped" in p.output and "| precision" in p.output
+    assert "argus demo: all processes stopped" in p.output and "| precision" in p.output
     assert {f.name for f in (tmp_path / "logs").iterdir()} >= {"mapper.log", "planner.log", "robot0.log"}

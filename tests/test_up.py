@@ -172,7 +172,7 @@ def test_up_killed_hard_leaves_no_orphans(tmp_path: Path, procs: list[Proc]) -> 
     procs.append(up)
     wait_for(ready.exists, timeout=40, what="stack healthy")
     pids = [int(p) for p in ready.read_text().split(",")]
-    os.kill(up.popen.pid, signal.SIGKILL)  # no chance to clean up: the children get SIGTERM from the kernel
+    os.kill(up.popen.pid, signal.SIGKILL)  # no chance to clean up: the kernel kills the children (PDEATHSIG)
     up.wait(10)
     try:
         wait_for(lambda: all(_pid_gone(p) for p in pids), timeout=20, what="children exit after launcher death")
