@@ -251,21 +251,19 @@ class NavMap:
         ``n_headings`` evenly spaced yaws; ``room`` names where known."""
         if spacing_m <= 0 or n_headings < 1:
             raise ValueError("spacing_m must be > 0 and n_headings >= 1")
-        lo = self.origin_xy
-        hi = lo + np.array([self.shape[1], self.shape[0]]) * self.cell_m
-        xs = np.arange(lo[0] + spacing_m / 2, hi[0], spacing_m)
-        ys = np.arange(lo[1] + spacing_m / 2, hi[1], spacing_m)
+        step = max(1, int(round(spacing_m / self.cell_m)))
         out: list[Viewpoint] = []
         vid = 0
-        for y in ys:
-            for x in xs:
-                j, i = self.cell_of(x, y)
-                if not (self._inside(j, i) and self.free[j, i] and self._labels[j, i] == self.main_component):
+        # lattice on cell centres (never on a cell boundary, so is_free agrees exactly)
+        for j in range(step // 2, self.shape[0], step):
+            for i in range(step // 2, self.shape[1], step):
+                if not (self.free[j, i] and self._labels[j, i] == self.main_component):
                     continue
+                x, y = (float(v) for v in self.center_of(j, i))
                 room = self.scene.room_at(x, y) if hasattr(self.scene, "room_at") else None
                 for h in range(n_headings):
                     yaw = -math.pi + 2 * math.pi * h / n_headings
-                    out.append(Viewpoint(vp_id=vid, x=round(float(x), 4), y=round(float(y), 4),
+                    out.append(Viewpoint(vp_id=vid, x=x, y=y,
                                          yaw_rad=float(yaw), room=room.name if room else None))
                     vid += 1
         return out
