@@ -115,8 +115,7 @@ def quick_config(out: Path) -> EvalConfig:
     return EvalConfig(
         out=out,
         static=StaticConfig(seeds=[0], frames=frames),
-        active=ActiveConfig(family="furnished_room", steps=4, starts=1,
-                            options={"width": 320, "height": 240}),
+        active=ActiveConfig(family="furnished_room", steps=4, starts=1),
         external=ExternalConfig(families=["furnished_room"], seeds=[0], cameras=[1, 3], width=320, height=240),
     )
 
@@ -394,7 +393,8 @@ def run_active(cfg: ActiveConfig, torch_threads: int, log: Callable[[str], None]
                 t0 = time.perf_counter()
                 ep = run_episode(family=cfg.family, seed=cfg.seed, strategy=strategy, external_cameras=int(ext),
                                  steps=cfg.steps, start_index=start, geometry=cfg.geometry,
-                                 perception=cfg.perception, **cfg.options)
+                                 perception=cfg.perception, torch_threads=torch_threads,
+                                 log_fn=lambda m: None, **cfg.options)
                 nodes, recall = _episode_curves(ep, cfg.steps)
                 runs.append({"start": start, "nodes": nodes, "recall": recall,
                              "seconds": round(time.perf_counter() - t0, 1)})
@@ -454,12 +454,15 @@ def active_plot(res: dict[str, Any], path: Path) -> None:
     import matplotlib.pyplot as plt
 
     fig, (a1, a2) = plt.subplots(1, 2, figsize=(10, 3.8))
+    colours = {name: f"C{i}" for i, name in enumerate(dict.fromkeys(c["strategy"] for c in res["curves"]))}
     for c in res["curves"]:
         x = np.arange(len(c["nodes_mean"]))
         for ax, key in ((a1, "nodes"), (a2, "recall")):
             m, s = np.array(c[key + "_mean"]), np.array(c[key + "_std"])
-            ax.plot(x, m, "--" if c["external"] else "-", label=_curve_name(c))
-            ax.fill_between(x, m - s, m + s, alpha=0.15)
+            col = colours[c["strategy"]]
+            ax.plot(x, m, "--" if c["external"] else "-", color=col, label=_curve_name(c))
+            ax.fill_between(x, m - s, m + s, color=col, alpha=0.15)
+            ax.xaxis.get_major_locator().set_params(integer=True)
     a1.set_xlabel("exploration step")
     a1.set_ylabel("predicted nodes")
     a2.set_xlabel("exploration step")
