@@ -25,6 +25,9 @@ from protocol.poses import as_pose
 F32 = NDArray[np.float32]
 F64 = NDArray[np.float64]
 
+CONFIDENT = 0.5
+"""A pixel whose confidence is at least this is "confident": consumers fuse it, benchmarks score it."""
+
 
 @dataclass(frozen=True)
 class OracleData:

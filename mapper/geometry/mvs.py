@@ -42,8 +42,8 @@ class MvsConfig(BaseModel):
     n_planes: int = Field(default=64, ge=8, le=256, description="depth planes, uniform in inverse depth")
     n_sources: int = Field(default=4, ge=1, le=8, description="neighbour views swept per target")
     census_radius: int = Field(default=2, ge=1, le=4, description="census window radius at sweep resolution")
-    sgm_p1: float = Field(default=0.04, ge=0, description="SGM penalty for a one-plane step")
-    sgm_p2: float = Field(default=0.25, ge=0, description="SGM penalty for a larger jump (shrinks at edges)")
+    sgm_p1: float = Field(default=0.1, ge=0, description="SGM penalty for a one-plane step")
+    sgm_p2: float = Field(default=0.6, ge=0, description="SGM penalty for a larger jump (shrinks at edges)")
     best_k_sources: int = Field(default=2, ge=1, le=8, description="average the k cheapest sources per pixel")
     depth_min_m: float = Field(default=0.2, gt=0, description="lower clamp of the fitted depth range")
     depth_max_m: float = Field(default=20.0, gt=0, description="upper clamp of the fitted depth range")
@@ -63,13 +63,15 @@ class MvsConfig(BaseModel):
         default=2.0, ge=0, description="matches moving less than this while the camera moved are dropped"
     )
     max_tracks: int = Field(default=3000, ge=10, description="cap on tracks in the bundle adjustment")
-    consistency_tol: float = Field(default=0.02, gt=0, description="relative depth tolerance of the check")
+    consistency_tol: float = Field(default=0.03, gt=0, description="relative depth tolerance of the check")
     consistency_px: float = Field(default=1.5, gt=0, description="reprojection tolerance (sweep pixels)")
     consistency_views: int = Field(default=2, ge=1, description="agreeing neighbours for full confidence")
     fill_neighbours: bool = Field(
         default=True, description="sweep neighbours without a depth map so targets can be cross-checked"
     )
-    min_texture: float = Field(default=0.02, ge=0, description="grey std-dev (0-1) below which depth is unsure")
+    min_texture: float = Field(
+        default=0.006, ge=0, description="grey std-dev (0-1) under which confidence fades out (to 0 at half of it)"
+    )
     default_hfov_deg: float = Field(default=70.0, description="guessed field of view for views without intrinsics")
     cache_size: int = Field(default=64, ge=1, description="views whose features/depth/pose are cached")
     min_pnp_inliers: int = Field(default=25, ge=6, description="PnP inliers needed to accept an unposed view")
@@ -463,7 +465,9 @@ class MvsReconstructor:
             need = max(1, min(c.consistency_views, len(nbs)))
             conf = np.clip(cnt / need, 0.0, 1.0).astype(np.float32)
             tex = local_std(grays[i], c.census_radius).numpy()
-            conf *= np.clip(tex / max(c.min_texture, 1e-6), 0.0, 1.0)
+            # Where the image is flat the cost has no minimum of its own: SGM fills it from the edges, and
+            # neighbours may agree on the same guess, so consistency alone is not enough there.
+            conf *= np.clip(2.0 * tex / max(c.min_texture, 1e-6) - 1.0, 0.0, 1.0)
             conf[d <= 0] = 0.0
             self._depth.put(prep[i].view.key, (d, K_lo))
             dh, ch = planesweep.joint_bilateral_upsample(
