@@ -88,7 +88,7 @@ class RobotAgent:
         self.exhausted: str | None = None
         self.seq = 0
         self._travel_cost: np.ndarray | None = None
-        self._session: zenoh.Session | None = None
+        self._reporter: StatusReporter | None = None
 
     # --- Zenoh callbacks (other threads) -----------------------------------------------------
     def on_goal_bytes(self, data: bytes) -> None:
@@ -162,10 +162,11 @@ class RobotAgent:
             log.warning("viewpoint publish failed: %s", e)
         self._last_viewpoints = time.monotonic()
 
-    def publish_frame(self, reliable: bool = False) -> None:
+    def publish_frame(self, reliable: bool = False) -> tuple[float, float, float] | None:
         """Capture at the current pose; publish the ORACLE sample (if enabled) and then the frame.
 
         ``reliable`` frames (arrival, stop) use the blocking publisher ordered with the state.
+        Returns the (capture, encode, put) milliseconds, or None when the frame failed.
         """
         t0 = time.perf_counter()
         try:
@@ -203,9 +204,10 @@ class RobotAgent:
             put_frame(self._arrival_pub if reliable else self._frame_pub, header, jpeg)
         except Exception as e:  # noqa: BLE001 - a failed frame is counted, the robot carries on
             self.counters.add("frame_errors")
-            self._reporter.last_error = f"frame failed: {e}"
+            if self._reporter is not None:
+                self._reporter.last_error = f"frame failed: {e}"
             log.warning("frame failed: %s", e)
-            return
+            return None
         t3 = time.perf_counter()
         self.seq += 1
         self.counters.add("frames_sent")
@@ -213,6 +215,7 @@ class RobotAgent:
         _ema(self.counters, "encode_ms", (t2 - t1) * 1e3)
         _ema(self.counters, "put_ms", (t3 - t2) * 1e3)
         self._last_frame = time.monotonic()
+        return (t1 - t0) * 1e3, (t2 - t1) * 1e3, (t3 - t2) * 1e3
 
     # --- control ----------------------------------------------------------------------------
     def handle_goal(self, goal: NbvGoal) -> None:
@@ -297,35 +300,40 @@ class RobotAgent:
                 wait = min(10.0, wait * 2)
         return None
 
-    def run(self, stop: threading.Event) -> int:
+    def declare_publishers(self, session: zenoh.Session) -> None:
+        """Frame, arrival-frame, ORACLE, state and viewpoint publishers on this robot's keys."""
         import zenoh
 
+        rid = self.config.id
+        self._frame_pub = declare_frame_publisher(session, self.keys.robot_frame(rid))
+        # Arrival frames must not be dropped and must reach a subscriber before the arrival
+        # state: same priority as the state publisher (Zenoh keeps order within a priority), BLOCK.
+        self._arrival_pub = session.declare_publisher(
+            self.keys.robot_frame(rid), encoding=zenoh.Encoding.IMAGE_JPEG,
+            congestion_control=zenoh.CongestionControl.BLOCK, priority=zenoh.Priority.DATA,
+        )
+        self._oracle_pub = (  # sim only; BLOCK so the arrival frame's ORACLE sample is never lost
+            session.declare_publisher(
+                self.keys.oracle("robot", rid), encoding=zenoh.Encoding.APPLICATION_OCTET_STREAM,
+                congestion_control=zenoh.CongestionControl.BLOCK, priority=zenoh.Priority.DATA,
+            )
+            if self.body.oracle
+            else None
+        )
+        self._state_pub = session.declare_publisher(
+            self.keys.robot_state(rid), encoding=zenoh.Encoding.APPLICATION_OCTET_STREAM,
+            congestion_control=zenoh.CongestionControl.BLOCK, priority=zenoh.Priority.DATA,
+        )
+        self._vp_pub = declare_message_publisher(session, self.keys.robot_viewpoints(rid), important=True)
+
+    def run(self, stop: threading.Event) -> int:
         session = self._open_session(stop)
         if session is None:
             return 0
         rid = self.config.id
         with session:
             token = session.liveliness().declare_token(self.keys.alive(ROLE, rid))
-            self._frame_pub = declare_frame_publisher(session, self.keys.robot_frame(rid))
-            # Arrival frames must not be dropped and must reach a subscriber before the arrival
-            # state: same priority as the state publisher (Zenoh keeps order within a priority), BLOCK.
-            self._arrival_pub = session.declare_publisher(
-                self.keys.robot_frame(rid), encoding=zenoh.Encoding.IMAGE_JPEG,
-                congestion_control=zenoh.CongestionControl.BLOCK, priority=zenoh.Priority.DATA,
-            )
-            self._oracle_pub = (  # sim only; BLOCK so the arrival frame's ORACLE sample is never lost
-                session.declare_publisher(
-                    self.keys.oracle("robot", rid), encoding=zenoh.Encoding.APPLICATION_OCTET_STREAM,
-                    congestion_control=zenoh.CongestionControl.BLOCK, priority=zenoh.Priority.DATA,
-                )
-                if self.body.oracle
-                else None
-            )
-            self._state_pub = session.declare_publisher(
-                self.keys.robot_state(rid), encoding=zenoh.Encoding.APPLICATION_OCTET_STREAM,
-                congestion_control=zenoh.CongestionControl.BLOCK, priority=zenoh.Priority.DATA,
-            )
-            self._vp_pub = declare_message_publisher(session, self.keys.robot_viewpoints(rid), important=True)
+            self.declare_publishers(session)
             queryable = session.declare_queryable(self.keys.robot_viewpoints(rid), self._on_viewpoints_query)
             goal_sub = session.declare_subscriber(self.keys.robot_goal(rid), self._on_goal_sample)
             self._reporter = StatusReporter(
@@ -362,7 +370,8 @@ class RobotAgent:
                 self.tick(dt)
             except Exception as e:  # noqa: BLE001 - a body bug must not take the robot agent down
                 self.counters.add("tick_errors")
-                self._reporter.last_error = f"control step failed: {e}"
+                if self._reporter is not None:
+                    self._reporter.last_error = f"control step failed: {e}"
                 log.exception("control step failed")
                 self.body.stop()
                 if self.status == "moving":

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+import signal
 import threading
 import time
 from pathlib import Path
@@ -227,6 +228,9 @@ def test_step_budget(tmp_path, router, procs, client_factory):
     g2 = client.state_where(lambda s: s.goal_id == "g2")
     assert g2.status == "budget_exhausted" and "budget" in g2.reason
     assert client.state_where(lambda s: s.status == "moving" and s.goal_id == "g2") is None
+    proc.signal(signal.SIGTERM)
+    assert proc.wait(timeout=15) == 0
+    assert "stopped" in proc.output
 
 
 def test_sim_body_goal_arrives_within_odometry_noise(tmp_path, router, procs, client_factory):
