@@ -48,6 +48,7 @@ class KeyframeConfig(BaseModel):
         default=30.0, ge=0.0, description="a static camera is reconsidered after this long (if its image changed)"
     )
     max_keyframes: int = Field(default=32, ge=2, description="keyframes kept for windows (oldest dropped)")
+    max_deferred: int = Field(default=8, ge=0, description="keyframes without neighbours kept for a retry")
     window_neighbours: int = Field(default=3, ge=0, description="neighbour keyframes per geometry window")
     neighbour_max_distance_m: float = Field(default=3.0, gt=0.0, description="farthest neighbour camera")
     neighbour_max_angle_deg: float = Field(default=70.0, gt=0.0, description="largest viewing-direction change")

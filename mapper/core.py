@@ -11,6 +11,7 @@ called from other threads (they take the graph lock, which ``ingest`` holds only
 
 from __future__ import annotations
 
+import collections
 import logging
 import threading
 import time
@@ -21,7 +22,7 @@ import cv2
 import numpy as np
 
 from mapper.config import MapperCoreConfig
-from mapper.fusion import LiftStats, ObjectMap, lift_detections
+from mapper.fusion import LiftStats, ObjectMap, UpdateResult, lift_detections
 from mapper.geometry.contract import Reconstructor, View, anchor_pose, compose
 from mapper.graph_store import GraphStore
 from mapper.keyframes import KeyframeSelector, KeyframeStore
@@ -78,6 +79,9 @@ class MapperCore:
         self.counters: dict[str, float] = {}
         self.last: KeyframeResult | None = None
         self.update_times_s: list[float] = []
+        # Keyframes that had no neighbour to reconstruct with (a fixed camera's first frame before any robot
+        # view): retried, one per later keyframe, once neighbours exist. Bounded.
+        self._deferred: collections.deque[View] = collections.deque(maxlen=cfg.keyframes.max_deferred)
 
     def _count(self, name: str, value: float = 1.0) -> None:
         self.counters[name] = self.counters.get(name, 0.0) + value
@@ -90,17 +94,49 @@ class MapperCore:
             self._count("views_not_keyframe")
             return None
         self._count("keyframes")
+        results = [r for r in [self._timed(view)] if r is not None]
+        if results and self._deferred:
+            # Retry the oldest deferred keyframe that now has neighbours (one per call bounds the time).
+            for _ in range(len(self._deferred)):
+                old = self._deferred.popleft()
+                if self.keyframes.neighbours(old):
+                    extra = self._timed(old)
+                    if extra is not None:
+                        results.append(extra)
+                    break
+                self._deferred.append(old)
+        if not results:
+            return None
+        removed = set().union(*(r.removed for r in results))
+        changed = set().union(*(r.changed for r in results)) - removed
+        return self._commit(changed, removed, view.stamp_ns or time.time_ns())
+
+    def _timed(self, view: View) -> UpdateResult | None:
         t0 = time.perf_counter()
         try:
-            delta = self._process(view)
+            res = self._process(view)
         except Exception as e:  # noqa: BLE001 - one bad view must never stop the mapper
             self._count("keyframe_errors")
             log.warning("keyframe %s#%d failed: %s: %s", view.source_id, view.seq, type(e).__name__, e)
             return None
-        dt = time.perf_counter() - t0
-        self.update_times_s.append(dt)
-        del self.update_times_s[:-256]
-        self.counters["last_update_s"] = dt
+        if res is not None:
+            dt = time.perf_counter() - t0
+            self.update_times_s.append(dt)
+            del self.update_times_s[:-256]
+            self.counters["last_update_s"] = dt
+        return res
+
+    def _commit(self, changed: set[str], removed: set[str], stamp_ns: int) -> GraphDelta | None:
+        t = time.perf_counter()
+        boxes = self.objects.boxes()
+        edges = compute_edges(boxes, self.config.relations)
+        clouds = {i: n.points for i, n in self.objects.nodes.items()}
+        edges = refine_with_points(edges, boxes, clouds, self.config.relations)
+        ups = self.objects.messages(sorted(changed), with_embedding=self.config.node_embeddings)
+        with self.lock:
+            delta = self.store.commit(ups, removed, edges, stamp_ns)
+        if self.last is not None:
+            self.last.timings_s["edges"] = time.perf_counter() - t
         return delta
 
     def _window(self, view: View) -> tuple[list[View], int]:
@@ -110,10 +146,16 @@ class MapperCore:
         # An unposed view is registered against posed neighbours: put one first to anchor the window.
         return [*nbrs, view], len(nbrs)
 
-    def _process(self, view: View) -> GraphDelta | None:
+    def _process(self, view: View) -> UpdateResult | None:
         times: dict[str, float] = {}
         t = time.perf_counter()
         views, target = self._window(view)
+        if len(views) == 1 and self.config.geometry.backend != "oracle":
+            # Multi-view stereo needs a neighbour: keep the view for later windows and retry it later.
+            self._count("keyframes_deferred")
+            self.keyframes.add(view)
+            self._deferred.append(view)
+            return None
         recon = self.reconstructor.reconstruct(views, targets=[target])
         try:
             T_world_first = anchor_pose(recon, views)
@@ -143,17 +185,8 @@ class MapperCore:
         self._count("nodes_pruned", res.pruned)
         self._add_points(view, vg)
         times["fusion"] = time.perf_counter() - t
-        t = time.perf_counter()
-        boxes = self.objects.boxes()
-        edges = compute_edges(boxes, self.config.relations)
-        clouds = {i: n.points for i, n in self.objects.nodes.items()}
-        edges = refine_with_points(edges, boxes, clouds, self.config.relations)
-        ups = self.objects.messages(sorted(res.changed), with_embedding=self.config.node_embeddings)
-        with self.lock:
-            delta = self.store.commit(ups, res.removed, edges, view.stamp_ns or time.time_ns())
-        times["edges"] = time.perf_counter() - t
         self.last = KeyframeResult(view, T_world_cam, vg, len(dets), lift, times)
-        return delta
+        return res
 
     def _add_points(self, view: View, vg: ViewGeometry) -> None:
         pm = self.config.point_map
