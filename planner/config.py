@@ -18,8 +18,12 @@ class VisibilityConfig(_Model):
     """How the planner predicts what a camera at a candidate pose would see."""
 
     near_m: float = Field(default=0.2, gt=0.0, description="closest useful depth, metres")
-    n_azimuth_bins: int = Field(default=180, ge=16, le=1440, description="panoramic z-buffer azimuth bins")
-    n_elevation_bins: int = Field(default=60, ge=8, le=720, description="panoramic z-buffer elevation bins")
+    cube_face_bins: int = Field(
+        default=48, ge=8, le=512, description="panoramic z-buffer: bins per cube-map face side (6 faces)"
+    )
+    occluder_voxel_m: float = Field(
+        default=0.1, ge=0.0, description="map points are thinned to one per voxel of this size for occlusion"
+    )
     occlusion_tol_m: float = Field(
         default=0.15, ge=0.0, description="a target counts as unoccluded up to this far behind the z-buffer"
     )

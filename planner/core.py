@@ -32,7 +32,13 @@ from planner.completion import (
 from planner.config import PlannerConfig
 from planner.frontier import classify_frontier
 from planner.gain import factored_gain, joint_gain
-from planner.geometry import Candidates, Panoramas, candidates_from_viewpoints, detect_matrix
+from planner.geometry import (
+    Candidates,
+    Panoramas,
+    candidates_from_viewpoints,
+    detect_matrix,
+    downsample_occluders,
+)
 from planner.hypotheses import Hypotheses, realize
 from planner.prior import IndoorPrior, load_prior
 from protocol.messages import GraphSnapshot, Intrinsics, NbvGoal, PointMap, RobotState, ViewpointSet
@@ -243,9 +249,7 @@ class Planner:
             pts = pts[np.all(np.isfinite(pts), axis=1)]
         else:
             pts = np.zeros((0, 3))
-        occ = pts
-        if occ.shape[0] > cfg.visibility.max_occluder_points:
-            occ = occ[:: int(np.ceil(occ.shape[0] / cfg.visibility.max_occluder_points))]
+        occ = downsample_occluders(pts, cfg.visibility.occluder_voxel_m, cfg.visibility.max_occluder_points)
         positions: list[np.ndarray] = []
         row_of: dict[tuple[float, float, float], int] = {}
 
@@ -262,7 +266,8 @@ class Planner:
         }
         hist_rows = [row(v.T_world_cam[:3, 3]) for v in self.history]
         claim_rows = {rid: row(T[:3, 3]) for rid, (_, T) in self.goals.items()}
-        pano = Panoramas(np.array(positions).reshape(-1, 3), occ, cfg.visibility)
+        far = max([c.max_range_m for c in cands.values()] + [v.far_m for v in self.history] + [0.1])
+        pano = Panoramas(np.array(positions).reshape(-1, 3), occ, cfg.visibility, far_m=far)
 
         # Floor cells the map has seen (rules out floor-standing hypotheses there).
         floor_pts = pts[pts[:, 2] < FLOOR_MAX_Z_M] if pts.shape[0] else pts

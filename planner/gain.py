@@ -95,13 +95,10 @@ def factored_gain(
     remap[used] = np.arange(used.size)
     lab_c = remap[lab]
     Lu = used.size
-    counts = np.zeros((C, Lu, S), np.float32)
-    for s in range(S):
-        idx = np.flatnonzero(smp == s)
-        if idx.size == 0:
-            continue
-        onehot = np.zeros((idx.size, Lu), np.float32)
-        onehot[np.arange(idx.size), lab_c[idx]] = 1.0
-        counts[:, :, s] = V[:, idx] @ onehot
+    from scipy.sparse import csr_matrix
+
+    # counts[c, l, s] = number of visible hypotheses of label l in sample s: one sparse product.
+    onehot = csr_matrix((np.ones(H, np.float32), (lab_c * S + smp, np.arange(H))), shape=(Lu * S, H))
+    counts = np.asarray(onehot @ V.T).T.reshape(C, Lu, S)
     mi = mutual_information(counts.reshape(C * Lu, S), n_completions, n_jitter).reshape(C, Lu)
     return mi.sum(axis=1)

@@ -16,9 +16,6 @@ from planner.config import VisibilityConfig
 from protocol.messages import ViewpointSet
 from protocol.poses import camera_pose_from_base
 
-EL_MIN_RAD = -np.pi / 2
-EL_MAX_RAD = np.pi / 2
-
 
 @dataclass(frozen=True)
 class Candidates:
@@ -101,11 +98,11 @@ def project_many(
         return np.zeros((C, X.shape[0]), bool), np.zeros((C, X.shape[0]))
     R = T_world_cam[:, :3, :3]  # world_R_cam
     t = T_world_cam[:, :3, 3]
-    # p_cam = R^T (X - t): as rows, (X - t) @ R
-    d = X[None, :, :] - t[:, None, :]
-    p = np.einsum("ctk,ckj->ctj", d, R)
+    # p_cam = R^T (X - t): as rows, X @ R - t @ R; one BLAS call for all cameras.
+    Rcat = R.transpose(1, 0, 2).reshape(3, 3 * C)
+    p = (X @ Rcat).reshape(-1, C, 3).transpose(1, 0, 2) - np.einsum("ck,ckj->cj", t, R)[:, None, :]
     z = p[..., 2]
-    rng = np.linalg.norm(d, axis=2)
+    rng = np.sqrt(np.einsum("ctk,ctk->ct", p, p))  # range is rotation invariant
     with np.errstate(divide="ignore", invalid="ignore"):
         u = K[0, 0] * p[..., 0] / z + K[0, 2]
         v = K[1, 1] * p[..., 1] / z + K[1, 2]
@@ -121,53 +118,95 @@ def project_many(
     return ok, z
 
 
+_OTHER_AXES = np.array([[1, 2], [0, 2], [0, 1]])
+
+
+def downsample_occluders(points: np.ndarray, voxel_m: float, max_points: int) -> np.ndarray:
+    """One point per ``voxel_m`` voxel (the first), capped at ``max_points`` by an even stride."""
+    P = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    if P.shape[0] and voxel_m > 0:
+        _, first = np.unique(np.floor(P / voxel_m).astype(np.int64), axis=0, return_index=True)
+        P = P[np.sort(first)]
+    if P.shape[0] > max_points:
+        P = P[:: int(np.ceil(P.shape[0] / max_points))]
+    return P
+
+
 class Panoramas:
-    """Panoramic z-buffers (nearest map-point range per azimuth/elevation bin) for camera positions."""
+    """Panoramic z-buffers (nearest map-point range per direction bin) for camera positions.
 
-    def __init__(self, positions: np.ndarray, occluders: np.ndarray, cfg: VisibilityConfig) -> None:
+    Directions are binned on a cube map (6 faces of ``cube_face_bins``^2 bins: divisions only, no
+    trigonometry). Rows are built lazily, in batches, only for positions whose visibility is asked
+    for, from the occluders within ``far_m`` of the position.
+    """
+
+    def __init__(
+        self, positions: np.ndarray, occluders: np.ndarray, cfg: VisibilityConfig, far_m: float = np.inf
+    ) -> None:
         self.cfg = cfg
+        self.res = int(cfg.cube_face_bins)
+        self.n_bins = 6 * self.res * self.res
         self.positions = np.asarray(positions, dtype=np.float64).reshape(-1, 3)
-        P = self.positions.shape[0]
-        n_az, n_el = cfg.n_azimuth_bins, cfg.n_elevation_bins
-        self.zbuf = np.full((P, n_el * n_az), np.inf, dtype=np.float32)
-        pts = np.asarray(occluders, dtype=np.float64).reshape(-1, 3)
-        if P == 0 or pts.shape[0] == 0:
-            return
-        for i in range(P):
-            b, r = self._bins(i, pts)
-            np.minimum.at(self.zbuf[i], b, r.astype(np.float32))
-        self._fill_holes()
+        self.occluders = np.asarray(occluders, dtype=np.float64).reshape(-1, 3)
+        self.far_m = float(far_m)
+        self._rows: dict[int, np.ndarray] = {}
 
-    def _bins(self, i: int, pts: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        d = pts - self.positions[i]
-        r = np.linalg.norm(d, axis=1)
-        az = np.arctan2(d[:, 1], d[:, 0])
-        el = np.arctan2(d[:, 2], np.hypot(d[:, 0], d[:, 1]))
-        n_az, n_el = self.cfg.n_azimuth_bins, self.cfg.n_elevation_bins
-        ia = np.clip(((az + np.pi) / (2 * np.pi) * n_az).astype(np.int64), 0, n_az - 1)
-        ie = np.clip(((el - EL_MIN_RAD) / (EL_MAX_RAD - EL_MIN_RAD) * n_el).astype(np.int64), 0, n_el - 1)
-        return ie * n_az + ia, r
+    def _bins(self, d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Cube-map bin (...) and range (...) of direction vectors ``d`` (..., 3)."""
+        a = np.abs(d)
+        major = np.argmax(a, axis=-1)
+        m = np.maximum(np.take_along_axis(a, major[..., None], axis=-1)[..., 0], 1e-12)
+        sign = np.take_along_axis(d, major[..., None], axis=-1)[..., 0] < 0
+        oth = _OTHER_AXES[major]
+        u = np.take_along_axis(d, oth[..., :1], axis=-1)[..., 0] / m
+        v = np.take_along_axis(d, oth[..., 1:], axis=-1)[..., 0] / m
+        R = self.res
+        iu = np.clip(((u + 1.0) * (R / 2.0)).astype(np.int64), 0, R - 1)
+        iv = np.clip(((v + 1.0) * (R / 2.0)).astype(np.int64), 0, R - 1)
+        face = major * 2 + sign
+        return (face * R + iu) * R + iv, np.sqrt(np.einsum("...k,...k->...", d, d))
 
-    def _fill_holes(self) -> None:
+    def _build(self, rows: list[int]) -> None:
+        pts = self.occluders
+        chunk = max(1, 4_000_000 // max(1, pts.shape[0]))
+        for c0 in range(0, len(rows), chunk):
+            rr = rows[c0 : c0 + chunk]
+            zb = np.full((len(rr), self.n_bins), np.inf, dtype=np.float32)
+            if pts.shape[0]:
+                d = pts[None, :, :] - self.positions[rr][:, None, :]
+                b, r = self._bins(d)
+                ok = r <= self.far_m + 0.5
+                flat = (np.arange(len(rr))[:, None] * self.n_bins + b)[ok]
+                np.minimum.at(zb.reshape(-1), flat, r[ok].astype(np.float32))
+                zb = self._fill_holes(zb)
+            for j, i in enumerate(rr):
+                self._rows[i] = zb[j]
+
+    def row(self, i: int) -> np.ndarray:
+        """The z-buffer of position ``i`` (6 * R * R,), built on first use."""
+        if i not in self._rows:
+            self._build([i])
+        return self._rows[i]
+
+    def _fill_holes(self, zb: np.ndarray) -> np.ndarray:
         # Sparse far surfaces leave empty bins that rays would slip through: an empty bin takes the
-        # nearest range of its 8 neighbours (azimuth wraps around) when at least 3 of them are filled.
-        n_az, n_el = self.cfg.n_azimuth_bins, self.cfg.n_elevation_bins
-        z = self.zbuf.reshape(-1, n_el, n_az)
-        padded = np.pad(z, ((0, 0), (1, 1), (0, 0)), constant_values=np.inf)
-        padded = np.concatenate([padded[:, :, -1:], padded, padded[:, :, :1]], axis=2)
+        # nearest range of its 8 neighbours (within a face) when at least 3 of them are filled.
+        R = self.res
+        z = zb.reshape(-1, 6, R, R)
+        padded = np.pad(z, ((0, 0), (0, 0), (1, 1), (1, 1)), constant_values=np.inf)
         neigh = np.stack(
             [
-                padded[:, 1 + di : 1 + di + n_el, 1 + dj : 1 + dj + n_az]
+                padded[:, :, 1 + di : 1 + di + R, 1 + dj : 1 + dj + R]
                 for di in (-1, 0, 1)
                 for dj in (-1, 0, 1)
                 if (di, dj) != (0, 0)
             ]
         )
         filled = np.isfinite(neigh).sum(axis=0)
-        nmin = neigh.min(axis=0)
         hole = ~np.isfinite(z) & (filled >= 3)
-        z[hole] = nmin[hole]
-        self.zbuf = z.reshape(-1, n_el * n_az)
+        out = z.copy()
+        out[hole] = neigh.min(axis=0)[hole]
+        return out.reshape(zb.shape)
 
     def unoccluded(self, targets_world: np.ndarray, pos_rows: np.ndarray | None = None) -> np.ndarray:
         """(P', T) bool: whether each target is not hidden behind the map from each position."""
@@ -175,14 +214,16 @@ class Panoramas:
         rows = (
             np.arange(self.positions.shape[0]) if pos_rows is None else np.asarray(pos_rows, dtype=np.int64)
         )
-        out = np.zeros((rows.shape[0], X.shape[0]), bool)
-        if X.shape[0] == 0:
-            return out
-        for j, i in enumerate(rows):
-            b, r = self._bins(int(i), X)
-            zb = self.zbuf[i][b]
-            out[j] = r <= zb + self.cfg.occlusion_tol_m + self.cfg.occlusion_tol_rel * r
-        return out
+        if X.shape[0] == 0 or rows.shape[0] == 0:
+            return np.zeros((rows.shape[0], X.shape[0]), bool)
+        missing = sorted({int(i) for i in rows} - self._rows.keys())
+        if missing:
+            self._build(missing)
+        d = X[None, :, :] - self.positions[rows][:, None, :]
+        b, r = self._bins(d)
+        Z = np.stack([self._rows[int(i)] for i in rows])
+        zb = np.take_along_axis(Z, b, axis=1)
+        return r <= zb + self.cfg.occlusion_tol_m + self.cfg.occlusion_tol_rel * r
 
 
 def detect_matrix(
