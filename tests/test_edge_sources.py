@@ -88,7 +88,7 @@ def _write_video(path: Path, n: int, size: tuple[int, int] = (64, 48)) -> None:
     vw = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), 10.0, size)
     assert vw.isOpened()
     for i in range(n):
-        vw.write(np.full((size[1], size[0], 3), 20 * i + 10, np.uint8))
+        vw.write(np.full((size[1], size[0], 3), (20 * i + 10) % 256, np.uint8))
     vw.release()
 
 
@@ -274,3 +274,22 @@ def test_light_imports_pull_in_neither_torch_nor_open3d_nor_sim():
     out = subprocess.run([sys.executable, "-c", code], cwd=REPO, capture_output=True, text=True, timeout=60)
     assert out.returncode == 0, out.stdout + out.stderr
     assert "HEAVY []" in out.stdout
+
+
+def test_live_capture_keeps_only_the_newest_frame_and_reports_the_end(tmp_path):
+    # A file:// URL through the stream backend exercises the live reader thread without a network.
+    _write_video(tmp_path / "s.avi", 30)
+    src = create_source(parse_source_config({"type": "stream", "url": f"file://{tmp_path / 's.avi'}",
+                                             "read_timeout_s": 2.0}))
+    src.open()
+    try:
+        assert src.read().rgb.shape == (48, 64, 3)
+        got = 0
+        with pytest.raises(SourceError, match="ended"):
+            for _ in range(100):
+                src.read()
+                got += 1
+        # The reader raced through the file: most frames were superseded, never queued.
+        assert got < 30 and src.superseded + got + 1 >= 29
+    finally:
+        src.close()

@@ -14,7 +14,7 @@ import pytest
 from protocol.codec import DecodeError, decode, encode
 from protocol.jpeg import decode_jpeg
 from protocol.keys import Keys
-from protocol.messages import NbvGoal, RobotState, Status, ViewpointSet
+from protocol.messages import NbvGoal, OracleFrame, RobotState, Status, ViewpointSet
 from protocol.session import ZenohSettings, open_session
 from protocol.transport import Frame, decode_frame_sample
 from tests.procs import Proc, wait_for
@@ -249,6 +249,7 @@ height = 120
 speed_mps = 1.0
 odom_trans_std_per_m = 0.01
 odom_rot_std_deg_per_m = 0.5
+oracle = true
 [frames]
 moving_rate_hz = 2.0
 [motion]
@@ -259,6 +260,9 @@ connect = ["{router}"]
 """
     )
     client = client_factory(router)
+    oracles: list[OracleFrame] = []
+    client._subs.append(client.session.declare_subscriber(
+        KEYS.oracle("robot", RID), lambda s: oracles.append(decode(s.payload.to_bytes(), OracleFrame))))
     proc = Proc(["robot-agent", "--config", str(cfg)])
     procs.append(proc)
     wait_for(lambda: client.state_where(lambda s: s.status == "idle") is not None, timeout=60,
@@ -289,6 +293,11 @@ connect = ["{router}"]
     last_frame = [m for kind, m in client.events if kind == "frame"][-1]
     assert decode_jpeg(last_frame.jpeg).shape == (120, 160, 3)
     assert last_frame.header.pose_covariance is not None
+    # The arrival frame's ORACLE sample: same seq, the TRUE pose at the goal (odometry drifted from it).
+    truth = next(o for o in oracles if o.seq == last_frame.header.seq)
+    T_true = np.asarray(truth.T_world_cam_true)
+    assert math.hypot(T_true[0, 3] - target.x, T_true[1, 3] - target.y) < 1e-6
+    assert np.linalg.norm(T_true[:3, 3] - np.asarray(last_frame.header.T_world_cam)[:3, 3]) < 4 * pos_sigma + 0.02
     client.goal("out", 50.0, -50.0)
     wait_for(lambda: client.state_where(lambda s: s.goal_id == "out") is not None, timeout=20, what="refusal")
     out = client.state_where(lambda s: s.goal_id == "out")
