@@ -33,9 +33,9 @@ from typing import Any
 import numpy as np
 
 from bench.report import write_report
-from protocol.codec import DecodeError, decode
+from protocol.codec import DecodeError, decode, encode
 from protocol.keys import Keys
-from protocol.messages import FrameHeader, GraphDelta, Status
+from protocol.messages import FrameHeader, GraphDelta, OracleFrame, Status
 
 _CLK_TCK = os.sysconf("SC_CLK_TCK") if hasattr(os, "sysconf") else 100
 
@@ -72,17 +72,18 @@ class CameraFrames:
     jpegs: list[bytes]
     poses: list[np.ndarray]
     intrinsics: Any
-    oracle: list[Any] = field(default_factory=list)
+    oracle: list[tuple[bytes, bytes]] = field(default_factory=list)  # (ids PNG, depth PNG) per frame
+    labels: dict[str, str] = field(default_factory=dict)
 
 
 def render_cameras(n: int, frames_per_camera: int, width: int, height: int, family: str, seed: int,
                    oracle: bool = False) -> list[CameraFrames]:
     """Frames of ``n`` cameras walking different navigable paths of one simulated scene."""
-    from sim.nav import NavMap
-
     from protocol.jpeg import encode_jpeg
     from protocol.messages import Intrinsics
+    from protocol.oracle import depth_to_png, ids_to_png
     from protocol.poses import camera_pose_from_base
+    from sim.nav import NavMap
     from sim.render import Renderer
     from sim.scene import generate_scene
 
@@ -104,13 +105,14 @@ def render_cameras(n: int, frames_per_camera: int, width: int, height: int, fami
             out = renderer.render(intr, T)
             jpegs.append(encode_jpeg(out.rgb, 85))
             poses.append(T)
-            oracles.append(out if oracle else None)
+            if oracle:  # ORACLE ground truth, for the oracle / sim backends only
+                oracles.append((ids_to_png(out.instance_id), depth_to_png(out.depth_m)))
             yaw += np.radians(15.0)
             nx, ny = x + 0.15 * np.cos(yaw), y + 0.15 * np.sin(yaw)
             if nav.is_free(nx, ny):
                 x, y = nx, ny
-        cams.append(CameraFrames(f"simcam{i}", "robot", jpegs, poses, intr,
-                                 [o for o in oracles if o is not None]))
+        cams.append(CameraFrames(f"simcam{i}", "robot", jpegs, poses, intr, oracles,
+                                 {str(k): v for k, v in scene.labels().items()}))
     return cams
 
 
@@ -122,6 +124,12 @@ class CameraPlayer:
 
         self.cam, self.fps = cam, fps
         self.pub = declare_frame_publisher(session, keys.frame(cam.kind, cam.source_id))  # type: ignore[arg-type]
+        self.oracle_pub = None
+        if cam.oracle:
+            from protocol.transport import declare_message_publisher
+
+            self.oracle_pub = declare_message_publisher(
+                session, keys.oracle(cam.kind, cam.source_id), important=False)  # type: ignore[arg-type]
         self.sent = 0
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, daemon=True, name=f"cam-{cam.source_id}")
@@ -146,6 +154,11 @@ class CameraPlayer:
                 width=cam.intrinsics.width, height=cam.intrinsics.height, intrinsics=cam.intrinsics,
                 T_world_cam=cam.poses[k], pose_trusted=False,
             )
+            if self.oracle_pub is not None:
+                ids_png, depth_png = cam.oracle[k]
+                self.oracle_pub.put(encode(OracleFrame(
+                    source_id=cam.source_id, seq=self.sent, stamp_ns=header.stamp_ns, T_world_cam_true=cam.poses[k],
+                    ids_png=ids_png, depth_png=depth_png, labels=cam.labels)))
             put_frame(self.pub, header, cam.jpegs[k])
             self.sent += 1
             next_t += period
@@ -206,7 +219,7 @@ class GraphWatch:
         self.status: dict[str, float] = {}
         self.status_pid: int | None = None
         self._subs = [session.declare_subscriber(keys.graph_delta, self._on_delta),
-                      session.declare_subscriber(keys.status("mapper", "*"), self._on_status)]
+                      session.declare_subscriber(keys.all_status, self._on_status)]
 
     def _on_delta(self, sample: Any) -> None:
         now = time.time_ns()
@@ -225,6 +238,8 @@ class GraphWatch:
         try:
             st = decode(sample.payload.to_bytes(), Status)
         except DecodeError:
+            return
+        if st.role != "mapper":
             return
         with self._lock:
             self.status = dict(st.counters)
@@ -262,7 +277,10 @@ def run(cameras: int, fps: float, phase_s: float, warmup_s: float, width: int, h
     site = "benchsys"
     keys = Keys(site)
     t_render = time.monotonic()
-    cams = render_cameras(cameras, frames_per_camera, width, height, family, seed)
+    geo = mapper_settings.get("geometry", {}).get("backend", "mvs")
+    per = mapper_settings.get("perception", {})
+    oracle = geo == "oracle" or "sim" in (per.get("segmenter"), per.get("embedder"))
+    cams = render_cameras(cameras, frames_per_camera, width, height, family, seed, oracle=oracle)
     log(f"rendered {cameras} x {frames_per_camera} frames at {width}x{height} in "
         f"{time.monotonic() - t_render:.1f}s")
     settings = {"site": site, "zenoh": {"mode": "client", "connect": [endpoint]}, **mapper_settings}
@@ -363,7 +381,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--frames-per-camera", type=int, default=24, help="distinct frames per camera (looped)")
     p.add_argument("--consumers", default="0,1,10", help="consumer counts, one phase each")
     p.add_argument("--geometry", default="mvs", help="mapper geometry backend")
-    p.add_argument("--segmenter", default="classical", help="mapper segmenter")
+    p.add_argument("--segmenter", default="classical",
+                   help="mapper segmenter: classical, or sim (ORACLE: the cameras then also publish ground truth)")
     p.add_argument("--quick", action="store_true", help="short run (1 camera, 10 s phases)")
     p.add_argument("--out", type=Path, default=Path("bench_out/system"))
     a = p.parse_args(argv)
