@@ -207,7 +207,9 @@ class EdgeCamera:
                 cid,
                 self.counters,
                 self.config.status_period_s,
-                extra=lambda: {"frames_dropped": self.counters.get("publish_errors") + self.source.superseded},
+                extra=lambda: {
+                    "frames_dropped": self.counters.get("publish_errors") + getattr(self.source, "superseded", 0)
+                },
             )
             log.info("edge camera %s publishing on %s", cid, self.keys.cam_frame(cid))
             try:
@@ -255,7 +257,7 @@ class EdgeCamera:
                     log.info("source reopened")
                 opened_once = True
                 reporter.state = "ok"
-            rate = min(self.config.publish.max_rate_hz, self.source.rate_hz or float("inf"))
+            rate = min(self.config.publish.max_rate_hz, getattr(self.source, "rate_hz", None) or float("inf"))
             period = 1.0 / rate
             wait = next_due - time.monotonic()
             if wait > 0:

@@ -220,6 +220,12 @@ class RobotAgent:
     # --- control ----------------------------------------------------------------------------
     def handle_goal(self, goal: NbvGoal) -> None:
         """Validate and start a goal (pre-empting any current one), or refuse it with a reason."""
+        if self.goal is not None and goal.goal_id == self.goal_id and self.status in ("moving", "arrived"):
+            # A planner re-sending the goal in progress (or just reached) must not restart it or
+            # count another step; it gets the current state again.
+            self.counters.add("goals_duplicate")
+            self._publish_state()
+            return
         problem = goal_problem(goal, self.config.id)
         if problem is None and self.exhausted is not None:
             self.body.stop()

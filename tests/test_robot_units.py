@@ -172,3 +172,22 @@ def test_agent_distance_budget_stops_the_robot():
     assert agent.body.distance_m() == pytest.approx(1.0, abs=0.11)
     agent.handle_goal(goal(robot_id="r", goal_id="later", x=1.0, y=1.0))
     assert agent.status == "budget_exhausted" and agent.goal_id == "later"
+
+
+def test_agent_ignores_a_resent_goal_in_progress_or_reached():
+    agent = agent_with_fakes()
+    g = goal(robot_id="r", goal_id="same", x=2.0, y=1.0)
+    agent.handle_goal(g)
+    agent.tick(0.1)
+    agent.handle_goal(g)  # re-sent while moving: no restart
+    for _ in range(100):
+        agent.tick(0.1)
+        if agent.status != "moving":
+            break
+    assert agent.status == "arrived" and agent.steps == 1
+    agent.handle_goal(g)  # re-sent after arrival: no extra step
+    agent.tick(0.1)
+    assert agent.status == "arrived" and agent.steps == 1
+    assert agent.counters.get("goals_duplicate") == 2
+    agent.handle_goal(goal(robot_id="r", goal_id="next", x=1.0, y=1.0))
+    assert agent.status == "moving"
