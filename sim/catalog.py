@@ -37,10 +37,20 @@ class Model:
 
     parts: list[tuple[trimesh.Trimesh, str]] = field(default_factory=list)
     surfaces: list[Surface] = field(default_factory=list)
+    _bounds: np.ndarray | None = None
 
     def add(self, mesh: trimesh.Trimesh, kind: str) -> Model:
         self.parts.append((mesh, kind))
+        self._bounds = None
         return self
+
+    @property
+    def bounds(self) -> np.ndarray:
+        """(2, 3) local axis-aligned bounds of all parts."""
+        if self._bounds is None:
+            v = np.vstack([np.asarray(m.vertices) for m, _ in self.parts])
+            self._bounds = np.stack([v.min(axis=0), v.max(axis=0)])
+        return self._bounds
 
 
 @dataclass(frozen=True)
@@ -55,23 +65,77 @@ class Category:
 # Primitive helpers: all take the bottom-centre position (x, y, z) of the primitive.
 
 
+_BOX_V = np.array([[-1, -1, -1], [-1, -1, 1], [-1, 1, -1], [-1, 1, 1], [1, -1, -1], [1, -1, 1], [1, 1, -1], [1, 1, 1]],
+                  dtype=np.float64) * 0.5
+_BOX_F = np.array([[1, 3, 0], [4, 1, 0], [0, 3, 2], [2, 4, 0], [1, 7, 3], [5, 1, 4], [5, 7, 1], [3, 7, 2], [6, 4, 2],
+                   [2, 7, 6], [6, 5, 4], [7, 5, 6]], dtype=np.int64)
+
+
 def box(ex: float, ey: float, ez: float, x: float = 0.0, y: float = 0.0, z: float = 0.0) -> trimesh.Trimesh:
-    T = np.eye(4)
-    T[:3, 3] = (x, y, z + ez / 2.0)
-    return trimesh.creation.box(extents=(ex, ey, ez), transform=T)
+    """Axis-aligned closed box (outward normals) with its bottom centre at (x, y, z)."""
+    v = _BOX_V * np.array([ex, ey, ez]) + np.array([x, y, z + ez / 2.0])
+    return trimesh.Trimesh(vertices=v, faces=_BOX_F.copy(), process=False)
+
+
+def _ring(n: int) -> np.ndarray:
+    a = np.linspace(0.0, 2.0 * np.pi, n, endpoint=False)
+    return np.stack([np.cos(a), np.sin(a)], axis=1)
 
 
 def cyl(r: float, h: float, x: float = 0.0, y: float = 0.0, z: float = 0.0, sections: int = 20) -> trimesh.Trimesh:
-    T = np.eye(4)
-    T[:3, 3] = (x, y, z + h / 2.0)
-    return trimesh.creation.cylinder(radius=r, height=h, sections=sections, transform=T)
+    """Closed vertical cylinder with its bottom centre at (x, y, z)."""
+    n = sections
+    ring = _ring(n) * r
+    v = np.zeros((2 * n + 2, 3))
+    v[:n, :2], v[n:2 * n, :2] = ring, ring
+    v[n:2 * n, 2] = h
+    v[2 * n + 1, 2] = h
+    i = np.arange(n)
+    j = (i + 1) % n
+    b, t = 2 * n, 2 * n + 1
+    faces = np.concatenate([
+        np.stack([i, j, n + j], 1), np.stack([i, n + j, n + i], 1),  # side
+        np.stack([np.full(n, b), j, i], 1),  # bottom (facing down)
+        np.stack([np.full(n, t), n + i, n + j], 1),  # top
+    ])
+    v += (x, y, z)
+    return trimesh.Trimesh(vertices=v, faces=faces, process=False)
 
 
 def tube(r_out: float, r_in: float, h: float, x: float = 0.0, y: float = 0.0, z: float = 0.0,
          sections: int = 20) -> trimesh.Trimesh:
-    T = np.eye(4)
-    T[:3, 3] = (x, y, z + h / 2.0)
-    return trimesh.creation.annulus(r_min=r_in, r_max=r_out, height=h, sections=sections, transform=T)
+    """Closed vertical tube (annulus) with its bottom centre at (x, y, z)."""
+    n = sections
+    ring = _ring(n)
+    v = np.zeros((4 * n, 3))
+    v[:n, :2], v[n:2 * n, :2] = ring * r_out, ring * r_out  # outer bottom, outer top
+    v[2 * n:3 * n, :2], v[3 * n:, :2] = ring * r_in, ring * r_in  # inner bottom, inner top
+    v[n:2 * n, 2] = h
+    v[3 * n:, 2] = h
+    i = np.arange(n)
+    j = (i + 1) % n
+    ob, ot, ib, it = 0, n, 2 * n, 3 * n
+    faces = np.concatenate([
+        np.stack([ob + i, ob + j, ot + j], 1), np.stack([ob + i, ot + j, ot + i], 1),  # outer side
+        np.stack([ib + j, ib + i, it + i], 1), np.stack([ib + j, it + i, it + j], 1),  # inner side
+        np.stack([ot + i, ot + j, it + j], 1), np.stack([ot + i, it + j, it + i], 1),  # top
+        np.stack([ob + j, ob + i, ib + i], 1), np.stack([ob + j, ib + i, ib + j], 1),  # bottom
+    ])
+    v += (x, y, z)
+    return trimesh.Trimesh(vertices=v, faces=faces, process=False)
+
+
+def concat(meshes: list[trimesh.Trimesh]) -> trimesh.Trimesh:
+    """Concatenate meshes without merging vertices (each part stays a closed component)."""
+    if len(meshes) == 1:
+        return meshes[0]
+    vs, fs, off = [], [], 0
+    for m in meshes:
+        v = np.asarray(m.vertices)
+        vs.append(v)
+        fs.append(np.asarray(m.faces) + off)
+        off += len(v)
+    return trimesh.Trimesh(vertices=np.vstack(vs), faces=np.vstack(fs), process=False)
 
 
 def ball(r: float, x: float = 0.0, y: float = 0.0, z: float = 0.0, subdiv: int = 2) -> trimesh.Trimesh:

@@ -387,9 +387,7 @@ class _Placed:
 
 
 def _local_bounds(model: Model) -> np.ndarray:
-    lo = np.min([m.bounds[0] for m, _ in model.parts], axis=0)
-    hi = np.max([m.bounds[1] for m, _ in model.parts], axis=0)
-    return np.stack([lo, hi])
+    return model.bounds
 
 
 def _pose(x: float, y: float, z: float, yaw: float) -> np.ndarray:
@@ -688,7 +686,7 @@ def _structure(b: _Builder, rects: list[np.ndarray], rooms: list[Room], doors: l
                     fm[fi] = room_mats[room.name][1]
                     break
         fmat.append(fm)
-    mesh = trimesh.util.concatenate(meshes)
+    mesh = catalog.concat(meshes)
     return mesh, np.concatenate(fmat)
 
 
@@ -883,12 +881,12 @@ def _finalise(b: _Builder, family: str, seed: int, rooms: list[Room], doors: lis
     objects: list[SceneObject] = []
     for i, p in enumerate(b.placed):
         meshes, fmats = [], []
+        R, t = p.T[:3, :3], p.T[:3, 3]
         for m, kind in p.model.parts:
-            mm = m.copy()
-            mm.apply_transform(p.T)
+            mm = trimesh.Trimesh(vertices=np.asarray(m.vertices) @ R.T + t, faces=np.asarray(m.faces), process=False)
             meshes.append(mm)
             fmats.append(np.full(len(mm.faces), p.mats[kind], np.int32))
-        mesh = trimesh.util.concatenate(meshes) if len(meshes) > 1 else meshes[0]
+        mesh = catalog.concat(meshes)
         lb = _local_bounds(p.model)
         c_local = (lb[0] + lb[1]) / 2
         c_world = p.T[:3, :3] @ c_local + p.T[:3, 3]
