@@ -206,7 +206,6 @@ def realize(
         is_floor = np.concatenate([np.full(p.props.shape[0], p.floor) for _, _, p in pend])
         if is_floor.any():
             bad[is_floor] |= floor_seen(all_props[is_floor, :2])
-        bad &= rng.random(bad.shape[0]) < detect_reject
         off = 0
         for k, i, p in pend:
             n = p.props.shape[0]
@@ -215,10 +214,13 @@ def realize(
                 b |= _overlaps_known(p.props[:, :2], max(p.w, p.d) / 2, known_xy, known_half)
             off += n
             ok = np.flatnonzero(~b)
-            if ok.size == 0:
+            if ok.size:
+                xyz = p.props[ok[0]]
+            elif rng.random() >= detect_reject:
+                xyz = p.props[0]  # every placement was seen, but detections can miss: keep a few anyway
+            else:
                 dropped += 1
                 continue
-            xyz = p.props[ok[0]]
             placed[(k, i)] = (xyz, (p.w, p.d, p.h))
             out_label.append(p.label)
             out_xyz.append(xyz)
