@@ -173,6 +173,8 @@ def run_episode(
         for cam in place_fixed_cameras(scene, int(external_cameras), seed, intr, renderer=renderer):
             T = np.asarray(cam.T_world_cam, float)
             ingest(renderer.render(cam.intrinsics, T), T, T if cam.pose_known else None, cam.camera_id)
+            if cam.pose_known:  # a surveyed camera's view is known to the planner (both strategies)
+                planner.record_view(T, cam.intrinsics, vps.max_range_m)
             ext_ids.append(cam.camera_id)
     ingest(robot.render(), robot.T_world_cam_true(), robot.T_world_cam_odom(), ROBOT_ID)
     record(0, {"decision_s": 0.0, "gain": 0.0, "goal": None, "reason": "start"})
