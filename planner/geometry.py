@@ -194,18 +194,18 @@ class Panoramas:
         R = self.res
         z = zb.reshape(-1, 6, R, R)
         padded = np.pad(z, ((0, 0), (0, 0), (1, 1), (1, 1)), constant_values=np.inf)
-        neigh = np.stack(
-            [
-                padded[:, :, 1 + di : 1 + di + R, 1 + dj : 1 + dj + R]
-                for di in (-1, 0, 1)
-                for dj in (-1, 0, 1)
-                if (di, dj) != (0, 0)
-            ]
-        )
-        filled = np.isfinite(neigh).sum(axis=0)
+        nmin = np.full(z.shape, np.inf, dtype=np.float32)
+        filled = np.zeros(z.shape, dtype=np.int8)
+        for di in (-1, 0, 1):
+            for dj in (-1, 0, 1):
+                if (di, dj) == (0, 0):
+                    continue
+                nb = padded[:, :, 1 + di : 1 + di + R, 1 + dj : 1 + dj + R]
+                np.minimum(nmin, nb, out=nmin)
+                filled += np.isfinite(nb)
         hole = ~np.isfinite(z) & (filled >= 3)
         out = z.copy()
-        out[hole] = neigh.min(axis=0)[hole]
+        out[hole] = nmin[hole]
         return out.reshape(zb.shape)
 
     def unoccluded(self, targets_world: np.ndarray, pos_rows: np.ndarray | None = None) -> np.ndarray:

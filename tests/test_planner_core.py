@@ -253,3 +253,36 @@ class TestPrior:
         p.write_text('{"format": "something-else", "version": 1}')
         with pytest.raises(ValueError):
             load_prior(p)
+
+
+class TestVisibility:
+    def test_frustum(self) -> None:
+        from planner.geometry import project_many
+        from protocol.poses import camera_pose_from_base
+
+        T = camera_pose_from_base(0.0, 0.0, 0.0, 1.0, 0.0)[None]
+        K = Intrinsics.from_fov(640, 480, 90.0).K()
+        pts = np.array([[2.0, 0.0, 1.0], [-2.0, 0.0, 1.0], [2.0, 2.5, 1.0], [7.0, 0.0, 1.0], [0.1, 0.0, 1.0]])
+        ok, z = project_many(T, K, 640, 480, pts, near_m=0.2, far_m=6.0)
+        assert ok[0].tolist() == [True, False, False, False, False]
+        assert z[0, 0] == pytest.approx(2.0)
+
+    def test_wall_occludes_what_is_behind_it(self) -> None:
+        from planner.config import VisibilityConfig
+        from planner.geometry import Panoramas
+
+        wall = S.plane_points(np.array([2.0, -1.5, 0.0]), np.array([0, 3.0, 0]), np.array([0, 0, 2.5]), 0.05)
+        pano = Panoramas(np.array([[0.0, 0.0, 1.0]]), wall, VisibilityConfig())
+        vis = pano.unoccluded(np.array([[1.0, 0.0, 1.0], [3.0, 0.0, 1.0], [2.0, 0.0, 1.0], [3.0, 3.0, 1.0]]))[
+            0
+        ]
+        assert vis.tolist() == [True, False, True, True]  # in front, behind, on the wall, beside it
+
+    def test_sparse_wall_still_occludes(self) -> None:
+        from planner.config import VisibilityConfig
+        from planner.geometry import Panoramas
+
+        wall = S.plane_points(np.array([4.0, -2.0, 0.0]), np.array([0, 4.0, 0]), np.array([0, 0, 2.5]), 0.2)
+        pano = Panoramas(np.array([[0.0, 0.0, 1.0]]), wall, VisibilityConfig())
+        behind = np.column_stack([np.full(20, 5.0), np.linspace(-1, 1, 20), np.full(20, 1.0)])
+        assert not pano.unoccluded(behind)[0].any()
