@@ -435,7 +435,7 @@ def toilet(r: Rng) -> Model:
     m.add(box(0.22, 0.35, 0.38, 0, 0.05, 0), "white")  # pedestal
     m.add(cyl(0.2, 0.05, 0, 0.12, 0.38), "white")  # seat
     m.add(box(0.42, 0.18, 0.4, 0, -0.24, 0.38), "white")  # tank
-    m.surfaces.append(Surface(-0.17, -0.3, 0.17, -0.19, 0.78, "on", 0.4))
+    m.surfaces.append(Surface(-0.18, -0.325, 0.18, -0.155, 0.78, "on", 0.4))
     return m
 
 
@@ -745,7 +745,7 @@ def frying_pan(r: Rng) -> Model:
     m = Model()
     m.add(cyl(rad, 0.01, 0, 0, 0), "black")
     m.add(tube(rad, rad - 0.005, 0.04, 0, 0, 0.01), "black")
-    m.add(box(0.2, 0.03, 0.015, rad + 0.1, 0, 0.035), "black")
+    m.add(box(0.13, 0.03, 0.015, rad + 0.065, 0, 0.035), "black")
     return m
 
 
@@ -866,9 +866,9 @@ def pen_holder(r: Rng) -> Model:
 
 def printer(r: Rng) -> Model:
     m = Model()
-    m.add(box(0.42, 0.36, 0.16, 0, 0, 0), "black")
-    m.add(box(0.3, 0.12, 0.01, 0, 0.1, 0.16), "plastic")
-    m.add(box(0.28, 0.1, 0.005, 0, -0.1, 0.16), "white")
+    m.add(box(0.36, 0.3, 0.15, 0, 0, 0), "black")
+    m.add(box(0.26, 0.1, 0.01, 0, 0.08, 0.15), "plastic")
+    m.add(box(0.24, 0.09, 0.005, 0, -0.08, 0.15), "white")
     return m
 
 

@@ -334,7 +334,7 @@ _ITEMS: dict[str, list[tuple[str, float]]] = {
                   ("basket", 0.3), ("small_plant", 0.3), ("clock", 0.2)],
     "tv_stand": [("!television", 1.0), ("speaker", 0.6), ("small_plant", 0.5), ("picture_frame", 0.5),
                  ("book", 0.3), ("remote_control", 0.3), ("storage_box", 0.3)],
-    "kitchen_counter": [("!kettle", 1.0), ("toaster", 0.7), ("coffee_maker", 0.7), ("microwave", 0.7),
+    "kitchen_counter": [("!kettle", 1.0), ("toaster", 0.7), ("coffee_maker", 0.7), ("microwave", 0.9),
                         ("cutting_board", 0.8), ("bowl", 0.6), ("bottle", 0.6), ("wine_bottle", 0.3),
                         ("fruit_bowl", 0.5), ("cooking_pot", 0.4), ("mug", 0.5), ("plate", 0.4)],
     "kitchen_sink": [("!bowl", 1.0), ("plate", 0.8), ("cup", 0.6), ("mug", 0.5), ("soap_dispenser", 0.8)],
