@@ -51,6 +51,10 @@ class DemoConfig(BaseModel):
     health_timeout_s: float = Field(default=240.0, gt=0, description="give up when the stack is not up by then")
     free_port: bool = Field(default=True, description="run the router on a free loopback port, not the file's")
     score_period_s: float = Field(default=4.0, gt=0, description="seconds between graph scorings")
+    settle_s: float = Field(
+        default=8.0, ge=0, description="after the last step, wait until no graph delta came for this long..."
+    )
+    drain_max_s: float = Field(default=60.0, ge=0, description="...but at most this long (the mapper's backlog)")
     verbose: bool = Field(default=False, description="print every process's log lines too")
 
 
@@ -100,6 +104,7 @@ class Monitor:
         self.point_map: PointMap | None = None
         self.frames: dict[str, tuple[Any, bytes]] = {}  # source -> (header, jpeg), newest only
         self.deltas = 0
+        self.last_delta_t = time.monotonic()
         self.frames_seen = 0
         self.bad = 0
         self._subs = [
@@ -124,6 +129,7 @@ class Monitor:
 
     def _on_delta(self, _sample: Any) -> None:
         self.deltas += 1
+        self.last_delta_t = time.monotonic()
 
     def _on_map(self, sample: Any) -> None:
         try:
@@ -312,7 +318,7 @@ def run(config: DemoConfig) -> int:
                 try:
                     snap = get_snapshot(session, Keys(launch.site), timeout_s=3.0)
                 except QueryError:
-                    snap = snap
+                    pass  # keep the previous snapshot
                 if snap is not None:
                     score = scorer.score(snap)
                 last_score_t, last_steps = now, steps
@@ -337,6 +343,26 @@ def run(config: DemoConfig) -> int:
             stop.wait(0.3)
         if tty:
             print()
+        if not stop.is_set() and config.settle_s > 0:
+            # The planner sends the next goal on arrival, while the mapper may still be working through
+            # the last frames: let it finish its (bounded) backlog before the final score.
+            t_drain = time.monotonic()
+            print(f"argus demo: steps done; letting the mapper finish its last frames (until {config.settle_s:.0f}s "
+                  f"without a graph change, at most {config.drain_max_s:.0f}s)", flush=True)
+            while (not stop.is_set() and time.monotonic() - monitor.last_delta_t < config.settle_s
+                   and time.monotonic() - t_drain < config.drain_max_s and time.monotonic() - t0 < config.time_limit_s):
+                stack.step()
+                stop.wait(0.5)
+            try:
+                snap = get_snapshot(session, Keys(launch.site), timeout_s=3.0)
+                score = scorer.score(snap)
+            except QueryError:
+                pass
+            if recorder is not None and snap is not None:
+                wall = time.monotonic() - t0
+                recorder.log_graph(monitor.steps(), wall, snap)
+                recorder.log_metrics(monitor.steps(), wall, len(snap.nodes), getattr(score, "recall", None),
+                                     getattr(score, "precision", None))
         wall = time.monotonic() - t0
         steps = monitor.steps()
         final = {
@@ -352,7 +378,8 @@ def run(config: DemoConfig) -> int:
                 ("precision", _f(final.get("precision"))), ("recall", _f(final.get("recall"))),
                 ("F1", _f(final.get("f1"))), ("edges", str(final["edges"])),
                 ("graph version", str(final["graph_version"])), ("wall time", f"{wall:.0f} s (startup {t_up:.0f} s)"),
-                ("perception", "oracle" if "ORACLE" in mode else "RGB-only")]
+                ("geometry", "ORACLE (sim)" if mode.startswith("ORACLE") else "RGB-only (mvs)"),
+                ("2D perception", "ORACLE (sim semantic)" if "ORACLE 2D" in mode else "RGB-only")]
         print(format_table(rows))
         code = 0 if (steps >= config.steps or monitor.exhausted()) and final["nodes"] > 0 else 1
     except Exception as e:  # noqa: BLE001 - whatever fails, every process is still stopped below
