@@ -312,8 +312,8 @@ class RobotAgent:
 
         rid = self.config.id
         self._frame_pub = declare_frame_publisher(session, self.keys.robot_frame(rid))
-        # Arrival frames must not be dropped and must reach a subscriber before the arrival
-        # state: same priority as the state publisher (Zenoh keeps order within a priority), BLOCK.
+        # Arrival frames must never be dropped: BLOCK, at the state publisher's priority. They are put
+        # before the arrival state, so they normally arrive first (receivers get no cross-key order guarantee).
         self._arrival_pub = session.declare_publisher(
             self.keys.robot_frame(rid), encoding=zenoh.Encoding.IMAGE_JPEG,
             congestion_control=zenoh.CongestionControl.BLOCK, priority=zenoh.Priority.DATA,

@@ -32,7 +32,6 @@ class RobotClient:
         self.states: list[RobotState] = []
         self.frames: list[Frame] = []
         self.statuses: list[Status] = []
-        self.events: list[tuple[str, object]] = []  # arrival order of frames and states
         self._lock = threading.Lock()
         self._subs = [
             self.session.declare_subscriber(KEYS.robot_state(robot_id), self._on_state),
@@ -44,13 +43,11 @@ class RobotClient:
         msg = decode(sample.payload.to_bytes(), RobotState)
         with self._lock:
             self.states.append(msg)
-            self.events.append(("state", msg))
 
     def _on_frame(self, sample) -> None:  # noqa: ANN001
         frame = decode_frame_sample(sample)
         with self._lock:
             self.frames.append(frame)
-            self.events.append(("frame", frame))
 
     def _on_status(self, sample) -> None:  # noqa: ANN001
         try:
@@ -100,6 +97,21 @@ def client_factory():
     yield make
     for c in made:
         c.close()
+
+
+def wait_arrival_frame(client: RobotClient, arrived: RobotState) -> Frame:
+    """The frame taken at the arrival pose (waits for it: it may reach us after the state)."""
+    T = np.asarray(arrived.T_world_cam)
+
+    def find() -> Frame | None:
+        with client._lock:
+            return next((f for f in client.frames if np.allclose(np.asarray(f.header.T_world_cam), T, atol=1e-9)),
+                        None)
+
+    wait_for(lambda: find() is not None, timeout=10, what="the arrival frame")
+    frame = find()
+    assert frame is not None
+    return frame
 
 
 def kinematic_config(path: Path, router: str, body_extra: str = "", extra: str = "") -> Path:
@@ -166,16 +178,14 @@ def test_goal_drives_moving_then_arrived_with_arrival_frame(tmp_path, router, pr
     assert arrived.steps == 1 and arrived.viewpoint_id == target.vp_id
     assert arrived.distance_m == pytest.approx(idle.travel_cost_m[target.vp_id], abs=0.05)
     assert arrived.travel_cost_m[target.vp_id] == pytest.approx(0.0, abs=1e-6)
-    # The arrival frame precedes the arrival state and carries the odometry pose.
-    events = list(client.events)
-    i_arrived = next(i for i, (kind, m) in enumerate(events) if kind == "state" and m.status == "arrived")
-    frames_before = [m for kind, m in events[:i_arrived] if kind == "frame"]
-    last = frames_before[-1]
-    assert np.allclose(np.asarray(last.header.T_world_cam), np.asarray(arrived.T_world_cam), atol=1e-9)
+    # The arrival frame carries the odometry pose at the goal and was sent before the arrival state
+    # (sender clock; Zenoh does not order samples across keys at the receiver).
+    last = wait_arrival_frame(client, arrived)
+    assert last.header.stamp_ns < arrived.stamp_ns
     assert last.header.source_kind == "robot" and last.header.pose_trusted is False
     assert last.header.pose_covariance is not None
     assert decode_jpeg(last.jpeg).shape == (120, 160, 3)
-    assert len(frames_before) >= 3  # start frame, frames while moving, arrival frame
+    assert last.header.seq >= 2  # start frame, frames while moving, arrival frame
 
 
 def test_bad_goals_refused_garbage_counted_and_agent_carries_on(tmp_path, router, procs, client_factory):
@@ -290,10 +300,11 @@ connect = ["{router}"]
     assert math.hypot(arrived.x - target.x, arrived.y - target.y) < 4 * pos_sigma + 0.02
     assert abs(math.remainder(arrived.yaw_rad - target.yaw_rad, 2 * math.pi)) < 4 * math.radians(0.5) * math.sqrt(
         d) + 0.02
-    last_frame = [m for kind, m in client.events if kind == "frame"][-1]
+    last_frame = wait_arrival_frame(client, arrived)
     assert decode_jpeg(last_frame.jpeg).shape == (120, 160, 3)
     assert last_frame.header.pose_covariance is not None
     # The arrival frame's ORACLE sample: same seq, the TRUE pose at the goal (odometry drifted from it).
+    wait_for(lambda: any(o.seq == last_frame.header.seq for o in oracles), timeout=10, what="arrival ORACLE")
     truth = next(o for o in oracles if o.seq == last_frame.header.seq)
     T_true = np.asarray(truth.T_world_cam_true)
     assert math.hypot(T_true[0, 3] - target.x, T_true[1, 3] - target.y) < 1e-6
