@@ -16,6 +16,7 @@ import sys
 BENCHES: dict[str, tuple[str, str]] = {
     "transport": ("bench.transport", "640x480 JPEG frames through a router on loopback: fps, MB/s, latency"),
     "edge": ("edge_camera.bench", "edge per-frame cost: grab + encode + put"),
+    "robot": ("robot_agent.bench", "robot-agent per-frame cost and a fast-simulation exploration run"),
     "geometry": ("bench.geometry", "RGB-only depth and pose accuracy, seconds per keyframe"),
     "graph": ("bench.graph", "scene-graph node/edge quality vs ground truth, update and query time"),
     "planner": ("bench.planner", "planner decision time for many candidates and completions"),
