@@ -9,9 +9,9 @@ with what was already seen happen afterwards, the same for every sampler (planne
 from __future__ import annotations
 
 import logging
-from collections.abc import Callable, Sequence
+from collections.abc import Sequence
 from dataclasses import dataclass, field
-from typing import Protocol
+from typing import Any, Protocol
 
 import numpy as np
 
@@ -271,9 +271,13 @@ class PriorSampler:
         return Completion(tuple(objs), source=self.name)
 
 
-SamplerFactory = Callable[..., CompletionSampler]
+def make_prior_sampler(config: Any, prior: IndoorPrior) -> CompletionSampler:
+    """Factory of the ``prior`` sampler (``config``: the PlannerConfig)."""
+    return PriorSampler(prior)
+
+
 SAMPLERS: dict[str, str] = {
-    "prior": "planner.completion:PriorSampler",
-    "llm": "planner.llm:LlmSampler",
+    "prior": "planner.completion:make_prior_sampler",
+    "llm": "planner.llm:make_llm_sampler",
 }
-"""Registry of completion samplers (module:class), imported lazily by make_sampler."""
+"""Registry of completion samplers: name -> ``module:factory(config, prior)``, imported lazily."""

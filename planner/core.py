@@ -23,8 +23,8 @@ from typing import Any
 import numpy as np
 
 from planner.completion import (
+    SAMPLERS,
     CompletionSampler,
-    PriorSampler,
     SceneContext,
     build_context,
     rooms_from_viewpoints,
@@ -72,14 +72,14 @@ class PlanInfo:
 
 
 def make_sampler(config: PlannerConfig, prior: IndoorPrior) -> CompletionSampler:
-    """The configured completion sampler (the llm one imports lazily and falls back to the prior)."""
-    if config.sampler.kind == "prior":
-        return PriorSampler(prior)
-    if config.sampler.kind == "llm":
-        from planner.llm import LlmSampler
+    """The configured completion sampler, from the registry (imported lazily)."""
+    import importlib
 
-        return LlmSampler(config.sampler.llm, fallback=PriorSampler(prior))
-    raise ValueError(f"unknown sampler {config.sampler.kind!r}")
+    target = SAMPLERS.get(config.sampler.kind)
+    if target is None:
+        raise ValueError(f"unknown sampler {config.sampler.kind!r} (known: {', '.join(SAMPLERS)})")
+    module, _, attr = target.partition(":")
+    return getattr(importlib.import_module(module), attr)(config, prior)
 
 
 class Planner:

@@ -201,3 +201,10 @@ class LlmSampler:
             requested=k, produced=len(comps), fallback=True, error=error, latency_s=time.perf_counter() - t0
         )
         return comps
+
+
+def make_llm_sampler(config: Any, prior: Any) -> CompletionSampler:
+    """Factory of the ``llm`` sampler (``config``: the PlannerConfig), falling back to the prior."""
+    from planner.completion import PriorSampler
+
+    return LlmSampler(config.sampler.llm, fallback=PriorSampler(prior))
