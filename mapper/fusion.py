@@ -35,7 +35,17 @@ class FusionConfig(BaseModel):
     )
     max_depth_m: float = Field(default=10.0, gt=0.0, description="pixels farther than this are ignored")
     min_points: int = Field(default=15, ge=1, description="detections with fewer valid 3D points are dropped")
+    min_object_points: int = Field(
+        default=10, ge=3, description="detections with fewer points after downsampling and denoising are dropped"
+    )
+    min_z_m: float = Field(default=-0.15, description="points below this height (under the floor) are dropped")
+    max_z_m: float = Field(default=3.5, description="points above this height are dropped")
     min_mask_pixels: int = Field(default=30, ge=1, description="masks smaller than this are dropped")
+    mask_erosion_px: int = Field(
+        default=0, ge=0, le=8,
+        description="erode masks by this many pixels (at the depth's resolution) before back-projection: "
+        "estimated depth bleeds across object edges",
+    )
     dbscan_eps_m: float = Field(default=0.1, gt=0.0, description="DBSCAN neighbourhood radius, metres")
     dbscan_min_samples: int = Field(default=4, ge=1, description="DBSCAN core point neighbour count")
     overlap_radius_m: float | None = Field(
@@ -51,8 +61,16 @@ class FusionConfig(BaseModel):
         default=0.5, ge=0.0, le=1.0, description="duplicates: overlap (either direction) needed to merge"
     )
     merge_similarity: float = Field(default=0.8, ge=-1.0, le=1.0, description="duplicates: descriptor cosine")
+    merge_box_overlap: float = Field(
+        default=0.5, ge=0.0, le=1.0,
+        description="duplicates: box intersection / smaller box volume that also merges similar nodes "
+        "(estimated depth scatters one object's views too far apart for the point overlap)",
+    )
     min_observations: int = Field(default=1, ge=1, description="nodes seen fewer times are dropped after ...")
     prune_after_updates: int = Field(default=15, ge=1, description="... this many updates since creation")
+    weak_node_points: int = Field(
+        default=40, ge=0, description="nodes seen once with fewer points are dropped after prune_after_updates"
+    )
     max_nodes: int = Field(default=2000, ge=1, description="hard cap on nodes (least observed dropped)")
     max_label_alternatives: int = Field(default=3, ge=0, description="label alternatives kept per node")
     seed: int = Field(default=0, description="seed of point subsampling")
@@ -207,19 +225,28 @@ def lift_detections(
         & (depth_m <= cfg.max_depth_m)
         & (confidence >= cfg.min_depth_confidence)
         & np.all(np.isfinite(points_world), axis=-1)
+        & (points_world[..., 2] >= cfg.min_z_m)
+        & (points_world[..., 2] <= cfg.max_z_m)
     )
     out: list[Object3D] = []
     for det in detections:
         if int(det.mask.sum()) < cfg.min_mask_pixels:
             stats.dropped_small_mask += 1
             continue
-        m = resize_mask(det.mask, h, w) & valid
+        m = resize_mask(det.mask, h, w)
+        if cfg.mask_erosion_px > 0:
+            import cv2
+
+            k = 2 * cfg.mask_erosion_px + 1
+            eroded = cv2.erode(m.astype(np.uint8), np.ones((k, k), np.uint8)).astype(bool)
+            m = eroded if int(eroded.sum()) >= cfg.min_points else m
+        m = m & valid
         if int(m.sum()) < cfg.min_points:
             stats.dropped_no_depth += 1
             continue
         pts = voxel_downsample(points_world[m], cfg.voxel_m)
         pts = main_cluster(pts, cfg.dbscan_eps_m, cfg.dbscan_min_samples)
-        if len(pts) < max(3, min(cfg.min_points, cfg.dbscan_min_samples)):
+        if len(pts) < cfg.min_object_points:
             stats.dropped_noise += 1
             continue
         stats.lifted += 1
@@ -298,6 +325,18 @@ def overlap_fraction(points: np.ndarray, node: NodeState, radius_m: float) -> fl
         return 0.0
     d, _ = node.tree.query(points, k=1, distance_upper_bound=radius_m)
     return float(np.mean(d <= radius_m))
+
+
+def box_overlap(a: OrientedBox, b: OrientedBox) -> float:
+    """Intersection volume of two gravity-aligned boxes over the smaller one's volume (0..1)."""
+    from mapper.relations import footprint, footprint_intersection_area
+
+    ea, eb = np.maximum(a.extent, 1e-3), np.maximum(b.extent, 1e-3)
+    dz = min(a.center[2] + ea[2] / 2, b.center[2] + eb[2] / 2) - max(a.center[2] - ea[2] / 2, b.center[2] - eb[2] / 2)
+    if dz <= 0:
+        return 0.0
+    inter = footprint_intersection_area(footprint(a, 1e-3), footprint(b, 1e-3)) * dz
+    return float(inter / min(float(np.prod(ea)), float(np.prod(eb))))
 
 
 def similarity(a: np.ndarray, b: np.ndarray) -> float:
@@ -449,7 +488,7 @@ class ObjectMap:
                 if sim < cfg.merge_similarity:
                     continue
                 ov = max(overlap_fraction(a.points, b, cfg.radius_m), overlap_fraction(b.points, a, cfg.radius_m))
-                if ov >= cfg.merge_overlap:
+                if ov >= cfg.merge_overlap or box_overlap(a.box, b.box) >= cfg.merge_box_overlap:
                     pairs.append((ov + sim, a_id, b_id))
         for _, a_id, b_id in sorted(pairs, key=lambda p: (-p[0], p[1], p[2])):
             if a_id not in self.nodes or b_id not in self.nodes:
@@ -463,7 +502,8 @@ class ObjectMap:
         for node_id in sorted(self.nodes):
             node = self.nodes[node_id]
             aged = self.updates - node.created_update >= cfg.prune_after_updates
-            if (aged and node.observations < cfg.min_observations) or len(node.points) < 3:
+            weak = node.observations < 2 and len(node.points) < cfg.weak_node_points
+            if (aged and (node.observations < cfg.min_observations or weak)) or len(node.points) < 3:
                 del self.nodes[node_id]
                 res.pruned += 1
                 res.removed.add(node_id)
