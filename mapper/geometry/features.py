@@ -32,9 +32,12 @@ def to_gray(image_rgb: NDArray[np.uint8]) -> NDArray[np.uint8]:
     return cv2.cvtColor(np.ascontiguousarray(image_rgb), cv2.COLOR_RGB2GRAY)
 
 
-def extract_features(image_rgb: NDArray[np.uint8], max_features: int = 2000) -> Features:
-    """SIFT keypoints and descriptors of an RGB image (RootSIFT-normalised for better matching)."""
-    sift = cv2.SIFT_create(nfeatures=max_features, contrastThreshold=0.02)
+def extract_features(image_rgb: NDArray[np.uint8], max_features: int = 2000, contrast: float = 0.01) -> Features:
+    """SIFT keypoints and descriptors of an RGB image (RootSIFT-normalised for better matching).
+
+    The contrast threshold is half OpenCV's default: indoor surfaces are often low-contrast and the
+    ratio test plus geometric checks remove the weaker matches this lets through."""
+    sift = cv2.SIFT_create(nfeatures=max_features, contrastThreshold=contrast)
     kps, desc = sift.detectAndCompute(to_gray(image_rgb), None)
     if desc is None or not kps:
         return Features(np.zeros((0, 2)), np.zeros((0, 128), np.float32))

@@ -41,7 +41,8 @@ class MvsConfig(BaseModel):
     output_width: int = Field(default=320, ge=32, le=4096, description="width of the returned depth maps, px")
     n_planes: int = Field(default=64, ge=8, le=256, description="depth planes, uniform in inverse depth")
     n_sources: int = Field(default=4, ge=1, le=8, description="neighbour views swept per target")
-    census_radius: int = Field(default=2, ge=1, le=4, description="census window radius at sweep resolution")
+    census_radius: int = Field(default=3, ge=1, le=5, description="census window radius at sweep resolution")
+    census_stride: int = Field(default=2, ge=1, le=3, description="use every n-th pixel of the census window")
     sgm_p1: float = Field(default=0.1, ge=0, description="SGM penalty for a one-plane step")
     sgm_p2: float = Field(default=0.6, ge=0, description="SGM penalty for a larger jump (shrinks at edges)")
     best_k_sources: int = Field(default=2, ge=1, le=8, description="average the k cheapest sources per pixel")
@@ -63,14 +64,14 @@ class MvsConfig(BaseModel):
         default=2.0, ge=0, description="matches moving less than this while the camera moved are dropped"
     )
     max_tracks: int = Field(default=3000, ge=10, description="cap on tracks in the bundle adjustment")
-    consistency_tol: float = Field(default=0.03, gt=0, description="relative depth tolerance of the check")
+    consistency_tol: float = Field(default=0.05, gt=0, description="relative depth tolerance of the check")
     consistency_px: float = Field(default=1.5, gt=0, description="reprojection tolerance (sweep pixels)")
     consistency_views: int = Field(default=2, ge=1, description="agreeing neighbours for full confidence")
     fill_neighbours: bool = Field(
         default=True, description="sweep neighbours without a depth map so targets can be cross-checked"
     )
     min_texture: float = Field(
-        default=0.006, ge=0, description="grey std-dev (0-1) under which confidence fades out (to 0 at half of it)"
+        default=0.004, ge=0, description="grey std-dev (0-1) under which confidence fades out (to 0 at half of it)"
     )
     default_hfov_deg: float = Field(default=70.0, description="guessed field of view for views without intrinsics")
     cache_size: int = Field(default=64, ge=1, description="views whose features/depth/pose are cached")
@@ -377,7 +378,9 @@ class MvsReconstructor:
         T_r = poses[r]
         assert T_r is not None
         lo, hi = self._depth_range(r, prep, poses, pts)
-        params = planesweep.SweepParams(c.n_planes, c.census_radius, c.sgm_p1, c.sgm_p2, c.best_k_sources)
+        params = planesweep.SweepParams(
+            c.n_planes, c.census_radius, c.census_stride, c.sgm_p1, c.sgm_p2, c.best_k_sources
+        )
         depth, margin = planesweep.plane_sweep_depth(
             grays[r], [grays[s] for s in srcs], K_r, [prep[s].intr.scaled(sw, sh).K() for s in srcs],
             [invert(poses[s]) @ T_r for s in srcs], lo, hi, params,  # type: ignore[arg-type]
@@ -449,7 +452,7 @@ class MvsReconstructor:
             oh = max(8, round(h * ow / w))
             intr_o = prep[i].intr.scaled(ow, oh)
             out_intr.append(intr_o)
-            if i not in depth_lo:
+            if i not in depth_lo or not sources[i]:
                 out_depth.append(np.zeros((oh, ow), np.float32))
                 out_conf.append(np.zeros((oh, ow), np.float32))
                 continue

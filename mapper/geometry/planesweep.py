@@ -24,40 +24,40 @@ class SweepParams:
     """Plane-sweep settings (see ``MvsConfig`` for their meaning)."""
 
     n_planes: int = 64
-    census_radius: int = 2
+    census_radius: int = 3
+    census_stride: int = 1
     p1: float = 0.04
     p2: float = 0.25
     best_k_sources: int = 2
 
 
-def census_bits(gray: torch.Tensor, radius: int) -> torch.Tensor:
-    """Census transform of (..., H, W): one bool per neighbour, (..., n, H, W), edge-replicated."""
-    padded = F.pad(gray.unsqueeze(-3), (radius,) * 4, mode="replicate").squeeze(-3)
+def census_offsets(radius: int, stride: int = 1) -> list[tuple[int, int]]:
+    """Neighbour offsets of a census window: every ``stride``-th pixel of the (2r+1)^2 square, no centre."""
+    steps = range(-radius, radius + 1, stride)
+    return [(dy, dx) for dy in steps for dx in steps if (dy, dx) != (0, 0)]
+
+
+def census_bits(gray: torch.Tensor, radius: int, stride: int = 1) -> torch.Tensor:
+    """Census transform of (H, W): one bool per neighbour, (n, H, W), edge-replicated."""
+    padded = F.pad(gray[None, None], (radius,) * 4, mode="replicate")[0, 0]
     h, w = gray.shape[-2:]
-    bits = []
-    for dy in range(-radius, radius + 1):
-        for dx in range(-radius, radius + 1):
-            if dx == 0 and dy == 0:
-                continue
-            nb = padded[..., radius + dy : radius + dy + h, radius + dx : radius + dx + w]
-            bits.append(nb > gray)
-    return torch.stack(bits, dim=-3)
+    bits = [
+        padded[radius + dy : radius + dy + h, radius + dx : radius + dx + w] > gray
+        for dy, dx in census_offsets(radius, stride)
+    ]
+    return torch.stack(bits, dim=0)
 
 
-def _census_cost(warped: torch.Tensor, ref_bits: torch.Tensor, radius: int) -> torch.Tensor:
+def _census_cost(warped: torch.Tensor, ref_bits: torch.Tensor, radius: int, stride: int) -> torch.Tensor:
     """Fraction of census bits that differ between each warped plane (D, H, W) and the reference."""
     h, w = warped.shape[-2:]
     padded = F.pad(warped.unsqueeze(1), (radius,) * 4, mode="replicate").squeeze(1)
     cost = torch.zeros_like(warped)
-    k = 0
-    for dy in range(-radius, radius + 1):
-        for dx in range(-radius, radius + 1):
-            if dx == 0 and dy == 0:
-                continue
-            nb = padded[:, radius + dy : radius + dy + h, radius + dx : radius + dx + w]
-            cost += ((nb > warped) != ref_bits[k]).to(cost.dtype)
-            k += 1
-    return cost / k
+    offsets = census_offsets(radius, stride)
+    for k, (dy, dx) in enumerate(offsets):
+        nb = padded[:, radius + dy : radius + dy + h, radius + dx : radius + dx + w]
+        cost += ((nb > warped) != ref_bits[k]).to(cost.dtype)
+    return cost / len(offsets)
 
 
 def warp_grid(K_ref: F64, K_src: F64, T_src_ref: F64, depths: torch.Tensor, h: int, w: int) -> torch.Tensor:
@@ -89,7 +89,7 @@ def sweep_cost(
 ) -> torch.Tensor:
     """Matching cost volume (D, H, W) in [0, 1]: mean census cost of the best sources per pixel and plane."""
     h, w = ref_gray.shape
-    ref_bits = census_bits(ref_gray, params.census_radius)
+    ref_bits = census_bits(ref_gray, params.census_radius, params.census_stride)
     costs = []
     for src, K_s, T in zip(src_grays, K_srcs, T_src_ref, strict=True):
         hs, ws = src.shape
@@ -99,7 +99,7 @@ def sweep_cost(
         warped = F.grid_sample(
             src.view(1, 1, hs, ws), gn.view(1, -1, w, 2), mode="bilinear", padding_mode="border", align_corners=True
         ).view(len(depths), h, w)
-        c = _census_cost(warped, ref_bits, params.census_radius)
+        c = _census_cost(warped, ref_bits, params.census_radius, params.census_stride)
         # Outside the source image there is no evidence: a pessimistic cost lets other sources decide.
         costs.append(torch.where(inside, c, torch.full_like(c, 0.6)))
     stack = torch.stack(costs)
