@@ -76,7 +76,11 @@ class MvsConfig(BaseModel):
     default_hfov_deg: float = Field(default=70.0, description="guessed field of view for views without intrinsics")
     cache_size: int = Field(default=64, ge=1, description="views whose features/depth/pose are cached")
     min_pnp_inliers: int = Field(default=25, ge=6, description="PnP inliers needed to accept an unposed view")
-    threads: int = Field(default=2, ge=1, description="torch CPU threads")
+    threads: int = Field(
+        default=1, ge=1, le=2,
+        description="torch CPU threads while reconstructing (restored after). 1 by default: the sweep is many small "
+        "ops and on a busy 2-core machine a second thread measured 2-3x slower from synchronisation",
+    )
 
 
 @dataclass
@@ -390,8 +394,16 @@ class MvsReconstructor:
     def reconstruct(self, views: Sequence[View], targets: Sequence[int] | None = None) -> FactoredReconstruction:
         if not views:
             raise ValueError("reconstruct needs at least one view")
+        before = torch.get_num_threads()
         torch.set_num_threads(self.config.threads)
+        try:
+            return self._reconstruct(views, targets)
+        finally:
+            torch.set_num_threads(before)
+
+    def _reconstruct(self, views: Sequence[View], targets: Sequence[int] | None) -> FactoredReconstruction:
         t_start = time.perf_counter()
+        cpu_start = time.process_time()
         c = self.config
         info: dict[str, Any] = {"backend": self.name}
         prep = self._prepare(views)
@@ -486,6 +498,7 @@ class MvsReconstructor:
         info["sources"] = {int(k): [int(s) for s in v] for k, v in sources.items()}
         info["T_world_cam"] = [None if p is None else np.asarray(p) for p in poses]
         info["t_total_s"] = time.perf_counter() - t_start
+        info["cpu_total_s"] = time.process_time() - cpu_start
         recon = factored_from_metric(out_depth, world, out_conf, out_intr, info=info)
         recon.info["T_world_first"] = world[0]
         return recon
