@@ -75,6 +75,16 @@ class TestPlaneSweep:
             assert np.median(np.abs(depth[flat_conf] - 2.0) / 2.0) < 0.05
         assert r.confidence[1:].max() == 0.0  # non-targets carry no depth
 
+    def test_unposed_view_is_registered_inside_reconstruct(self) -> None:
+        views = _plane_views(_texture(1200, 2))
+        truth = views[3].T_world_cam
+        views[3] = View(views[3].image, "external", INTR, None, seq=3)
+        r = make_reconstructor("mvs", output_width=80).reconstruct(views, targets=[])
+        assert r.info["registered"]["external"]["ok"]
+        g = compose(r, anchor_pose(r, views))
+        assert rotation_angle_deg(g.T_world_cam[3], truth) < 0.5
+        assert np.linalg.norm(g.T_world_cam[3][:3, 3] - truth[:3, 3]) < 0.02
+
     def test_needs_some_pose(self) -> None:
         tex = _texture(600, 1)
         views = [View(v.image, v.source_id, v.intrinsics, None, seq=v.seq) for v in _plane_views(tex)[:2]]

@@ -29,7 +29,7 @@ class Features:
 
 def to_gray(image_rgb: NDArray[np.uint8]) -> NDArray[np.uint8]:
     """RGB uint8 to 8-bit grey."""
-    return cv2.cvtColor(np.ascontiguousarray(image_rgb), cv2.COLOR_RGB2GRAY)
+    return np.asarray(cv2.cvtColor(np.ascontiguousarray(image_rgb), cv2.COLOR_RGB2GRAY), dtype=np.uint8)
 
 
 def extract_features(image_rgb: NDArray[np.uint8], max_features: int = 2000, contrast: float = 0.01) -> Features:
@@ -37,7 +37,7 @@ def extract_features(image_rgb: NDArray[np.uint8], max_features: int = 2000, con
 
     The contrast threshold is half OpenCV's default: indoor surfaces are often low-contrast and the
     ratio test plus geometric checks remove the weaker matches this lets through."""
-    sift = cv2.SIFT_create(nfeatures=max_features, contrastThreshold=contrast)
+    sift = cv2.SIFT_create(nfeatures=max_features, contrastThreshold=contrast)  # type: ignore[attr-defined]
     kps, desc = sift.detectAndCompute(to_gray(image_rgb), None)
     if desc is None or not kps:
         return Features(np.zeros((0, 2)), np.zeros((0, 128), np.float32))

@@ -18,7 +18,7 @@ from __future__ import annotations
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass
-from typing import Any
+from typing import Any, cast
 
 import cv2
 import numpy as np
@@ -98,9 +98,8 @@ def _guess_intrinsics(v: View, hfov_deg: float) -> Intrinsics:
 
 
 def _resize_gray(image: np.ndarray, width: int, height: int) -> torch.Tensor:
-    g = features.to_gray(image)
-    g = cv2.resize(g, (width, height), interpolation=cv2.INTER_AREA)
-    return torch.from_numpy(g.astype(np.float32) / 255.0)
+    small = cv2.resize(features.to_gray(image), (width, height), interpolation=cv2.INTER_AREA)
+    return torch.from_numpy(small.astype(np.float32) / 255.0)
 
 
 def _resize_rgb(image: np.ndarray, width: int, height: int) -> torch.Tensor:
@@ -128,6 +127,14 @@ class MvsReconstructor:
         self._matches = features.LruCache(self.config.cache_size * 8)
         self._depth = features.LruCache(self.config.cache_size)  # key -> (depth at sweep res, K sweep)
         self._pose = features.LruCache(self.config.cache_size)  # key -> refined T_world_cam
+        self._reg_feats = features.LruCache(self.config.cache_size)  # registration features of map keyframes
+
+    def register(self, view: View, map_keyframes: Sequence[Any], config: Any = None) -> Any:
+        """Pose of a view without extrinsics against mapped keyframes (``register.register_view``), reusing
+        this reconstructor's feature cache across calls. Returns a ``PoseEstimate`` (check ``ok``)."""
+        from mapper.geometry.register import register_view
+
+        return register_view(view, map_keyframes, config, cache=self._reg_feats)
 
     # ---- features -------------------------------------------------------------------------------------
     def features_of(self, v: View) -> features.Features:
@@ -305,9 +312,9 @@ class MvsReconstructor:
             other = b if a == i else a
             for ka, kb in m:
                 kq, ko = (ka, kb) if a == i else (kb, ka)
-                p = lookup.get((other, int(ko)))
-                if p is not None:
-                    corr.setdefault(int(kq), p)
+                pt = lookup.get((other, int(ko)))
+                if pt is not None:
+                    corr.setdefault(int(kq), pt)
         from mapper.geometry.register import pnp_pose
 
         if len(corr) < 6:
@@ -476,7 +483,9 @@ class MvsReconstructor:
                     nbs.append((depth_lo[s], prep[s].intr.scaled(*shapes[s]).K(), poses[s]))
                 elif s in neigh_depth:
                     nbs.append((neigh_depth[s][0], neigh_depth[s][1], poses[s]))
-            cnt = planesweep.consistency_count(d, K_lo, poses[i], nbs, c.consistency_tol, c.consistency_px)
+            cnt = planesweep.consistency_count(
+                d, K_lo, cast(F64, poses[i]), cast(Any, nbs), c.consistency_tol, c.consistency_px
+            )
             need = max(1, min(c.consistency_views, len(nbs)))
             conf = np.clip(cnt / need, 0.0, 1.0).astype(np.float32)
             tex = local_std(grays[i], c.census_radius).numpy()
@@ -494,7 +503,7 @@ class MvsReconstructor:
         for i in range(n):
             if poses[i] is not None and not views[i].pose_trusted and views[i].T_world_cam is not None:
                 self._pose.put(views[i].key, poses[i])
-        world = [poses[i] if poses[i] is not None else T0 for i in range(n)]
+        world: list[F64] = [cast(F64, poses[i]) if poses[i] is not None else T0 for i in range(n)]
         info["sources"] = {int(k): [int(s) for s in v] for k, v in sources.items()}
         info["T_world_cam"] = [None if p is None else np.asarray(p) for p in poses]
         info["t_total_s"] = time.perf_counter() - t_start

@@ -7,6 +7,7 @@ and returns it through the same factored contract as every other backend.
 from __future__ import annotations
 
 from collections.abc import Sequence
+from typing import Any
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
@@ -37,7 +38,7 @@ class OracleReconstructor:
 
     name = "oracle"
 
-    def __init__(self, **opts: object) -> None:
+    def __init__(self, **opts: Any) -> None:
         self.config = OracleConfig(**opts)
 
     def reconstruct(self, views: Sequence[View], targets: Sequence[int] | None = None) -> FactoredReconstruction:

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 from collections.abc import Sequence
 from dataclasses import dataclass, field
+from typing import Any, cast
 
 import cv2
 import numpy as np
@@ -67,6 +68,20 @@ class PoseEstimate:
     info: dict[str, float] = field(default_factory=dict)
 
 
+def keyframes_from_geometry(
+    views: Sequence[View], geometry: Any, indices: Sequence[int] | None = None
+) -> list[MapKeyframe]:
+    """MapKeyframes from views and their ``ComposedGeometry`` (views without intrinsics or depth are skipped)."""
+    out = []
+    for i in range(len(views)) if indices is None else indices:
+        v = views[i]
+        if v.intrinsics is None or not np.any(geometry.confidence[i] > 0):
+            continue
+        out.append(MapKeyframe(v.image, v.intrinsics, geometry.T_world_cam[i], geometry.depth_m[i],
+                               geometry.intrinsics[i], geometry.confidence[i], v.key))
+    return out
+
+
 def pnp_pose(
     uv: F64, X_world: F64, K: F64, reproj_px: float = 4.0, iterations: int = 2000
 ) -> tuple[F64 | None, int]:
@@ -92,7 +107,7 @@ def pnp_pose(
     T_cam_world = np.eye(4)
     T_cam_world[:3, :3] = R
     T_cam_world[:3, 3] = tvec.reshape(3)
-    return np.linalg.inv(T_cam_world), int(max(len(inl), len(inl2)))
+    return np.asarray(np.linalg.inv(T_cam_world), dtype=np.float64), int(max(len(inl), len(inl2)))
 
 
 def _lift(kf: MapKeyframe, uv_full: F64, min_conf: float) -> tuple[F64, NDArray[np.bool_]]:
@@ -136,15 +151,15 @@ def register_view(
         return PoseEstimate(None, 0, False, f"too few features in the view ({len(fq)})")
     uv_q, X_w = [], []
     for kf in map_keyframes:
-        fk = cache.get(kf.key) if (cache is not None and kf.key is not None) else None
+        fk = cast(features.Features | None, cache.get(kf.key) if (cache is not None and kf.key is not None) else None)
         if fk is None:
             fk = features.extract_features(kf.image, cfg.max_features)
             if cache is not None and kf.key is not None:
                 cache.put(kf.key, fk)
-        m = features.match_features(fq, fk, cfg.ratio)  # type: ignore[arg-type]
+        m = features.match_features(fq, fk, cfg.ratio)
         if len(m) < 6:
             continue
-        Xw, ok = _lift(kf, fk.uv[m[:, 1]], cfg.min_confidence)  # type: ignore[union-attr]
+        Xw, ok = _lift(kf, fk.uv[m[:, 1]], cfg.min_confidence)
         uv_q.append(fq.uv[m[ok, 0]])
         X_w.append(Xw[ok])
     n = int(sum(len(u) for u in uv_q))
@@ -240,7 +255,7 @@ def two_view_pose(
             return PoseEstimate(None, int(n_inl), False, "no ground plane found for the height scale", len(m))
         scale = float(camera_height_m) / h_unit  # type: ignore[arg-type]
     T_a_b[:3, 3] *= scale
-    T_world_b = view_a.T_world_cam @ T_a_b if view_a.T_world_cam is not None else T_a_b
+    T_world_b = np.asarray(view_a.T_world_cam @ T_a_b if view_a.T_world_cam is not None else T_a_b, np.float64)
     return PoseEstimate(T_world_b, int(n_inl), True, "ok", len(m), view_b.intrinsics, {"scale": scale})
 
 
