@@ -547,6 +547,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--starts", type=int, default=None, help="start poses (active)")
     p.add_argument("--steps", type=int, default=None, help="exploration steps (active)")
     p.add_argument("--perception", default=None, help="2D perception for all: sim (ORACLE) or classical")
+    p.add_argument("--active-geometry", default=None, help="reconstructor of the active runs (default oracle)")
     p.add_argument("--threads", type=int, default=2, help="torch CPU threads")
     a = p.parse_args(argv)
     unknown = [e for e in a.experiments if e not in EXPERIMENTS]
@@ -571,6 +572,8 @@ def main(argv: list[str] | None = None) -> int:
             cfg.active.starts = a.starts
         if a.steps is not None:
             cfg.active.steps = a.steps
+        if a.active_geometry is not None:
+            cfg.active.geometry = a.active_geometry
         if a.perception is not None:
             cfg.static.perception = cfg.external.perception = cfg.active.perception = a.perception
     except (ValueError, OSError) as e:

@@ -132,6 +132,17 @@ def test_cli_nodes_snapshot_and_watch(router: str, holder: FakeGraphHolder, proc
     assert w.output.count("1 upserted") == 2 and "lamp(n9)" in w.output
 
 
+def test_watch_exits_cleanly_on_ctrl_c(router: str, procs: list[Proc]) -> None:
+    import signal
+
+    w = Proc(["query", "--connect", router, "--site", SITE, "watch"])
+    procs.append(w)
+    wait_for(lambda: "watching" in w.output, timeout=20, what="watch started")
+    w.signal(signal.SIGINT)
+    assert w.wait(10) == 0, w.output
+    assert "Traceback" not in w.output
+
+
 def test_cli_without_mapper_fails_cleanly(router: str, procs: list[Proc]) -> None:
     p = Proc(["query", "--connect", router, "--site", "nobody", "--timeout", "1", "snapshot"])
     procs.append(p)
