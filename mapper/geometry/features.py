@@ -53,9 +53,9 @@ def match_features(a: Features, b: Features, ratio: float = 0.8) -> NDArray[np.i
         return np.zeros((0, 2), np.int64)
     bf = cv2.BFMatcher(cv2.NORM_L2)
     ab = bf.knnMatch(a.desc, b.desc, k=2)
-    ba = bf.match(b.desc, a.desc)
+    # Mutual check: repetitive indoor textures make one-way matches much dirtier (measured on sim scenes).
     back = np.full(len(b), -1, np.int64)
-    for m in ba:
+    for m in bf.match(b.desc, a.desc):
         back[m.queryIdx] = m.trainIdx
     out = [
         (m[0].queryIdx, m[0].trainIdx)

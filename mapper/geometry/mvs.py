@@ -16,7 +16,8 @@ Pipeline per call (a window of views, dense depth for ``targets``):
 from __future__ import annotations
 
 import time
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
+from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import Any, cast
 
@@ -45,7 +46,7 @@ class MvsConfig(BaseModel):
     census_stride: int = Field(default=2, ge=1, le=3, description="use every n-th pixel of the census window")
     sgm_p1: float = Field(default=0.1, ge=0, description="SGM penalty for a one-plane step")
     sgm_p2: float = Field(default=0.6, ge=0, description="SGM penalty for a larger jump (shrinks at edges)")
-    best_k_sources: int = Field(default=2, ge=1, le=8, description="average the k cheapest sources per pixel")
+    best_k_sources: int = Field(default=2, ge=1, le=2, description="average the k cheapest sources per pixel")
     depth_min_m: float = Field(default=0.2, gt=0, description="lower clamp of the fitted depth range")
     depth_max_m: float = Field(default=20.0, gt=0, description="upper clamp of the fitted depth range")
     default_range_m: tuple[float, float] = Field(
@@ -64,8 +65,8 @@ class MvsConfig(BaseModel):
         default=2.0, ge=0, description="matches moving less than this while the camera moved are dropped"
     )
     max_tracks: int = Field(default=3000, ge=10, description="cap on tracks in the bundle adjustment")
-    consistency_tol: float = Field(default=0.05, gt=0, description="relative depth tolerance of the check")
-    consistency_px: float = Field(default=1.5, gt=0, description="reprojection tolerance (sweep pixels)")
+    consistency_tol: float = Field(default=0.08, gt=0, description="relative depth tolerance of the check")
+    consistency_px: float = Field(default=2.5, gt=0, description="reprojection tolerance (sweep pixels)")
     consistency_views: int = Field(default=2, ge=1, description="agreeing neighbours for full confidence")
     fill_neighbours: bool = Field(
         default=True, description="sweep neighbours without a depth map so targets can be cross-checked"
@@ -116,6 +117,31 @@ def local_std(gray: torch.Tensor, radius: int) -> torch.Tensor:
     return (m2 - m * m).clamp(min=0).sqrt()[0, 0]
 
 
+@contextmanager
+def compute_threads(n: int) -> Iterator[None]:
+    """Limit torch, OpenCV and BLAS to ``n`` threads for the duration, then restore the caller's settings.
+
+    The work here is many small operations; on a busy 2-core machine worker threads of each library spin
+    waiting for each other and measured 3-10x slower than one thread.
+    """
+    torch_before, cv_before = torch.get_num_threads(), cv2.getNumThreads()
+    torch.set_num_threads(n)
+    cv2.setNumThreads(n)
+    try:
+        from threadpoolctl import threadpool_limits
+    except ImportError:  # optional: without it BLAS keeps its own thread count
+        threadpool_limits = None
+    try:
+        if threadpool_limits is not None:
+            with threadpool_limits(limits=n):
+                yield
+        else:
+            yield
+    finally:
+        torch.set_num_threads(torch_before)
+        cv2.setNumThreads(cv_before)
+
+
 class MvsReconstructor:
     """Classical RGB-only reconstruction: pose refinement then plane-sweep depth (see module docstring)."""
 
@@ -134,7 +160,8 @@ class MvsReconstructor:
         this reconstructor's feature cache across calls. Returns a ``PoseEstimate`` (check ``ok``)."""
         from mapper.geometry.register import register_view
 
-        return register_view(view, map_keyframes, config, cache=self._reg_feats)
+        with compute_threads(self.config.threads):
+            return register_view(view, map_keyframes, config, cache=self._reg_feats)
 
     # ---- features -------------------------------------------------------------------------------------
     def features_of(self, v: View) -> features.Features:
@@ -227,25 +254,30 @@ class MvsReconstructor:
             return np.zeros((0, 3)), []
         tracks = sorted(tracks, key=len, reverse=True)[: self.config.max_tracks]
         Ps = [bundle.projection_matrix(p.K, T) if T is not None else None for p, T in zip(prep, poses, strict=True)]
-        pts, obs = [], []
+        cand, cand_obs = [], []
         for tr in tracks:
             tr = np.array([o for o in tr if Ps[o[0]] is not None])
             if len(tr) < 2:
                 continue
-            uvs = np.stack([prep[v].feats.uv[k] for v, k in tr])
-            X = bundle.triangulate([Ps[v] for v, _ in tr], uvs)
-            if not np.all(np.isfinite(X)):
-                continue
-            good = True
-            for (v, _), uv in zip(tr, uvs, strict=True):
-                pr, z = bundle.reproject(prep[v].K, poses[v], X[None])  # type: ignore[arg-type]
-                if z[0] <= 0 or np.linalg.norm(pr[0] - uv) > 25.0:
-                    good = False
-                    break
-            if good:
-                pts.append(X)
-                obs.append(tr)
-        return (np.array(pts).reshape(-1, 3), obs)
+            X = bundle.triangulate([Ps[v] for v, _ in tr], np.stack([prep[v].feats.uv[k] for v, k in tr]))
+            if np.all(np.isfinite(X)):
+                cand.append(X)
+                cand_obs.append(tr)
+        if not cand:
+            return np.zeros((0, 3)), []
+        # Keep points in front of every observing camera and within 25 px of every observation (the priors
+        # can be off by ~10 px; the bundle adjustment tightens this afterwards).
+        Xs = np.array(cand)
+        pid = np.concatenate([np.full(len(t), i) for i, t in enumerate(cand_obs)])
+        allobs = np.concatenate(cand_obs)
+        bad = np.zeros(len(cand), bool)
+        for v in np.unique(allobs[:, 0]):
+            sel = allobs[:, 0] == v
+            pr, z = bundle.reproject(prep[v].K, cast(F64, poses[v]), Xs[pid[sel]])
+            err = np.linalg.norm(pr - prep[v].feats.uv[allobs[sel, 1]], axis=1)
+            bad[pid[sel][(z <= 0) | ~(err <= 25.0)]] = True
+        keep = np.flatnonzero(~bad)
+        return Xs[keep].reshape(-1, 3), [cand_obs[i] for i in keep]
 
     def _bundle(
         self,
@@ -401,12 +433,8 @@ class MvsReconstructor:
     def reconstruct(self, views: Sequence[View], targets: Sequence[int] | None = None) -> FactoredReconstruction:
         if not views:
             raise ValueError("reconstruct needs at least one view")
-        before = torch.get_num_threads()
-        torch.set_num_threads(self.config.threads)
-        try:
+        with compute_threads(self.config.threads):
             return self._reconstruct(views, targets)
-        finally:
-            torch.set_num_threads(before)
 
     def _reconstruct(self, views: Sequence[View], targets: Sequence[int] | None) -> FactoredReconstruction:
         t_start = time.perf_counter()

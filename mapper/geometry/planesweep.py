@@ -28,7 +28,7 @@ class SweepParams:
     census_stride: int = 1
     p1: float = 0.04
     p2: float = 0.25
-    best_k_sources: int = 2
+    best_k_sources: int = 2  # 1 or 2
 
 
 def census_offsets(radius: int, stride: int = 1) -> list[tuple[int, int]]:
@@ -52,12 +52,12 @@ def _census_cost(warped: torch.Tensor, ref_bits: torch.Tensor, radius: int, stri
     """Fraction of census bits that differ between each warped plane (D, H, W) and the reference."""
     h, w = warped.shape[-2:]
     padded = F.pad(warped.unsqueeze(1), (radius,) * 4, mode="replicate").squeeze(1)
-    cost = torch.zeros_like(warped)
+    differ = torch.zeros(warped.shape, dtype=torch.uint8)
     offsets = census_offsets(radius, stride)
     for k, (dy, dx) in enumerate(offsets):
         nb = padded[:, radius + dy : radius + dy + h, radius + dx : radius + dx + w]
-        cost += ((nb > warped) != ref_bits[k]).to(cost.dtype)
-    return cost / len(offsets)
+        differ += torch.ne(nb > warped, ref_bits[k])
+    return differ.to(warped.dtype) / len(offsets)
 
 
 def warp_grid(K_ref: F64, K_src: F64, T_src_ref: F64, depths: torch.Tensor, h: int, w: int) -> torch.Tensor:
@@ -90,7 +90,10 @@ def sweep_cost(
     """Matching cost volume (D, H, W) in [0, 1]: mean census cost of the best sources per pixel and plane."""
     h, w = ref_gray.shape
     ref_bits = census_bits(ref_gray, params.census_radius, params.census_stride)
-    costs = []
+    # Streaming k-best (k <= 2) over sources: no (S, D, H, W) stack is ever built.
+    k_best = min(params.best_k_sources, len(src_grays), 2)
+    best1: torch.Tensor | None = None
+    best2: torch.Tensor | None = None
     for src, K_s, T in zip(src_grays, K_srcs, T_src_ref, strict=True):
         hs, ws = src.shape
         g = warp_grid(K_ref, K_s, T, depths, h, w)
@@ -101,12 +104,18 @@ def sweep_cost(
         ).view(len(depths), h, w)
         c = _census_cost(warped, ref_bits, params.census_radius, params.census_stride)
         # Outside the source image there is no evidence: a pessimistic cost lets other sources decide.
-        costs.append(torch.where(inside, c, torch.full_like(c, 0.6)))
-    stack = torch.stack(costs)
-    k = min(params.best_k_sources, len(costs))
-    if k < len(costs):
-        stack = torch.topk(stack, k, dim=0, largest=False).values
-    return stack.mean(dim=0)
+        c = torch.where(inside, c, torch.full_like(c, 0.6))
+        if best1 is None:
+            best1 = c
+        elif best2 is None:
+            best1, best2 = torch.minimum(best1, c), torch.maximum(best1, c)
+        else:
+            best2 = torch.minimum(best2, torch.maximum(best1, c))
+            best1 = torch.minimum(best1, c)
+    assert best1 is not None, "sweep_cost needs at least one source"
+    if k_best == 1 or best2 is None:
+        return best1
+    return 0.5 * (best1 + best2)
 
 
 def _aggregate_path(cost: torch.Tensor, dim: int, reverse: bool, p1: torch.Tensor, p2: torch.Tensor) -> torch.Tensor:
@@ -241,9 +250,12 @@ def consistency_count(
 def joint_bilateral_upsample(
     depth: torch.Tensor, conf: torch.Tensor, guide_lo: torch.Tensor, guide_hi: torch.Tensor, sigma_color: float = 0.08
 ) -> tuple[torch.Tensor, torch.Tensor]:
-    """Upsample depth and confidence (h, w) to the guide's (H, W), weighting the 3x3 low-res neighbours by
-    colour similarity to the high-res pixel (guides: (3, h, w) and (3, H, W) in [0, 1]) and by confidence,
-    so depth edges follow image edges instead of blurring across them."""
+    """Upsample depth and confidence (h, w) to the guide's (H, W) (guides: (3, h, w) and (3, H, W) in [0, 1]).
+
+    Depth: average of the 3x3 low-res neighbours weighted by colour similarity to the high-res pixel, by
+    distance and by confidence, so depth edges follow image edges instead of blurring across them.
+    Confidence: that of the most similar neighbour (averaging would erode every confident region's rim).
+    """
     h, w = depth.shape
     H, W = guide_hi.shape[-2:]
     ys = (torch.arange(H, dtype=torch.float32) + 0.5) * h / H - 0.5
@@ -251,9 +263,9 @@ def joint_bilateral_upsample(
     yi = ys.round().long().clamp(0, h - 1)
     xi = xs.round().long().clamp(0, w - 1)
     num_d = torch.zeros(H, W)
-    num_c = torch.zeros(H, W)
     den = torch.zeros(H, W)
-    den_all = torch.zeros(H, W)
+    best_w = torch.full((H, W), -1.0)
+    conf_hi = torch.zeros(H, W)
     valid = (depth > 0).to(torch.float32)
     for dy in (-1, 0, 1):
         for dx in (-1, 0, 1):
@@ -263,13 +275,13 @@ def joint_bilateral_upsample(
             dist2 = (ys.view(-1, 1) - yy.view(-1, 1).float()) ** 2 + (xs.view(1, -1) - xx.view(1, -1).float()) ** 2
             wc = torch.exp(-((g - guide_hi) ** 2).sum(0) / (2 * sigma_color**2)) * torch.exp(-dist2 / 2.0)
             dd = depth[yy][:, xx]
-            cc = conf[yy][:, xx]
-            vv = valid[yy][:, xx]
-            wd = wc * vv * (0.05 + cc)
+            cc = conf[yy][:, xx] * valid[yy][:, xx]
+            wd = wc * valid[yy][:, xx] * (0.05 + cc)
             num_d += wd * dd
             den += wd
-            num_c += wc * cc * vv
-            den_all += wc
+            better = wc > best_w
+            best_w = torch.where(better, wc, best_w)
+            conf_hi = torch.where(better, cc, conf_hi)
     depth_hi = torch.where(den > 1e-6, num_d / den.clamp(min=1e-6), torch.zeros_like(den))
-    conf_hi = num_c / den_all.clamp(min=1e-6)
+    conf_hi = torch.where(depth_hi > 0, conf_hi, torch.zeros_like(conf_hi))
     return depth_hi, conf_hi
