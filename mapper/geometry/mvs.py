@@ -65,7 +65,7 @@ class MvsConfig(BaseModel):
         default=2.0, ge=0, description="matches moving less than this while the camera moved are dropped"
     )
     max_tracks: int = Field(default=3000, ge=10, description="cap on tracks in the bundle adjustment")
-    consistency_tol: float = Field(default=0.08, gt=0, description="relative depth tolerance of the check")
+    consistency_tol: float = Field(default=0.10, gt=0, description="relative depth tolerance of the check")
     consistency_px: float = Field(default=2.5, gt=0, description="reprojection tolerance (sweep pixels)")
     consistency_views: int = Field(default=2, ge=1, description="agreeing neighbours for full confidence")
     fill_neighbours: bool = Field(
@@ -408,15 +408,17 @@ class MvsReconstructor:
                 return float(max(c.depth_min_m, lo)), float(min(c.depth_max_m, max(hi, lo * 1.5)))
         return c.default_range_m
 
-    def _sweep(self, r: int, prep: list[_Prepared], poses: list[F64 | None], pts: np.ndarray,
-               grays: dict[int, torch.Tensor], sw: int, sh: int) -> tuple[np.ndarray, np.ndarray, list[int]]:
+    def _sweep(
+        self, r: int, prep: list[_Prepared], poses: list[F64 | None], pts: np.ndarray,
+        grays: dict[tuple[int, int, int], torch.Tensor], sw: int, sh: int,
+    ) -> tuple[np.ndarray, np.ndarray, list[int]]:
         c = self.config
         srcs = self._select_sources(r, prep, poses, pts)
         if not srcs:
             return np.zeros((sh, sw), np.float32), np.zeros((sh, sw), np.float32), []
         for s in [r, *srcs]:
-            if s not in grays:
-                grays[s] = _resize_gray(prep[s].view.image, sw, sh)
+            if (s, sw, sh) not in grays:
+                grays[(s, sw, sh)] = _resize_gray(prep[s].view.image, sw, sh)
         K_r = prep[r].intr.scaled(sw, sh).K()
         T_r = poses[r]
         assert T_r is not None
@@ -425,7 +427,8 @@ class MvsReconstructor:
             c.n_planes, c.census_radius, c.census_stride, c.sgm_p1, c.sgm_p2, c.best_k_sources
         )
         depth, margin = planesweep.plane_sweep_depth(
-            grays[r], [grays[s] for s in srcs], K_r, [prep[s].intr.scaled(sw, sh).K() for s in srcs],
+            grays[(r, sw, sh)], [grays[(s, sw, sh)] for s in srcs], K_r,
+            [prep[s].intr.scaled(sw, sh).K() for s in srcs],
             [invert(poses[s]) @ T_r for s in srcs], lo, hi, params,  # type: ignore[arg-type]
         )
         return depth.numpy().astype(np.float32), margin.numpy().astype(np.float32), srcs
@@ -459,7 +462,7 @@ class MvsReconstructor:
         T0 = poses[0] if poses[0] is not None else np.eye(4)
         t_dense = time.perf_counter()
         sw = c.sweep_width
-        grays: dict[int, torch.Tensor] = {}
+        grays: dict[tuple[int, int, int], torch.Tensor] = {}  # (view, width, height) -> grey image
         depth_lo: dict[int, np.ndarray] = {}
         margin_lo: dict[int, np.ndarray] = {}
         sources: dict[int, list[int]] = {}
@@ -516,7 +519,7 @@ class MvsReconstructor:
             )
             need = max(1, min(c.consistency_views, len(nbs)))
             conf = np.clip(cnt / need, 0.0, 1.0).astype(np.float32)
-            tex = local_std(grays[i], c.census_radius).numpy()
+            tex = local_std(grays[(i, *shapes[i])], c.census_radius).numpy()
             # Where the image is flat the cost has no minimum of its own: SGM fills it from the edges, and
             # neighbours may agree on the same guess, so consistency alone is not enough there.
             conf *= np.clip(2.0 * tex / max(c.min_texture, 1e-6) - 1.0, 0.0, 1.0)
