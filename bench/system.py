@@ -261,7 +261,7 @@ def _counter(status: dict[str, float], name: str) -> float:
 
 def run(cameras: int, fps: float, phase_s: float, warmup_s: float, width: int, height: int,
         frames_per_camera: int, consumers: list[int], mapper_settings: dict[str, Any], out: Path,
-        family: str = "apartment", seed: int = 0) -> dict[str, Any]:
+        family: str = "apartment", seed: int = 0, consumer_rate_hz: float = 10.0) -> dict[str, Any]:
     """Run the benchmark and write ``system.json`` / ``system.md`` under ``out``."""
     from deploy.up import LaunchFile, Stack
     from protocol.session import ZenohSettings, open_session
@@ -292,6 +292,7 @@ def run(cameras: int, fps: float, phase_s: float, warmup_s: float, width: int, h
     lines: list[str] = []
     stack = Stack(launch, Path.cwd(), emit=lines.append)
     results: dict[str, Any] = {"cameras": cameras, "fps": fps, "width": width, "height": height,
+                               "consumer_rate_hz": consumer_rate_hz,
                                "phase_s": phase_s, "mapper_settings": mapper_settings, "phases": []}
     players: list[CameraPlayer] = []
     session = None
@@ -310,16 +311,18 @@ def run(cameras: int, fps: float, phase_s: float, warmup_s: float, width: int, h
         log(f"{cameras} cameras at {fps:g} fps into the mapper (pid {mapper_pid}); warm-up {warmup_s:.0f}s")
         time.sleep(warmup_s)
         for n_consumers in consumers:
-            cons = [Consumer(endpoint, keys) for _ in range(n_consumers)]
+            cons = [Consumer(endpoint, keys, consumer_rate_hz) for _ in range(n_consumers)]
             for c in cons:
                 c.start()
             watch.take()
             sent0 = sum(p.sent for p in players)
             cpu0, t0 = proc_cpu_s(mapper_pid), time.monotonic()
+            self_cpu0 = proc_cpu_s(os.getpid())
             status0 = watch.take()[2]
             time.sleep(phase_s)
             dt = time.monotonic() - t0
             cpu1, sent1 = proc_cpu_s(mapper_pid), sum(p.sent for p in players)
+            self_cpu1 = proc_cpu_s(os.getpid())
             lat, n_deltas, status1 = watch.take()
             for c in cons:
                 c.stop()
@@ -336,6 +339,7 @@ def run(cameras: int, fps: float, phase_s: float, warmup_s: float, width: int, h
                 "received_fps": received / dt,
                 "processed_fps": processed / dt,
                 "keyframes_per_s": keyframes / dt,
+                "keyframes_deferred": diff("keyframes_deferred"),
                 "dropped": dropped,
                 "dropped_frac": dropped / max(received, 1.0),
                 "deltas": n_deltas,
@@ -343,6 +347,7 @@ def run(cameras: int, fps: float, phase_s: float, warmup_s: float, width: int, h
                 "query_p50_ms": _pct(qlat, 50), "query_p99_ms": _pct(qlat, 99),
                 "queries": len(qlat), "query_failures": sum(c.failures for c in cons),
                 "mapper_cpu_cores": (cpu1 - cpu0) / dt,
+                "bench_cpu_cores": (self_cpu1 - self_cpu0) / dt,  # cameras + consumers share the machine
                 "mapper_rss_mb": mem["rss_mb"], "mapper_peak_rss_mb": mem["peak_rss_mb"],
                 "mapper_status": status1,
             }
@@ -361,7 +366,8 @@ def run(cameras: int, fps: float, phase_s: float, warmup_s: float, width: int, h
         stack.stop()
     rows = [{k: v for k, v in ph.items() if k != "mapper_status"} for ph in results["phases"]]
     write_report(out, "system", results, rows,
-                 title=f"System: {cameras} simulated cameras at {fps:g} fps into one mapper")
+                 title=f"System: {cameras} simulated cameras at {fps:g} fps into one mapper "
+                       f"({width}x{height}, {mapper_settings}; consumers query at {consumer_rate_hz:g} Hz each)")
     return results
 
 
@@ -380,6 +386,7 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--height", type=int, default=480)
     p.add_argument("--frames-per-camera", type=int, default=24, help="distinct frames per camera (looped)")
     p.add_argument("--consumers", default="0,1,10", help="consumer counts, one phase each")
+    p.add_argument("--consumer-rate", type=float, default=10.0, help="queries per second per consumer")
     p.add_argument("--geometry", default="mvs", help="mapper geometry backend")
     p.add_argument("--segmenter", default="classical",
                    help="mapper segmenter: classical, or sim (ORACLE: the cameras then also publish ground truth)")
@@ -393,7 +400,7 @@ def main(argv: list[str] | None = None) -> int:
                        "perception": {"segmenter": a.segmenter, "embedder": a.segmenter}}
     try:
         run(a.cameras, a.fps, a.phase_s, a.warmup_s, a.width, a.height, a.frames_per_camera, consumers,
-            mapper_settings, a.out)
+            mapper_settings, a.out, consumer_rate_hz=a.consumer_rate)
     except Exception as e:  # noqa: BLE001
         print(f"argus bench system: {type(e).__name__}: {e}", file=sys.stderr)
         return 1
