@@ -127,7 +127,8 @@ def _drive(nav: Any, x: float, y: float, yaw: float, n: int, rng: np.random.Gene
         if step and step % 4 == 0:
             turn = -turn
         x0, y0, yaw0 = poses[-1]
-        for t in (turn, -turn, 0.0, 2 * turn):
+        # Blocked ahead: steer harder (a robot backs off walls rather than spinning on the spot).
+        for t in (turn, -turn, 0.0, 2 * turn, -2 * turn, 4 * turn, -4 * turn, 8 * turn, -8 * turn):
             yaw1 = yaw0 + t
             x1, y1 = x0 + 0.15 * math.cos(yaw1), y0 + 0.15 * math.sin(yaw1)
             if nav.is_free(x1, y1):

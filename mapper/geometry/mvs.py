@@ -64,6 +64,11 @@ class MvsConfig(BaseModel):
     static_px: float = Field(
         default=2.0, ge=0, description="matches moving less than this while the camera moved are dropped"
     )
+    max_ba_rms_px: float = Field(default=4.0, gt=0, description="reject an adjustment whose RMS stays above")
+    max_ba_sigmas: float = Field(
+        default=5.0, gt=0, description="reject an adjustment that moves a prior by more than this many sigmas"
+    )
+    min_triangulation_deg: float = Field(default=1.0, ge=0, description="sparse points need this ray angle")
     max_tracks: int = Field(default=3000, ge=10, description="cap on tracks in the bundle adjustment")
     consistency_tol: float = Field(default=0.10, gt=0, description="relative depth tolerance of the check")
     consistency_px: float = Field(default=2.5, gt=0, description="reprojection tolerance (sweep pixels)")
@@ -152,7 +157,6 @@ class MvsReconstructor:
         self._feats = features.LruCache(self.config.cache_size)
         self._matches = features.LruCache(self.config.cache_size * 8)
         self._depth = features.LruCache(self.config.cache_size)  # key -> (depth at sweep res, K sweep)
-        self._pose = features.LruCache(self.config.cache_size)  # key -> refined T_world_cam
         self._reg_feats = features.LruCache(self.config.cache_size)  # registration features of map keyframes
 
     def register(self, view: View, map_keyframes: Sequence[Any], config: Any = None) -> Any:
@@ -201,12 +205,9 @@ class MvsReconstructor:
         out = []
         for v in views:
             intr = v.intrinsics or _guess_intrinsics(v, self.config.default_hfov_deg)
-            prior = v.T_world_cam
-            if prior is not None and not v.pose_trusted:
-                refined = self._pose.get(v.key)
-                if refined is not None:
-                    prior = refined  # type: ignore[assignment]
-            out.append(_Prepared(v, intr.K(), intr, prior, self.features_of(v)))
+            # Always the view's own prior: feeding refined poses back as priors would let one bad
+            # adjustment drift every later window.
+            out.append(_Prepared(v, intr.K(), intr, v.T_world_cam, self.features_of(v)))
         return out
 
     def _pairs(self, prep: list[_Prepared]) -> list[tuple[int, int]]:
@@ -271,11 +272,24 @@ class MvsReconstructor:
         pid = np.concatenate([np.full(len(t), i) for i, t in enumerate(cand_obs)])
         allobs = np.concatenate(cand_obs)
         bad = np.zeros(len(cand), bool)
+        # Rays of a well-triangulated point meet at >= 1 deg somewhere; pure rotations give junk depths.
+        min_cos = np.ones(len(cand))
+        first_dir = np.zeros((len(cand), 3))
+        seen = np.zeros(len(cand), bool)
         for v in np.unique(allobs[:, 0]):
             sel = allobs[:, 0] == v
-            pr, z = bundle.reproject(prep[v].K, cast(F64, poses[v]), Xs[pid[sel]])
+            T_v = cast(F64, poses[v])
+            pr, z = bundle.reproject(prep[v].K, T_v, Xs[pid[sel]])
             err = np.linalg.norm(pr - prep[v].feats.uv[allobs[sel, 1]], axis=1)
             bad[pid[sel][(z <= 0) | ~(err <= 25.0)]] = True
+            ray = Xs[pid[sel]] - T_v[:3, 3]
+            ray /= np.maximum(np.linalg.norm(ray, axis=1, keepdims=True), 1e-12)
+            ids = pid[sel]
+            new = ~seen[ids]
+            first_dir[ids[new]] = ray[new]
+            seen[ids] = True
+            min_cos[ids] = np.minimum(min_cos[ids], np.sum(first_dir[ids] * ray, axis=1))
+        bad |= min_cos > np.cos(np.radians(self.config.min_triangulation_deg))
         keep = np.flatnonzero(~bad)
         return Xs[keep].reshape(-1, 3), [cand_obs[i] for i in keep]
 
@@ -310,12 +324,33 @@ class MvsReconstructor:
             has_prior=[has_prior[i] for i in idx],
         )
         res = bundle.bundle_adjust(prob, self.config.sigma_rot_deg, self.config.sigma_trans_m)
-        for k, i in enumerate(idx):
-            poses[i] = res.T_world_cam[k]
+        # A sane adjustment moves priors by a few sigma at most and fits the tracks; otherwise (repetitive
+        # texture, wrong matches) keep the priors rather than poison the dense step.
+        moved = [
+            (rotation_angle_deg(res.T_world_cam[k], poses[i]) / self.config.sigma_rot_deg,  # type: ignore[arg-type]
+             float(np.linalg.norm(res.T_world_cam[k][:3, 3] - poses[i][:3, 3])) / self.config.sigma_trans_m)  # type: ignore[index]
+            for k, i in enumerate(idx) if has_prior[i]
+        ]
+        worst = max((max(a, b) for a, b in moved), default=0.0)
+        accepted = res.rms_px_after <= self.config.max_ba_rms_px and worst <= self.config.max_ba_sigmas
+        if accepted:
+            for k, i in enumerate(idx):
+                poses[i] = res.T_world_cam[k]
         info.setdefault("ba", []).append(
             {"rms_px_before": res.rms_px_before, "rms_px_after": res.rms_px_after, "nfev": res.n_iterations,
-             "n_obs": len(oc), "n_points": len(pts)}
+             "n_obs": len(oc), "n_points": len(pts), "max_move_sigmas": worst, "accepted": accepted}
         )
+        if not accepted:
+            # Keep only the points that the priors themselves explain.
+            keep_pts = np.ones(len(pts), bool)
+            errs = np.zeros(len(oc))
+            for k, i in enumerate(idx):
+                sel = prob.obs_cam == k
+                pr, z = bundle.reproject(prep[i].K, cast(F64, poses[i]), pts[prob.obs_pt[sel]])
+                errs[sel] = np.where(z > 0, np.linalg.norm(pr - prob.obs_uv[sel], axis=1), np.inf)
+            np.logical_and.at(keep_pts, prob.obs_pt, errs < 10.0)
+            kept = np.flatnonzero(keep_pts)
+            return pts[kept].reshape(-1, 3), [obs[j] for j in kept]
         # Drop observations that stayed far off, and points left with fewer than two views.
         per_point: dict[int, list[np.ndarray]] = {}
         for p, ok, o in zip(op, res.inlier_obs, orig, strict=True):
@@ -531,9 +566,6 @@ class MvsReconstructor:
             )
             out_depth.append(dh.numpy().astype(np.float32))
             out_conf.append(ch.numpy().astype(np.float32))
-        for i in range(n):
-            if poses[i] is not None and not views[i].pose_trusted and views[i].T_world_cam is not None:
-                self._pose.put(views[i].key, poses[i])
         world: list[F64] = [cast(F64, poses[i]) if poses[i] is not None else T0 for i in range(n)]
         info["sources"] = {int(k): [int(s) for s in v] for k, v in sources.items()}
         info["T_world_cam"] = [None if p is None else np.asarray(p) for p in poses]
