@@ -226,7 +226,9 @@ def run_incremental(rec: Any, views: Sequence[View], gts: Sequence[tuple[np.ndar
     return outputs
 
 
-def bench_sim(families: Sequence[str], seeds: Sequence[int], quick: bool, backend: str) -> dict[str, Any]:
+def bench_sim(
+    families: Sequence[str], seeds: Sequence[int], quick: bool, backend: str, opts: dict[str, Any]
+) -> dict[str, Any]:
     known = ScenarioResult("sim robot, known poses")
     odom = ScenarioResult("sim robot, odometry priors (1 cm, 0.5 deg)")
     fixed_depth = ScenarioResult("sim fixed camera, registered pose, depth from the robot keyframes")
@@ -236,7 +238,7 @@ def bench_sim(families: Sequence[str], seeds: Sequence[int], quick: bool, backen
     for family in families:
         for seed in seeds:
             kfs, (cam, fixed), _ = sim_sequences(family, seed, n_clusters, per_cluster, None)
-            rec = make_reconstructor(backend)
+            rec = make_reconstructor(backend, **opts)
             gts = [(k.gt_depth, k.gt_depth > 0) for k in kfs]
             outs = run_incremental(rec, [k.view for k in kfs], gts, known, f"{family}/{seed}")
             # Registration of the fixed camera, uncalibrated extrinsics, against the robot-built map.
@@ -262,7 +264,7 @@ def bench_sim(families: Sequence[str], seeds: Sequence[int], quick: bool, backen
                                            "delta125": s.delta125, "confident": s.confident, "n_gt": s.n_gt,
                                            "seconds": dt, "cpu_seconds": float(r.info.get("cpu_total_s", np.nan))})
             kfs_o, _, _ = sim_sequences(family, seed, n_clusters, per_cluster, (0.01, 0.5))
-            rec_o = make_reconstructor(backend)
+            rec_o = make_reconstructor(backend, **opts)
             run_incremental(rec_o, [k.view for k in kfs_o], [(k.gt_depth, k.gt_depth > 0) for k in kfs_o], odom,
                             f"{family}/{seed}")
     ok = [t for t in reg_trials if t["success"]]
@@ -307,14 +309,14 @@ def load_labelfusion(root: Path = LABELFUSION_DIR) -> list[tuple[View, np.ndarra
     return out
 
 
-def bench_real(backend: str, quick: bool) -> dict[str, Any] | None:
+def bench_real(backend: str, quick: bool, opts: dict[str, Any]) -> dict[str, Any] | None:
     if not (LABELFUSION_DIR / "frames").is_dir():
         return None
     data = load_labelfusion()
     if quick:
         data = data[:8]
     res = ScenarioResult("real label-fusion frames, recorded poses as priors")
-    rec = make_reconstructor(backend)
+    rec = make_reconstructor(backend, **opts)
     gts = [(d, (d > 0.3) & (d < 0.82)) for _, d in data]
     run_incremental(rec, [v for v, _ in data], gts, res, "labelfusion")
     return {"depth": [res.summary()], "depth_frames": {res.name: res.frames}}
@@ -329,7 +331,8 @@ def markdown(report: dict[str, Any]) -> str:
     lines = [f"# Geometry benchmark (`{report['backend']}`)", "",
              f"{report['machine']}, {report['cpus']} CPUs, load average {report['load_avg']} at start "
              "(the machine is shared: wall times include contention; CPU s is process time).",
-             f"Each keyframe: window of the last {WINDOW} keyframes, newest as target, like the mapper.", "",
+             f"Each keyframe: window of the last {WINDOW} keyframes, newest as target, like the mapper. "
+             f"Backend options: {report.get('options') or 'defaults'}.", "",
              "| scenario | keyframes | median AbsRel | delta<1.25 | confident (median / mean) "
              "| s/keyframe (median / p90) | CPU s/keyframe |",
              "|---|---|---|---|---|---|---|"]
@@ -389,7 +392,7 @@ def check_bars(report: dict[str, Any]) -> list[dict[str, Any]]:
 
 
 def run(out_dir: Path | None, quick: bool, families: Sequence[str], seeds: Sequence[int], backend: str,
-        real: bool = True, sim: bool = True) -> dict[str, Any]:
+        real: bool = True, sim: bool = True, opts: dict[str, Any] | None = None) -> dict[str, Any]:
     t0 = time.perf_counter()
     report: dict[str, Any] = {
         "backend": backend, "quick": quick, "families": list(families), "seeds": list(seeds),
@@ -397,8 +400,10 @@ def run(out_dir: Path | None, quick: bool, families: Sequence[str], seeds: Seque
         "cpus": os.cpu_count(),
         "load_avg": " ".join(f"{x:.1f}" for x in os.getloadavg()),
     }
-    report["sim"] = bench_sim(families, seeds, quick, backend) if sim else None
-    report["real"] = bench_real(backend, quick) if real else None
+    opts = dict(opts or {})
+    report["options"] = opts
+    report["sim"] = bench_sim(families, seeds, quick, backend, opts) if sim else None
+    report["real"] = bench_real(backend, quick, opts) if real else None
     report["bars"] = check_bars(report)
     report["wall_s"] = time.perf_counter() - t0
     if out_dir is not None:
@@ -427,11 +432,22 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("--families", nargs="+", default=["furnished_room", "apartment"], help="sim scene families")
     p.add_argument("--seeds", nargs="+", type=int, default=None, help="sim seeds (default 1 2 3; quick: 1)")
     p.add_argument("--backend", default="mvs", help="reconstructor to benchmark (mvs, oracle, mapanything)")
+    p.add_argument("--opt", action="append", default=[], metavar="KEY=VALUE",
+                   help="backend option (JSON value), e.g. --opt sweep_width=224; repeatable")
     p.add_argument("--no-real", action="store_true", help="skip the real label-fusion frames")
     p.add_argument("--no-sim", action="store_true", help="skip the simulated scenes")
     a = p.parse_args(list(argv) if argv is not None else None)
     seeds = a.seeds or ([1] if a.quick else [1, 2, 3])
-    report = run(a.out, a.quick, a.families, seeds, a.backend, real=not a.no_real, sim=not a.no_sim)
+    opts: dict[str, Any] = {}
+    for item in a.opt:
+        key, sep, value = item.partition("=")
+        if not sep:
+            p.error(f"--opt needs KEY=VALUE, got {item!r}")
+        try:
+            opts[key] = json.loads(value)
+        except json.JSONDecodeError:
+            opts[key] = value
+    report = run(a.out, a.quick, a.families, seeds, a.backend, real=not a.no_real, sim=not a.no_sim, opts=opts)
     print(markdown(report))
     return 0
 

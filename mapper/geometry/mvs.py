@@ -72,6 +72,9 @@ class MvsConfig(BaseModel):
     max_tracks: int = Field(default=3000, ge=10, description="cap on tracks in the bundle adjustment")
     consistency_tol: float = Field(default=0.10, gt=0, description="relative depth tolerance of the check")
     consistency_px: float = Field(default=2.5, gt=0, description="reprojection tolerance (sweep pixels)")
+    consistency_search_px: int = Field(
+        default=0, ge=0, le=3, description="neighbour pixels within this radius of the projection may agree"
+    )
     consistency_views: int = Field(default=2, ge=1, description="agreeing neighbours for full confidence")
     fill_neighbours: bool = Field(
         default=True, description="sweep neighbours without a depth map so targets can be cross-checked"
@@ -550,7 +553,8 @@ class MvsReconstructor:
                 elif s in neigh_depth:
                     nbs.append((neigh_depth[s][0], neigh_depth[s][1], poses[s]))
             cnt = planesweep.consistency_count(
-                d, K_lo, cast(F64, poses[i]), cast(Any, nbs), c.consistency_tol, c.consistency_px
+                d, K_lo, cast(F64, poses[i]), cast(Any, nbs),
+                c.consistency_tol, c.consistency_px, c.consistency_search_px,
             )
             need = max(1, min(c.consistency_views, len(nbs)))
             conf = np.clip(cnt / need, 0.0, 1.0).astype(np.float32)

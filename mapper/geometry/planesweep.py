@@ -208,12 +208,15 @@ def consistency_count(
     neighbours: list[tuple[NDArray[np.float32], F64, F64]],
     rel_tol: float = 0.02,
     reproj_px: float = 1.5,
+    search_px: int = 0,
 ) -> NDArray[np.int32]:
     """How many neighbour depth maps agree with each reference pixel (forward-backward check).
 
     A reference pixel's 3D point is projected into the neighbour; the neighbour's depth there is lifted
     back and reprojected into the reference: it agrees when it lands within ``reproj_px`` pixels and its
-    depth is within ``rel_tol``. neighbours: (depth (h, w), K, T_world_cam) each.
+    depth is within ``rel_tol``. With ``search_px`` > 0 any neighbour pixel within that many pixels of the
+    projection may agree (tolerates sub-pixel pose error and depth edges). neighbours: (depth (h, w), K,
+    T_world_cam) each.
     """
     h, w = depth_ref.shape
     vv, uu = np.mgrid[0:h, 0:w].astype(np.float64)
@@ -223,27 +226,31 @@ def consistency_count(
     for depth_n, K_n, T_world_n in neighbours:
         hn, wn = depth_n.shape
         T_n_ref = np.linalg.inv(T_world_n) @ T_world_ref
+        T_ref_n = np.linalg.inv(T_n_ref)
         p = X_ref @ T_n_ref[:3, :3].T + T_n_ref[:3, 3]
         z = p[..., 2]
         with np.errstate(divide="ignore", invalid="ignore"):
-            un = p[..., 0] / z * K_n[0, 0] + K_n[0, 2]
-            vn = p[..., 1] / z * K_n[1, 1] + K_n[1, 2]
-        ui = np.round(un).astype(np.int64, copy=False) if np.all(np.isfinite(un)) else np.nan_to_num(
-            un, nan=-1).round().astype(np.int64)
-        vi = np.nan_to_num(vn, nan=-1).round().astype(np.int64)
-        ok = (d > 0) & (z > 1e-3) & (ui >= 0) & (ui < wn) & (vi >= 0) & (vi < hn)
-        dn = np.zeros((h, w))
-        dn[ok] = depth_n[vi[ok], ui[ok]]
-        ok &= dn > 0
-        # Lift the neighbour's depth at that pixel and bring it back into the reference view.
-        Xn = np.stack([(un - K_n[0, 2]) / K_n[0, 0] * dn, (vn - K_n[1, 2]) / K_n[1, 1] * dn, dn], -1)
-        T_ref_n = np.linalg.inv(T_n_ref)
-        q = Xn @ T_ref_n[:3, :3].T + T_ref_n[:3, 3]
-        with np.errstate(divide="ignore", invalid="ignore"):
-            ur = q[..., 0] / q[..., 2] * K_ref[0, 0] + K_ref[0, 2]
-            vr = q[..., 1] / q[..., 2] * K_ref[1, 1] + K_ref[1, 2]
-            agree = (np.hypot(ur - uu, vr - vv) < reproj_px) & (np.abs(q[..., 2] - d) < rel_tol * d)
-        count += (ok & agree).astype(np.int32)
+            un = np.nan_to_num(p[..., 0] / z * K_n[0, 0] + K_n[0, 2], nan=-1e6, posinf=-1e6, neginf=-1e6)
+            vn = np.nan_to_num(p[..., 1] / z * K_n[1, 1] + K_n[1, 2], nan=-1e6, posinf=-1e6, neginf=-1e6)
+        base = (d > 0) & (z > 1e-3)
+        agree_any = np.zeros((h, w), bool)
+        for oy in range(-search_px, search_px + 1):
+            for ox in range(-search_px, search_px + 1):
+                ui = np.round(un).astype(np.int64) + ox
+                vi = np.round(vn).astype(np.int64) + oy
+                ok = base & (ui >= 0) & (ui < wn) & (vi >= 0) & (vi < hn)
+                dn = np.zeros((h, w))
+                dn[ok] = depth_n[vi[ok], ui[ok]]
+                ok &= dn > 0
+                # Lift the neighbour's depth at that pixel and bring it back into the reference view.
+                Xn = np.stack([(ui - K_n[0, 2]) / K_n[0, 0] * dn, (vi - K_n[1, 2]) / K_n[1, 1] * dn, dn], -1)
+                q = Xn @ T_ref_n[:3, :3].T + T_ref_n[:3, 3]
+                with np.errstate(divide="ignore", invalid="ignore"):
+                    ur = q[..., 0] / q[..., 2] * K_ref[0, 0] + K_ref[0, 2]
+                    vr = q[..., 1] / q[..., 2] * K_ref[1, 1] + K_ref[1, 2]
+                    agree = (np.hypot(ur - uu, vr - vv) < reproj_px) & (np.abs(q[..., 2] - d) < rel_tol * d)
+                agree_any |= ok & agree
+        count += agree_any.astype(np.int32)
     return count
 
 
