@@ -27,13 +27,14 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+import cv2
 import msgpack
 import numpy as np
 import pytest
 
 from planner import synthetic as S
 from protocol.codec import DecodeError, decode, encode
-from protocol.jpeg import decode_jpeg, encode_jpeg
+from protocol.jpeg import JpegError, decode_jpeg, encode_jpeg
 from protocol.keys import Keys
 from protocol.messages import (
     FrameHeader,
@@ -47,7 +48,7 @@ from protocol.messages import (
     Status,
     ViewpointSet,
 )
-from protocol.oracle import depth_to_png, encode_u16_png, ids_to_png
+from protocol.oracle import decode_u16_png, depth_to_png, encode_u16_png, ids_to_png
 from protocol.query import GraphQuery
 from protocol.session import ZenohSettings, open_session
 from protocol.transport import Frame, decode_frame_sample
@@ -126,7 +127,7 @@ def hostile_envelopes(valid: Message, n_random: int = 6, seed: int = 0) -> list[
 
 
 def jpeg_claiming(height: int, width: int) -> bytes:
-    """A ~300-byte 8x8 JPEG whose frame header (SOF0) claims ``height`` x ``width`` pixels."""
+    """A ~600-byte 8x8 JPEG whose frame header (SOF0) claims ``height`` x ``width`` pixels."""
     j = bytearray(encode_jpeg(np.zeros((8, 8, 3), np.uint8)))
     i = j.find(b"\xff\xc0")
     j[i + 5 : i + 9] = struct.pack(">HH", height, width)
@@ -252,7 +253,11 @@ class Peer:
             wait_for(done, timeout=timeout, what=f"{who} counters {expected}")
         except TimeoutError as e:
             tail = "" if proc is None else proc.output[-3000:]
-            raise AssertionError(f"{e}; they grew {grown()}; now {self.counters(who)}\n{tail}") from None
+            with self.lock:
+                st = self.status.get(who)
+            age = "never" if st is None else f"{(time.time_ns() - st.stamp_ns) / 1e9:.1f} s ago"
+            raise AssertionError(f"{e}; they grew {grown()}; last Status {age}: {self.counters(who)}\n{tail}") \
+                from None
         return grown()
 
     def get(self, key: str, params: str = "", timeout: float = 5.0) -> list[Any]:
@@ -614,3 +619,134 @@ def test_edge_camera_keeps_streaming_while_its_key_is_spoofed(stack: Stack) -> N
     assert decode_jpeg(frame.jpeg).shape == (48, 64, 3)
     assert peer.counters(CAMERA).get("publish_errors", 0) == 0
     stack.assert_all_alive()
+
+
+# --- bugs pinned for their owners (xfail strict: an XPASS means fixed, drop the marker) -----------------
+def vm_mib(pid: int, name: str) -> float:
+    """A memory figure of a live process from /proc (VmHWM: peak resident set, VmRSS: now), MiB."""
+    for line in Path(f"/proc/{pid}/status").read_text().splitlines():
+        key, _, value = line.partition(":")
+        if key == name:
+            return int(value.split()[0]) / 1024
+    raise KeyError(name)
+
+
+@pytest.fixture
+def lone_mapper(router: str, procs: list[Proc], request: pytest.FixtureRequest) -> Iterator[tuple[Proc, Peer]]:
+    """A mapper of its own (tests that may kill it or fill it up), with a peer; extra args via indirect param."""
+    mapper = Proc(mapper_args(router, *getattr(request, "param", ())))
+    procs.append(mapper)
+    peer = Peer(router)
+    try:
+        def up() -> bool:
+            assert mapper.alive(), mapper.output
+            return bool(peer.counters(MAPPER)) and peer.snapshot() is not None
+
+        wait_for(up, timeout=60, what="the mapper answering")
+        yield mapper, peer
+    finally:
+        peer.close()
+
+
+@pytest.mark.parametrize(
+    ("decoder", "data"),
+    [(decode_jpeg, jpeg_claiming(40000, 40000)), (decode_u16_png, png_claiming(40000, 40000))],
+    ids=["jpeg", "png"],
+)
+@pytest.mark.xfail(strict=True, raises=cv2.error, reason=(
+    "protocol/jpeg.py decode_jpeg and protocol/oracle.py decode_u16_png let cv2.error escape from "
+    "cv2.imdecode when an image header claims more than CV_IO_MAX_IMAGE_PIXELS (2^30) pixels; "
+    "they must raise JpegError (wrap cv2.imdecode in try/except cv2.error)"))
+def test_image_decoders_raise_their_own_error_on_a_size_bomb(decoder: Any, data: bytes) -> None:
+    assert len(data) < 1024
+    with pytest.raises(JpegError):
+        decoder(data)
+
+
+@pytest.mark.xfail(strict=True, reason=(
+    "mapper/node.py MapperNode._decode catches only JpegError around decode_jpeg, but a ~600-byte frame "
+    "whose JPEG SOF claims 40000x40000 makes cv2.imdecode raise cv2.error, which escapes _ready_frames/_step "
+    "and ends the mapper (same for an ORACLE depth/ids PNG whose IHDR claims it, via _to_view)"))
+def test_mapper_survives_a_jpeg_claiming_a_huge_size(lone_mapper: tuple[Proc, Peer]) -> None:
+    mapper, peer = lone_mapper
+    base = peer.counters(MAPPER)
+    peer.put(KEYS.robot_frame(SRC), jpeg_claiming(40000, 40000), encode(header(SRC, 1)))
+    peer.wait_counts(MAPPER, base, {"decode_errors": 1}, proc=mapper)
+    assert mapper.alive()
+
+
+@pytest.mark.xfail(strict=True, reason=(
+    "memory amplification: mapper/node.py MapperNode._decode decodes the whole JPEG (protocol/jpeg.py "
+    "decode_jpeg -> cv2.imdecode, then a cvtColor copy) before comparing its size with the header, so a "
+    "~600-byte frame whose SOF claims 6000x6000 costs ~200 MiB (16384x16384: ~1.5 GiB); read the SOF size "
+    "first and refuse a mismatch without decoding"))
+def test_mapper_refuses_a_jpeg_bigger_than_its_header_without_decoding_it(
+    lone_mapper: tuple[Proc, Peer],
+) -> None:
+    mapper, peer = lone_mapper
+    pid = mapper.popen.pid
+    peak0 = vm_mib(pid, "VmHWM")
+    base = peer.counters(MAPPER)
+    peer.put(KEYS.robot_frame(SRC), jpeg_claiming(6000, 6000), encode(header(SRC, 1)))
+    peer.wait_counts(MAPPER, base, {"decode_errors": 1}, proc=mapper)
+    assert vm_mib(pid, "VmHWM") - peak0 < 64, "a 600-byte frame raised the mapper's peak memory"
+
+
+@pytest.mark.parametrize("lone_mapper", [("--set", "max_sources=4")], indirect=True)
+@pytest.mark.xfail(strict=True, reason=(
+    "mapper/node.py: the per-source frame slots (protocol/transport.py LatestSlots, max_keys=max_sources) "
+    "are never released, so frames with well-formed headers from max_sources made-up source ids fill them "
+    "for good and every later new source is refused silently (LatestSlots.refused_keys is not in the "
+    "Status); evict the least recently used idle slot (and count refusals)"))
+def test_mapper_still_ingests_a_new_source_after_made_up_sources(lone_mapper: tuple[Proc, Peer]) -> None:
+    mapper, peer = lone_mapper
+    base = peer.counters(MAPPER)
+    for i in range(4):  # well-formed headers, broken images: each takes a slot
+        peer.put(KEYS.robot_frame(f"evil{i}"), b"\xff\xd8junk\xff\xd9", encode(header(f"evil{i}", 1)))
+    peer.wait_counts(MAPPER, base, {"decode_errors": 4}, proc=mapper)
+    peer.send_view(EYES[0], 1)  # a legitimate new source
+    peer.put(KEYS.robot_frame("evil0"), b"\xff\xd8junk\xff\xd9", encode(header("evil0", 2)))  # a marker after it
+    peer.wait_counts(MAPPER, base, {"decode_errors": 5, "frames_in": 6}, proc=mapper)
+    wait_for(lambda: peer.counter(MAPPER, "frames_processed") > base.get("frames_processed", 0)
+             or peer.counter(MAPPER, "frames_without_oracle") > base.get("frames_without_oracle", 0), timeout=3,
+             what=f"the new source's frame processed or dropped; counters {peer.counters(MAPPER)}")
+    assert peer.counter(MAPPER, "frames_processed") == base.get("frames_processed", 0) + 1
+
+
+@pytest.mark.xfail(strict=True, reason=(
+    "planner/node.py PlannerNode.on_map keeps any decodable PointMap, so one whose points are not (N, 3) "
+    "replaces the last valid map and planner/core.py Planner.plan (points.reshape(-1, 3)) raises on every "
+    "decision until the mapper publishes a new map, which it does only when the graph changes; validate "
+    "the arrays in on_map, count decode_errors and keep the previous map"))
+def test_planner_keeps_its_map_when_a_malformed_point_map_arrives(stack: Stack) -> None:
+    peer = stack.peer
+    robot = FAKE + "_map"
+    with peer.lock:
+        real = peer.maps[-1] if peer.maps else None
+    base = peer.counters(PLANNER)
+    try:
+        peer.put(KEYS.map_points, encode(PointMap(version=1, stamp_ns=1, voxel_m=0.05,
+                                                  points=np.zeros((5, 2), np.float32))))
+        peer.wait_counts(PLANNER, base, {"maps_in": 1}, proc=stack.procs[PLANNER])
+        peer.put(KEYS.robot_viewpoints(robot), encode(fake_viewpoints(robot)))
+        peer.put(KEYS.robot_state(robot), encode(S.robot_state(robot, 2.0, 0.5, 0.0, "arrived")))
+        wait_for(lambda: peer.goals.get(robot) or peer.counter(PLANNER, "plan_errors") > base.get("plan_errors", 0),
+                 timeout=20, what="a goal or a planning error")
+        stack.assert_all_alive()
+        assert peer.counter(PLANNER, "plan_errors") == base.get("plan_errors", 0)
+        assert peer.goals.get(robot)
+    finally:  # give the planner a valid map again for whatever runs next
+        peer.put(KEYS.map_points, real if real is not None else encode(
+            PointMap(version=0, stamp_ns=0, voxel_m=0.05, points=np.zeros((0, 3), np.float32))))
+
+
+@pytest.mark.xfail(strict=True, reason=(
+    "planner/node.py PlannerNode.on_viewpoints drops a ViewpointSet whose robot_id differs from its key "
+    "without counting it (on_state counts the same case in decode_errors)"))
+def test_planner_counts_viewpoints_naming_another_robot(stack: Stack) -> None:
+    peer = stack.peer
+    base = peer.counters(PLANNER)
+    peer.put(KEYS.robot_viewpoints(FAKE + "_vp"), encode(fake_viewpoints("not_" + FAKE)))
+    peer.put(KEYS.robot_state(FAKE + "_vp"), encode(S.robot_state("not_" + FAKE, 2.0, 0.5, 0.0)))  # a marker
+    peer.wait_counts(PLANNER, base, {"decode_errors": 1}, proc=stack.procs[PLANNER])
+    assert peer.counter(PLANNER, "decode_errors") - base.get("decode_errors", 0) == 2
