@@ -609,6 +609,7 @@ def test_robot_agent_counts_hostile_goals_and_still_drives(stack: Stack) -> None
 def test_edge_camera_keeps_streaming_while_its_key_is_spoofed(stack: Stack) -> None:
     """The camera subscribes to nothing; others spoofing its key must neither stop it nor reach the graph."""
     peer = stack.peer
+    graph = peer.snapshot()
     base = peer.counters(CAMERA)
     mbase = peer.counters(MAPPER)
     spoofs = [(b"\xff\xd8junk\xff\xd9", encode(FrameHeader(source_id=CAM, source_kind="fixed", seq=10**6,
@@ -617,18 +618,19 @@ def test_edge_camera_keeps_streaming_while_its_key_is_spoofed(stack: Stack) -> N
                                                                        stamp_ns=SPOOF_STAMP_NS, width=64, height=48))]
     for payload, att in spoofs:
         peer.put(KEYS.cam_frame(CAM), payload, att)
-    peer.wait_counts(MAPPER, mbase, {"header_errors": len(spoofs) - 1})
+    expected = {"header_errors": len(spoofs) - 1, "decode_errors": 1}
+    assert peer.wait_counts(MAPPER, mbase, expected, proc=stack.procs[MAPPER]) == expected
     with peer.lock:
-        n_frames = len(peer.cam_frames)
         last_seq = peer.cam_frames[-1].header.seq if peer.cam_frames else -1
-    peer.wait_counts(CAMERA, base, {"frames_sent": 3})
+    # The camera carries on: new frames, well-formed, nothing failed on its side.
+    peer.wait_counts(CAMERA, base, {"frames_sent": 3}, proc=stack.procs[CAMERA])
     wait_for(lambda: peer.cam_frames and peer.cam_frames[-1].header.seq > last_seq + 1, timeout=10,
              what="new camera frames")
-    assert n_frames >= 1
     with peer.lock:
         frame = peer.cam_frames[-1]
-    assert decode_jpeg(frame.jpeg).shape == (48, 64, 3)
-    assert peer.counters(CAMERA).get("publish_errors", 0) == 0
+    assert frame.header.source_kind == "fixed" and decode_jpeg(frame.jpeg).shape == (48, 64, 3)
+    assert peer.counter(CAMERA, "publish_errors") == 0 and peer.counter(CAMERA, "source_errors") == 0
+    assert peer.snapshot() == graph  # none of the spoofs reached the graph
     stack.assert_all_alive()
 
 
