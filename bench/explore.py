@@ -69,6 +69,7 @@ def run_episode(
     n_headings: int = 8,
     planner_overrides: dict[str, Any] | None = None,
     score_every: int = 1,
+    move_frames: int = 0,
     log_fn: Callable[[str], None] | None = None,
 ) -> dict[str, Any]:
     """One closed-loop episode; returns ``{"steps": [{step, n_nodes, recall, ...}], ...}``.
@@ -148,6 +149,28 @@ def run_episode(
         )
         mapper.ingest(view, force_keyframe=True)
 
+    def drive(n_frames: int) -> None:
+        """Drive to the goal; with ``n_frames`` > 0 also map the last n poses passed on the way (every
+        0.3 m or 20 deg) before the arrival view: stereo baselines for RGB-only geometry."""
+        passed: list[tuple[np.ndarray, np.ndarray]] = []
+        last = np.asarray(robot.T_world_cam_true())
+        t = 0.0
+        while robot.status == "moving" and t < 600.0:
+            robot.step(0.1)
+            t += 0.1
+            T = np.asarray(robot.T_world_cam_true())
+            moved = np.linalg.norm(T[:3, 3] - last[:3, 3])
+            turned = np.degrees(np.arccos(np.clip(float(T[:3, 2] @ last[:3, 2]), -1.0, 1.0)))
+            if n_frames > 0 and robot.status == "moving" and (moved >= 0.3 or turned >= 20.0):
+                passed = (
+                    [*passed[-(n_frames - 1) :], (T, np.asarray(robot.T_world_cam_odom()))]
+                    if n_frames > 1
+                    else [(T, np.asarray(robot.T_world_cam_odom()))]
+                )
+                last = T
+        for T_true, T_odom in passed:
+            ingest(renderer.render(intr, T_true), T_true, T_odom, ROBOT_ID)
+
     records: list[dict[str, Any]] = []
     last_score: dict[str, float] = {"recall": 0.0, "precision": 0.0}
 
@@ -209,7 +232,7 @@ def run_episode(
                 break
             planner.mark_failed(ROBOT_ID, g.vp_id)
         if goal is not None:
-            robot.run_to_arrival(dt_s=0.25)
+            drive(move_frames)
         ingest(robot.render(), robot.T_world_cam_true(), robot.T_world_cam_odom(), ROBOT_ID)
         record(
             step,
@@ -336,6 +359,12 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--threads", type=int, default=1, help="torch threads")
     p.add_argument("--odometry-noise", action="store_true", help="drifting odometry (default: exact poses)")
     p.add_argument(
+        "--move-frames",
+        type=int,
+        default=0,
+        help="also map the last N poses passed on the way to each goal (stereo for --geometry mvs)",
+    )
+    p.add_argument(
         "--set",
         dest="overrides",
         action="append",
@@ -389,6 +418,7 @@ def main(argv: list[str] | None = None) -> int:
                             sampler=a.sampler,
                             torch_threads=a.threads,
                             odometry_noise=a.odometry_noise,
+                            move_frames=a.move_frames,
                             planner_overrides=overrides,
                             log_fn=say,
                         )
