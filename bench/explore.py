@@ -162,11 +162,7 @@ def run_episode(
             moved = np.linalg.norm(T[:3, 3] - last[:3, 3])
             turned = np.degrees(np.arccos(np.clip(float(T[:3, 2] @ last[:3, 2]), -1.0, 1.0)))
             if n_frames > 0 and robot.status == "moving" and (moved >= 0.3 or turned >= 20.0):
-                passed = (
-                    [*passed[-(n_frames - 1) :], (T, np.asarray(robot.T_world_cam_odom()))]
-                    if n_frames > 1
-                    else [(T, np.asarray(robot.T_world_cam_odom()))]
-                )
+                passed = [*passed, (T, np.asarray(robot.T_world_cam_odom()))][-n_frames:]
                 last = T
         for T_true, T_odom in passed:
             ingest(renderer.render(intr, T_true), T_true, T_odom, ROBOT_ID)
