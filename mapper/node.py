@@ -206,7 +206,8 @@ class MapperNode:
     def _decode(self, frame: Frame) -> np.ndarray | None:
         h = frame.header
         try:
-            rgb = decode_jpeg(frame.jpeg)
+            # The size is checked against the header before any pixel is decoded (no memory bombs).
+            rgb = decode_jpeg(frame.jpeg, expected_size=(h.width, h.height))
         except JpegError as e:
             self.counters.add("decode_errors")
             log.debug("bad JPEG from %s#%d: %s", h.source_id, h.seq, e)
@@ -292,6 +293,8 @@ class MapperNode:
     def _extra_counters(self) -> dict[str, float]:
         out = dict(self.core.counters)
         out["frames_dropped"] = self.counters.get("frames_dropped") + self.slots.dropped
+        out["sources_refused"] = self.slots.refused_keys
+        out["sources_evicted"] = self.slots.evicted_keys
         out["graph_version"] = self.core.version
         out["nodes"] = len(self.core.store.nodes)
         out["edges"] = len(self.core.store.edges)

@@ -5,7 +5,9 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
-from protocol.jpeg import JpegError
+from protocol.jpeg import MAX_PIXELS, JpegError
+
+_PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 
 
 def encode_u16_png(image: np.ndarray) -> bytes:
@@ -18,9 +20,28 @@ def encode_u16_png(image: np.ndarray) -> bytes:
     return buf.tobytes()
 
 
-def decode_u16_png(data: bytes) -> np.ndarray:
-    """Decode a 16-bit PNG; raises ``JpegError`` (the image error type) when corrupt."""
-    img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED) if data else None
+def png_size(data: bytes) -> tuple[int, int]:
+    """``(width, height)`` from a PNG's IHDR chunk, without decoding pixels."""
+    if len(data) < 24 or data[:8] != _PNG_SIGNATURE or data[12:16] != b"IHDR":
+        raise JpegError("not a PNG")
+    return int.from_bytes(data[16:20], "big"), int.from_bytes(data[20:24], "big")
+
+
+def decode_u16_png(data: bytes, max_pixels: int = MAX_PIXELS) -> np.ndarray:
+    """Decode a 16-bit PNG; raises ``JpegError`` (the image error type) when corrupt or too large.
+
+    The size is read from the header first, so a small file claiming a huge image is refused
+    before any pixel memory is allocated.
+    """
+    if not isinstance(data, (bytes, bytearray)) or not data:
+        raise JpegError("empty PNG")
+    width, height = png_size(bytes(data))
+    if width == 0 or height == 0 or width * height > max_pixels:
+        raise JpegError(f"PNG of {width}x{height} is empty or exceeds {max_pixels} pixels")
+    try:
+        img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
+    except cv2.error as e:
+        raise JpegError(f"corrupt PNG: {e}") from None
     if img is None or img.ndim != 2 or img.dtype != np.uint16:
         raise JpegError("corrupt 16-bit PNG")
     return img

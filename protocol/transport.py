@@ -85,7 +85,10 @@ class LatestSlots(Generic[T]):
     """Bounded receive buffer: per key a ring of the newest ``depth`` items; older ones are dropped.
 
     Thread-safe; ``dropped`` counts items evicted before anyone took them. A slow consumer therefore
-    always works on fresh data and memory stays bounded (``max_keys`` caps the number of sources).
+    always works on fresh data and memory stays bounded: at most ``max_keys`` keys are held. A new key
+    beyond that takes the slot of the least recently active key whose ring is empty (``evicted_keys``);
+    only when every slot holds unread items is it refused (``refused_keys``). So made-up source ids
+    cannot lock real sources out for good.
     """
 
     def __init__(self, depth: int = 1, max_keys: int = 256) -> None:
@@ -93,23 +96,35 @@ class LatestSlots(Generic[T]):
             raise ValueError("depth and max_keys must be >= 1")
         self.depth = depth
         self.max_keys = max_keys
-        self._rings: dict[str, collections.deque[T]] = {}
+        self._rings: collections.OrderedDict[str, collections.deque[T]] = collections.OrderedDict()
         self._cond = threading.Condition()
         self.dropped = 0
         self.refused_keys = 0
+        self.evicted_keys = 0
 
-    def put(self, key: str, item: T) -> None:
+    def put(self, key: str, item: T) -> bool:
+        """Buffer ``item`` under ``key``; False when the key was refused (all slots busy)."""
         with self._cond:
             ring = self._rings.get(key)
             if ring is None:
-                if len(self._rings) >= self.max_keys:
+                if len(self._rings) >= self.max_keys and not self._evict_idle():
                     self.refused_keys += 1
-                    return
+                    return False
                 ring = self._rings[key] = collections.deque(maxlen=self.depth)
+            self._rings.move_to_end(key)  # most recently active last
             if len(ring) == self.depth:
                 self.dropped += 1
             ring.append(item)
             self._cond.notify_all()
+            return True
+
+    def _evict_idle(self) -> bool:
+        for k, ring in self._rings.items():  # least recently active first
+            if not ring:
+                del self._rings[k]
+                self.evicted_keys += 1
+                return True
+        return False
 
     def take_all(self, timeout: float | None = None) -> list[tuple[str, T]]:
         """Take every buffered item (oldest first per key); waits up to ``timeout`` for one."""

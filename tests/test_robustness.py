@@ -27,7 +27,6 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-import cv2
 import msgpack
 import numpy as np
 import pytest
@@ -666,20 +665,12 @@ def lone_mapper(router: str, procs: list[Proc], request: pytest.FixtureRequest) 
     [(decode_jpeg, jpeg_claiming(40000, 40000)), (decode_u16_png, png_claiming(40000, 40000))],
     ids=["jpeg", "png"],
 )
-@pytest.mark.xfail(strict=True, raises=cv2.error, reason=(
-    "protocol/jpeg.py decode_jpeg and protocol/oracle.py decode_u16_png let cv2.error escape from "
-    "cv2.imdecode when an image header claims more than CV_IO_MAX_IMAGE_PIXELS (2^30) pixels; "
-    "they must raise JpegError (wrap cv2.imdecode in try/except cv2.error)"))
 def test_image_decoders_raise_their_own_error_on_a_size_bomb(decoder: Any, data: bytes) -> None:
     assert len(data) < 1024
     with pytest.raises(JpegError):
         decoder(data)
 
 
-@pytest.mark.xfail(strict=True, reason=(
-    "mapper/node.py MapperNode._decode catches only JpegError around decode_jpeg, but a ~600-byte frame "
-    "whose JPEG SOF claims 40000x40000 makes cv2.imdecode raise cv2.error, which escapes _ready_frames/_step "
-    "and ends the mapper (same for an ORACLE depth/ids PNG whose IHDR claims it, via _to_view)"))
 def test_mapper_survives_a_jpeg_claiming_a_huge_size(lone_mapper: tuple[Proc, Peer]) -> None:
     mapper, peer = lone_mapper
     base = peer.counters(MAPPER)
@@ -688,11 +679,6 @@ def test_mapper_survives_a_jpeg_claiming_a_huge_size(lone_mapper: tuple[Proc, Pe
     assert mapper.alive()
 
 
-@pytest.mark.xfail(strict=True, reason=(
-    "memory amplification: mapper/node.py MapperNode._decode decodes the whole JPEG (protocol/jpeg.py "
-    "decode_jpeg -> cv2.imdecode, then a cvtColor copy) before comparing its size with the header, so a "
-    "~600-byte frame whose SOF claims 6000x6000 costs ~200 MiB (16384x16384: ~1.5 GiB); read the SOF size "
-    "first and refuse a mismatch without decoding"))
 def test_mapper_refuses_a_jpeg_bigger_than_its_header_without_decoding_it(
     lone_mapper: tuple[Proc, Peer],
 ) -> None:
@@ -706,11 +692,6 @@ def test_mapper_refuses_a_jpeg_bigger_than_its_header_without_decoding_it(
 
 
 @pytest.mark.parametrize("lone_mapper", [("--set", "max_sources=4")], indirect=True)
-@pytest.mark.xfail(strict=True, reason=(
-    "mapper/node.py: the per-source frame slots (protocol/transport.py LatestSlots, max_keys=max_sources) "
-    "are never released, so frames with well-formed headers from max_sources made-up source ids fill them "
-    "for good and every later new source is refused silently (LatestSlots.refused_keys is not in the "
-    "Status); evict the least recently used idle slot (and count refusals)"))
 def test_mapper_still_ingests_a_new_source_after_made_up_sources(lone_mapper: tuple[Proc, Peer]) -> None:
     mapper, peer = lone_mapper
     base = peer.counters(MAPPER)
