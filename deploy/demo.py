@@ -258,9 +258,10 @@ def _bar(done: int, total: int, width: int = 20) -> str:
 
 def format_table(rows: list[tuple[str, str]]) -> str:
     w = max(len(k) for k, _ in rows)
-    line = "+" + "-" * (w + 2) + "+" + "-" * 26 + "+"
+    wv = max(24, *(len(v) for _, v in rows))
+    line = "+" + "-" * (w + 2) + "+" + "-" * (wv + 2) + "+"
     out = [line]
-    out += [f"| {k.ljust(w)} | {v.ljust(24)} |" for k, v in rows]
+    out += [f"| {k.ljust(w)} | {v.ljust(wv)} |" for k, v in rows]
     out.append(line)
     return "\n".join(out)
 
@@ -288,6 +289,8 @@ def run(config: DemoConfig) -> int:
     stop = install_stop_handlers()
     stack = Stack(launch, config.launch.parent, emit=emit, log_dir=config.log_dir)
     scorer = _Scorer(launch)
+    if scorer.position_only:
+        print("argus demo: class-agnostic 2D perception: nodes are scored by position only (any label)", flush=True)
     recorder = Recorder(config.rrd) if config.rrd is not None else None
     monitor: Monitor | None = None
     session: Any = None
@@ -379,7 +382,7 @@ def run(config: DemoConfig) -> int:
                 ("F1", _f(final.get("f1"))), ("edges", str(final["edges"])),
                 ("graph version", str(final["graph_version"])), ("wall time", f"{wall:.0f} s (startup {t_up:.0f} s)"),
                 ("geometry", "ORACLE (sim)" if mode.startswith("ORACLE") else "RGB-only (mvs)"),
-                ("2D perception", "ORACLE (sim semantic)" if "ORACLE 2D" in mode else "RGB-only")]
+                ("2D perception", "ORACLE (sim semantic)" if "ORACLE 2D" in mode else "RGB-only (position-only score)")]
         print(format_table(rows))
         code = 0 if (steps >= config.steps or monitor.exhausted()) and final["nodes"] > 0 else 1
     except Exception as e:  # noqa: BLE001 - whatever fails, every process is still stopped below
@@ -412,6 +415,8 @@ class _Scorer:
 
     def __init__(self, launch: LaunchFile) -> None:
         self.world = launch.world
+        # Class-agnostic perception labels every node "object": score positions only, and say so.
+        self.position_only = "ORACLE 2D" not in perception_label(launch)
         self._scene: Any = None
         self._lock = threading.Lock()
         self.error: str | None = None
@@ -436,6 +441,8 @@ class _Scorer:
         try:
             from bench.scoring import score_nodes
 
+            if self.position_only:
+                return score_nodes(list(snap.nodes), self._load(), label_threshold=-1.0)
             return score_nodes(list(snap.nodes), self._load())
         except Exception as e:  # noqa: BLE001
             self.error = f"{type(e).__name__}: {e}"
