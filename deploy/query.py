@@ -59,7 +59,10 @@ def get_nodes(session: Any, keys: Keys, query: GraphQuery, timeout_s: float = 5.
 
     params = query.to_parameters()
     selector = zenoh.Selector(keys.graph_nodes, params) if params else keys.graph_nodes
-    payloads, errors = _reply_payloads(session.get(selector, timeout=timeout_s))
+    # No reply consolidation: Zenoh's default keeps one reply per key, so a peer answering later
+    # (a stale storage, a broken replier) could hide the mapper's answer. Every reply is judged here.
+    payloads, errors = _reply_payloads(
+        session.get(selector, timeout=timeout_s, consolidation=zenoh.ConsolidationMode.NONE))
     nodes: dict[str, GraphNode] = {}
     bad = 0
     for data in payloads:
@@ -84,8 +87,11 @@ def get_nodes(session: Any, keys: Keys, query: GraphQuery, timeout_s: float = 5.
 
 
 def get_snapshot(session: Any, keys: Keys, timeout_s: float = 5.0) -> GraphSnapshot:
-    """The latest full graph (newest version among the replies)."""
-    payloads, errors = _reply_payloads(session.get(keys.graph_snapshot, timeout=timeout_s))
+    """The latest full graph (the newest valid version among all replies, unconsolidated)."""
+    import zenoh
+
+    payloads, errors = _reply_payloads(
+        session.get(keys.graph_snapshot, timeout=timeout_s, consolidation=zenoh.ConsolidationMode.NONE))
     best: GraphSnapshot | None = None
     for data in payloads:
         try:

@@ -88,6 +88,24 @@ def _answers(session: Any, keys: Keys) -> bool:
         return False
 
 
+def test_snapshot_survives_a_peer_answering_garbage_later(router: str, holder: FakeGraphHolder) -> None:
+    """A second replier that answers after the mapper with junk must not hide the mapper's snapshot."""
+    keys = Keys(SITE)
+    with open_session(ZenohSettings(mode="client", connect=[router])) as rogue_session:
+
+        def garbage(query: Any) -> None:
+            time.sleep(0.2)  # answer last: default (latest) consolidation would keep only this reply
+            query.reply(str(query.key_expr), b"\x93not a snapshot")
+
+        rogue = rogue_session.declare_queryable(keys.graph_all, garbage)
+        with open_session(ZenohSettings(mode="client", connect=[router])) as s:
+            wait_for(lambda: _answers(s, keys), timeout=10, what="queryable reachable")
+            for _ in range(3):
+                assert get_snapshot(s, keys, timeout_s=3.0) == SNAP
+                assert [n.node_id for n in get_nodes(s, keys, GraphQuery(label="table"), timeout_s=3.0)] == ["n3"]
+        rogue.undeclare()
+
+
 def test_cli_nodes_snapshot_and_watch(router: str, holder: FakeGraphHolder, procs: list[Proc]) -> None:
     base = ["query", "--connect", router, "--site", SITE]
     p = Proc([*base, "nodes", "--label", "chair", "--near", "1,2,0", "--radius", "2", "--json"])
