@@ -127,15 +127,20 @@ def _drive(nav: Any, x: float, y: float, yaw: float, n: int, rng: np.random.Gene
         if step and step % 4 == 0:
             turn = -turn
         x0, y0, yaw0 = poses[-1]
-        # Blocked ahead: steer harder (a robot backs off walls rather than spinning on the spot).
+        # Keep ~0.45 m of free space ahead, steering harder when needed; a boxed-in robot backs up
+        # (it moves rather than spinning on the spot, which no stereo method can use).
         for t in (turn, -turn, 0.0, 2 * turn, -2 * turn, 4 * turn, -4 * turn, 8 * turn, -8 * turn):
             yaw1 = yaw0 + t
-            x1, y1 = x0 + 0.15 * math.cos(yaw1), y0 + 0.15 * math.sin(yaw1)
-            if nav.is_free(x1, y1):
-                poses.append((x1, y1, yaw1))
+            c, s = math.cos(yaw1), math.sin(yaw1)
+            if all(nav.is_free(x0 + d * c, y0 + d * s) for d in (0.15, 0.3, 0.45)):
+                poses.append((x0 + 0.15 * c, y0 + 0.15 * s, yaw1))
                 break
         else:
-            poses.append((x0, y0, yaw0 + turn))
+            c, s = math.cos(yaw0), math.sin(yaw0)
+            if nav.is_free(x0 - 0.15 * c, y0 - 0.15 * s):
+                poses.append((x0 - 0.15 * c, y0 - 0.15 * s, yaw0 + turn))
+            else:
+                poses.append((x0, y0, yaw0 + turn))
     return poses
 
 
