@@ -37,7 +37,7 @@ def test_arrival_gets_a_new_goal(router: str, procs: list[Proc], strategy: str) 
 
     w = S.apartment(0)
     name = S.room_namer(w["rooms"])
-    vset = S.grid_viewpoints("r1", (0.6, 0.6), (9.4, 8.4), spacing_m=1.0, room_of=name)
+    vset = S.grid_viewpoints("r1", (0.6, 0.6), (9.4, 8.4), spacing_m=1.4, room_of=name)  # ~250 views
     vset = vset.model_copy(update={"viewpoints": [v for v in vset.viewpoints if v.room]})
     pts = w["points"]
     pm = S.point_map(pts[(pts[:, 0] < 6) & (pts[:, 1] < 5)], 0.05)
