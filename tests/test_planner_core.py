@@ -286,3 +286,58 @@ class TestVisibility:
         pano = Panoramas(np.array([[0.0, 0.0, 1.0]]), wall, VisibilityConfig())
         behind = np.column_stack([np.full(20, 5.0), np.linspace(-1, 1, 20), np.full(20, 1.0)])
         assert not pano.unoccluded(behind)[0].any()
+
+
+class TestRealize:
+    def test_items_stand_on_their_new_parent_and_jitter_makes_samples(self) -> None:
+        from planner.hypotheses import realize
+
+        prior = load_prior()
+        xy = np.array([[0.0, 0.0], [4.0, 4.0]])
+        rooms = rooms_from_viewpoints(["kitchen", "kitchen"], xy, prior)
+        ctx = build_context([], [], rooms, prior)
+        comp = Completion((HypObject("dining table", "kitchen"), HypObject("mug", "kitchen", "new:0")))
+        nothing = np.zeros
+        h = realize(
+            [comp, Completion(())],
+            ctx,
+            prior,
+            n_jitter=3,
+            jitter_m=0.0,
+            proposals=4,
+            detect_reject=1.0,
+            seen=lambda t, s: nothing(t.shape[0], bool),
+            floor_seen=lambda xy: nothing(xy.shape[0], bool),
+            rng=np.random.default_rng(0),
+        )
+        assert h.labels == ("cup", "dining table")  # labels are canonicalised ("mug" -> "cup")
+        assert h.size == 6 and sorted(set(h.sample_idx.tolist())) == [
+            0,
+            1,
+            2,
+        ]  # 2 objects x 3 jitters, comp 0
+        table = h.xyz[h.label_idx == 1][0]
+        cup = h.xyz[h.label_idx == 0][0]
+        assert cup[2] == pytest.approx(0.75 + 0.05)  # on the table top (catalogue heights)
+        assert np.all(np.abs(cup[:2] - table[:2]) <= np.array([0.8, 0.45]))
+        assert np.all((table[:2] >= rooms[0].xy_min) & (table[:2] <= rooms[0].xy_max))
+
+    def test_everything_seen_drops_the_object(self) -> None:
+        from planner.hypotheses import realize
+
+        prior = load_prior()
+        rooms = rooms_from_viewpoints(["kitchen", "kitchen"], np.array([[0.0, 0.0], [4.0, 4.0]]), prior)
+        ctx = build_context([], [], rooms, prior)
+        h = realize(
+            [Completion((HypObject("refrigerator", "kitchen"),))],
+            ctx,
+            prior,
+            n_jitter=1,
+            jitter_m=0.0,
+            proposals=5,
+            detect_reject=1.0,
+            seen=lambda t, s: np.ones(t.shape[0], bool),
+            floor_seen=lambda xy: np.zeros(xy.shape[0], bool),
+            rng=np.random.default_rng(0),
+        )
+        assert h.size == 0 and h.dropped == 1
