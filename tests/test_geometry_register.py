@@ -72,3 +72,15 @@ def test_two_view_pose_with_known_baseline(rendered: dict) -> None:
     assert rotation_angle_deg(est.T_world_cam, b.T_world_cam) < 1.0
     assert np.linalg.norm(est.T_world_cam[:3, 3] - b.T_world_cam[:3, 3]) < 0.05
     assert not two_view_pose(va, vb).ok  # no scale source: refused with a reason
+
+
+def test_two_view_pose_scale_from_camera_height(rendered: dict) -> None:
+    # Robot keyframes 1.0 m above the floor: the floor is the dominant plane of the matched points.
+    a, b = rendered["map"]
+    va = View(a.image, "robot", INTR, a.T_world_cam)
+    vb = View(b.image, "robot", INTR, None)
+    est = two_view_pose(va, vb, camera_height_m=1.0)
+    assert est.ok, est.reason
+    baseline_true = float(np.linalg.norm(a.T_world_cam[:3, 3] - b.T_world_cam[:3, 3]))
+    baseline_est = float(np.linalg.norm(a.T_world_cam[:3, 3] - est.T_world_cam[:3, 3]))
+    assert abs(baseline_est - baseline_true) < 0.2 * baseline_true
