@@ -257,7 +257,8 @@ def bench_sim(
             reg_trials.append(_reg_trial(est, cam.T_world_cam, f"{family}/{seed}", time.perf_counter() - t0))
             if est.ok and est.T_world_cam is not None:
                 # The fixed camera's own depth: swept against the robot keyframes that see the same things.
-                fv = View(fixed.rgb, cam.camera_id, cam.intrinsics, est.T_world_cam, False, seq=1_000_000)
+                fv = View(fixed.rgb, cam.camera_id, cam.intrinsics, est.T_world_cam, False, seq=1_000_000,
+                          oracle=OracleData(fixed.depth_m, cam.T_world_cam, fixed.instance_id))
                 win = [fv, *[k.view for k in kfs]]
                 t0 = time.perf_counter()
                 r = rec.reconstruct(win, targets=[0])
@@ -315,7 +316,7 @@ def load_labelfusion(root: Path = LABELFUSION_DIR) -> list[tuple[View, np.ndarra
 
 
 def bench_real(backend: str, quick: bool, opts: dict[str, Any]) -> dict[str, Any] | None:
-    if not (LABELFUSION_DIR / "frames").is_dir():
+    if not (LABELFUSION_DIR / "frames").is_dir() or backend == "oracle":  # real frames carry no ORACLE data
         return None
     data = load_labelfusion()
     if quick:
