@@ -80,10 +80,18 @@ class TestPlaneSweep:
         truth = views[3].T_world_cam
         views[3] = View(views[3].image, "external", INTR, None, seq=3)
         r = make_reconstructor("mvs", output_width=80).reconstruct(views, targets=[])
-        assert r.info["registered"]["external"]["ok"]
+        assert r.info["registered"]["external"]["ok"] and all(r.info["pose_ok"])
         g = compose(r, anchor_pose(r, views))
         assert rotation_angle_deg(g.T_world_cam[3], truth) < 0.5
         assert np.linalg.norm(g.T_world_cam[3][:3, 3] - truth[:3, 3]) < 0.02
+
+    def test_unregistrable_view_is_flagged(self) -> None:
+        views = _plane_views(_texture(1200, 3))[:3]
+        blank = np.full_like(views[0].image, 90)
+        views.append(View(blank, "external", INTR, None, seq=9))
+        r = make_reconstructor("mvs", output_width=80).reconstruct(views, targets=[3])
+        assert r.info["pose_ok"] == [True, True, True, False]
+        assert r.confidence[3].max() == 0.0
 
     def test_needs_some_pose(self) -> None:
         tex = _texture(600, 1)

@@ -88,7 +88,10 @@ class FactoredReconstruction:
     ray_dirs: (N, h, w, 3) float32 unit vectors in each camera frame; depth_along_ray: (N, h, w) float32
     up to ``metric_scale``; T_first_cam: (N, 4, 4) pose of each view in the first view's frame, its
     translation at the same scale as the depth; confidence: (N, h, w) float32 in [0, 1] (0 = no depth);
-    intrinsics: per view, at the output resolution; info: timings, inlier counts, ...
+    intrinsics: per view, at the output resolution; info: timings, inlier counts, ... Keys with a
+    meaning for callers: ``T_world_first`` (the backend's own world pose of view 0, see ``anchor_pose``) and
+    ``pose_ok`` (per view; False where no pose could be estimated: that view's T_first_cam is a placeholder
+    and its confidence is 0, so do not store its pose).
     """
 
     ray_dirs: F32

@@ -500,6 +500,7 @@ class MvsReconstructor:
         # Views that could not be posed get the first view's pose and no depth (confidence 0).
         failed = [i for i in range(n) if poses[i] is None]
         info["unposed"] = failed
+        info["pose_ok"] = [poses[i] is not None for i in range(n)]
         T0 = poses[0] if poses[0] is not None else np.eye(4)
         t_dense = time.perf_counter()
         sw = c.sweep_width
