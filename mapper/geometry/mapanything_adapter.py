@@ -188,7 +188,7 @@ def factored_from_mapanything(
     T_first_world = np.linalg.inv(T_w_c[0])
     T_first = np.stack([T_first_world @ T for T in T_w_c])
     T_first[:, :3, 3] /= div
-    info: dict[str, Any] = {"backend": "mapanything", "metric_scaling_factor": scale}
+    info: dict[str, Any] = {"backend": "mapanything", "metric_scaling_factor": scale, "pose_ok": [True] * n}
     if poses_given:
         info["T_world_first"] = T_w_c[0]
     return FactoredReconstruction(

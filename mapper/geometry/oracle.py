@@ -66,6 +66,7 @@ class OracleReconstructor:
             intr.append(k)
         recon = factored_from_metric(depths, poses, confs, intr, info={"backend": self.name})
         recon.info["T_world_first"] = poses[0]
+        recon.info["pose_ok"] = [True] * len(views)
         return recon
 
 
