@@ -15,6 +15,7 @@ how many uncertain objects they would resolve once ``joint`` saturates).
 from __future__ import annotations
 
 import numpy as np
+from scipy.sparse import csr_matrix
 
 
 def row_entropy_bits(values: np.ndarray) -> np.ndarray:
@@ -95,8 +96,6 @@ def factored_gain(
     remap[used] = np.arange(used.size)
     lab_c = remap[lab]
     Lu = used.size
-    from scipy.sparse import csr_matrix
-
     # counts[c, l, s] = number of visible hypotheses of label l in sample s: one sparse product.
     onehot = csr_matrix((np.ones(H, np.float32), (lab_c * S + smp, np.arange(H))), shape=(Lu * S, H))
     counts = np.asarray(onehot @ V.T).T.reshape(C, Lu, S)
