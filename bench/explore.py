@@ -13,6 +13,7 @@ Example::
 
     argus explore --strategy see asp --steps 30 --seeds 0 --starts 3 --out explore.json
     argus explore --strategy asp --ext-cams 1 --geometry oracle --perception sim --steps 10
+    argus explore --geometry mvs --move-frames 2 --steps 30 --starts 2   # RGB-only geometry needs baselines
 """
 
 from __future__ import annotations
