@@ -133,7 +133,11 @@ class PlannerNode:
     def on_viewpoints(self, sample: zenoh.Sample) -> None:
         vps = self._decode(sample, ViewpointSet)
         rid = self._robot_id(sample)
-        if vps is None or rid is None or vps.robot_id != rid:
+        if vps is None or rid is None:
+            return
+        if vps.robot_id != rid:
+            self.counters.add("decode_errors")
+            log.warning("viewpoints on %s name robot %r; ignored", sample.key_expr, vps.robot_id)
             return
         with self._lock:
             if rid not in self.viewpoints and len(self.viewpoints) >= MAX_ROBOTS:
@@ -266,9 +270,15 @@ class PlannerNode:
 
     # --- start-up queries --------------------------------------------------------------------
     def _query(self, session: zenoh.Session, key: str, cls: type) -> list:
+        import zenoh
+
         out = []
         try:
-            for reply in session.get(key, timeout=self.config.query_timeout_s):
+            # No reply consolidation: the default keeps one reply per key, so a late peer answering
+            # with garbage could hide the mapper's snapshot; every reply is judged here instead.
+            replies = session.get(key, timeout=self.config.query_timeout_s,
+                                  consolidation=zenoh.ConsolidationMode.NONE)
+            for reply in replies:
                 if reply.ok is None:
                     continue
                 try:

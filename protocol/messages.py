@@ -14,7 +14,7 @@ import math
 from typing import Annotated, Any, ClassVar, Literal
 
 import numpy as np
-from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, PlainSerializer, field_validator
+from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, PlainSerializer, field_validator, model_validator
 
 
 def _to_ndarray(v: Any) -> np.ndarray:
@@ -169,6 +169,13 @@ class RobotState(Message):
         description="geodesic distance from here to each viewpoint of the robot's ViewpointSet (inf: none)",
     )
 
+    @field_validator("travel_cost_m")
+    @classmethod
+    def _one_dimensional(cls, v: np.ndarray | None) -> np.ndarray | None:
+        if v is not None and (v.ndim != 1 or v.dtype.kind not in "fiu"):
+            raise ValueError("travel_cost_m must be a 1-D numeric array")
+        return v
+
 
 class Viewpoint(Message):
     """One navigable viewpoint: a base pose whose camera pose follows from the set's mount."""
@@ -249,6 +256,13 @@ class GraphNode(Message):
     last_seen_ns: int = Field(ge=0)
     embedding: NDArray | None = Field(default=None, description="region descriptor (float32), optional")
 
+    @field_validator("embedding")
+    @classmethod
+    def _descriptor(cls, v: np.ndarray | None) -> np.ndarray | None:
+        if v is not None and (v.ndim != 1 or v.dtype.kind != "f"):
+            raise ValueError("embedding must be a 1-D float array")
+        return v
+
 
 Predicate = Literal["on_top_of", "under", "over", "inside", "next_to"]
 PREDICATES: tuple[str, ...] = ("on_top_of", "under", "over", "inside", "next_to")
@@ -295,6 +309,20 @@ class PointMap(Message):
     points: NDArray = Field(description="(N, 3) float32 world points")
     counts: NDArray | None = Field(default=None, description="(N,) observations per voxel")
     colors: NDArray | None = Field(default=None, description="(N, 3) uint8")
+
+    @model_validator(mode="after")
+    def _shapes_agree(self) -> PointMap:
+        p = self.points
+        if p.ndim != 2 or p.shape[1] != 3 or p.dtype.kind != "f":
+            raise ValueError(f"points must be a float (N, 3) array, got {p.dtype} {p.shape}")
+        if not np.all(np.isfinite(p)):
+            raise ValueError("points must be finite")
+        n = p.shape[0]
+        if self.counts is not None and self.counts.shape != (n,):
+            raise ValueError(f"counts must have shape ({n},), got {self.counts.shape}")
+        if self.colors is not None and self.colors.shape != (n, 3):
+            raise ValueError(f"colors must have shape ({n}, 3), got {self.colors.shape}")
+        return self
 
 
 class Status(Message):

@@ -94,9 +94,10 @@ STRATEGIES = {
     GraphDelta: st.builds(GraphDelta, version=st.integers(1, 2**40), stamp_ns=stamps,
                           upserted=st.lists(nodes, max_size=3), removed=st.lists(ids, max_size=3),
                           edges_added=st.lists(edges, max_size=3)),
-    PointMap: st.builds(PointMap, version=st.integers(0, 100), stamp_ns=stamps, voxel_m=pos, points=arrays(),
-                        counts=st.one_of(st.none(), st.lists(st.integers(0, 65535), max_size=20).map(
-                            lambda v: np.asarray(v, np.uint16)))),
+    PointMap: arrays().flatmap(lambda pts: st.builds(
+        PointMap, version=st.integers(0, 100), stamp_ns=stamps, voxel_m=pos, points=st.just(pts),
+        counts=st.one_of(st.none(), st.lists(st.integers(0, 65535), min_size=len(pts), max_size=len(pts)).map(
+            lambda v: np.asarray(v, np.uint16))))),
     Status: st.builds(Status, role=ids, node_id=ids, stamp_ns=stamps,
                       counters=st.dictionaries(ids, finite, max_size=5), last_error=st.one_of(st.none(), st.text())),
     OracleFrame: st.builds(OracleFrame, source_id=ids, seq=st.integers(0, 100), stamp_ns=stamps,
@@ -236,3 +237,16 @@ def test_arrays_keep_dtype_and_shape() -> None:
 def test_json_dump_of_arrays_gives_lists() -> None:
     pm = PointMap(version=1, stamp_ns=1, voxel_m=0.1, points=np.ones((2, 3), np.float32))
     assert '"points":[[1.0,1.0,1.0],[1.0,1.0,1.0]]' in pm.model_dump_json()
+
+
+@pytest.mark.parametrize("points", [np.zeros((5, 2), np.float32), np.zeros((5,), np.float32),
+                                    np.full((2, 3), np.nan, np.float32), np.zeros((2, 3), np.uint8)])
+def test_point_map_with_bad_points_is_refused(points: np.ndarray) -> None:
+    with pytest.raises(ValueError):
+        PointMap(version=1, stamp_ns=1, voxel_m=0.1, points=points)
+
+
+def test_point_map_counts_must_match_points() -> None:
+    with pytest.raises(ValueError, match="counts"):
+        PointMap(version=1, stamp_ns=1, voxel_m=0.1, points=np.zeros((3, 3), np.float32),
+                 counts=np.zeros(4, np.uint16))
