@@ -404,6 +404,10 @@ def run_active(cfg: ActiveConfig, torch_threads: int, log: Callable[[str], None]
     from bench.explore import run_episode
 
     curves: list[dict[str, Any]] = []
+    # Multi-view stereo needs baseline: with one image per far-apart viewpoint it maps nothing, so an
+    # RGB-only run also maps two frames taken on the way to each goal (both strategies alike).
+    options: dict[str, Any] = {"move_frames": 2} if cfg.geometry != "oracle" else {}
+    options.update(cfg.options)
     for strategy in cfg.strategies:
         for ext in cfg.external:
             runs = []
@@ -412,7 +416,7 @@ def run_active(cfg: ActiveConfig, torch_threads: int, log: Callable[[str], None]
                 ep = run_episode(family=cfg.family, seed=cfg.seed, strategy=strategy, external_cameras=int(ext),
                                  steps=cfg.steps, start_index=start, geometry=cfg.geometry,
                                  perception=cfg.perception, torch_threads=torch_threads,
-                                 log_fn=lambda m: None, **cfg.options)
+                                 log_fn=lambda m: None, **options)
                 nodes, recall = _episode_curves(ep, cfg.steps)
                 runs.append({"start": start, "nodes": nodes, "recall": recall,
                              "seconds": round(time.perf_counter() - t0, 1)})
