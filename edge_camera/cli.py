@@ -13,7 +13,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from protocol.tomlconfig import ConfigError, describe, load_config
+from protocol.tomlconfig import ConfigError, describe, load_config, process_parser, process_values
 
 EPILOG = """examples:
   argus edge-camera --config edge_camera/examples/folder.toml --connect tcp/127.0.0.1:7447
@@ -26,45 +26,28 @@ Exit status: 0 after SIGINT/SIGTERM, 2 on a configuration error. Source faults n
 
 
 def parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(
-        prog="argus edge-camera",
-        description="Publish one fixed camera's JPEG frames (with calibration) on Zenoh; reconnect on faults.",
-        epilog=EPILOG,
-        formatter_class=argparse.RawDescriptionHelpFormatter,
+    p = process_parser(
+        "argus edge-camera",
+        "Publish one fixed camera's JPEG frames (with calibration) on Zenoh; reconnect on faults.",
+        EPILOG, what="camera", config_help="TOML config file (see edge_camera/examples/)",
+        set_example="source.rate_hz=1",
     )
-    p.add_argument("--config", type=Path, default=None, help="TOML config file (see edge_camera/examples/)")
-    p.add_argument("--id", default=None, help="camera id")
-    p.add_argument("--site", default=None, help="Argus site name")
-    p.add_argument("--connect", action="append", default=None, help="Zenoh endpoint to connect to (repeatable)")
-    p.add_argument("--mode", choices=["client", "peer"], default=None, help="Zenoh mode (default client)")
     p.add_argument("--source", default=None, help="source type: opencv, stream, video, folder, pattern, sim")
     p.add_argument("--rate", type=float, default=None, help="max frames per second (publish.max_rate_hz)")
     p.add_argument("--width", type=int, default=None, help="publish width in pixels")
     p.add_argument("--height", type=int, default=None, help="publish height in pixels")
     p.add_argument("--quality", type=int, default=None, help="JPEG quality 1..100")
     p.add_argument("--calibration", type=Path, default=None, help="calibration file (OpenCV YAML or JSON)")
-    p.add_argument("--set", dest="overrides", action="append", default=[], metavar="PATH=VALUE",
-                   help="override any config field, e.g. --set source.rate_hz=1 (repeatable)")
-    p.add_argument("--describe", action="store_true", help="print every config field and exit")
-    p.add_argument("--log-level", default=None, help="DEBUG, INFO, WARNING, ERROR")
     return p
 
 
 def describe_all() -> str:
     from edge_camera.config import EdgeCameraConfig
-    from edge_camera.sources import available, backend_module
+    from edge_camera.sources import REGISTRY
 
     lines = ["argus edge-camera configuration (TOML):", ""]
     lines += [ln for ln in describe(EdgeCameraConfig) if not ln.startswith("source ")]
-    for name in sorted(available()):
-        try:
-            cls = backend_module(name).Config
-        except Exception as e:  # noqa: BLE001 - a broken plug-in must not hide the others
-            lines += ["", f"[source] type = {name!r}: unavailable ({e})"]
-            continue
-        lines += ["", f"[source] type = {name!r}"]
-        lines += [f"  {ln}" for ln in describe(cls, prefix="source.") if not ln.startswith("source.type ")]
-    return "\n".join(lines)
+    return "\n".join(lines + REGISTRY.describe(describe))
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -78,17 +61,13 @@ def main(argv: list[str] | None = None) -> int:
     from protocol.runtime import setup_logging
 
     values = {
-        "id": a.id,
-        "site": a.site,
-        "zenoh.connect": a.connect,
-        "zenoh.mode": a.mode,
+        **process_values(a),
         "source.type": a.source,
         "publish.max_rate_hz": a.rate,
         "publish.width": a.width,
         "publish.height": a.height,
         "publish.jpeg_quality": a.quality,
         "calibration": None if a.calibration is None else str(a.calibration),
-        "log_level": a.log_level,
     }
     try:
         config = load_config(EdgeCameraConfig, a.config, values, a.overrides)

@@ -12,7 +12,7 @@ import argparse
 import sys
 from pathlib import Path
 
-from protocol.tomlconfig import ConfigError, describe, load_config
+from protocol.tomlconfig import ConfigError, describe, load_config, process_parser, process_values
 
 EPILOG = """examples:
   argus mapper --connect tcp/127.0.0.1:7447 --state-dir ./mapper_state
@@ -27,28 +27,17 @@ Exit status: 0 after SIGINT/SIGTERM, 2 on a configuration error (including a mis
 
 
 def parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(
-        prog="argus mapper",
-        description="Build the 3D scene graph from all frames and serve it on Zenoh (deltas, snapshots, queries).",
-        epilog=EPILOG,
-        formatter_class=argparse.RawDescriptionHelpFormatter,
+    p = process_parser(
+        "argus mapper",
+        "Build the 3D scene graph from all frames and serve it on Zenoh (deltas, snapshots, queries).",
+        EPILOG, what="mapper", config_help="TOML config file", set_example="fusion.voxel_m=0.025", listen=True,
     )
-    p.add_argument("--config", type=Path, default=None, help="TOML config file")
-    p.add_argument("--id", default=None, help="mapper id (liveliness / status keys)")
-    p.add_argument("--site", default=None, help="Argus site name")
-    p.add_argument("--connect", action="append", default=None, help="Zenoh endpoint to connect to (repeatable)")
-    p.add_argument("--listen", action="append", default=None, help="Zenoh endpoint to listen on (peer mode)")
-    p.add_argument("--mode", choices=["client", "peer"], default=None, help="Zenoh mode (default client)")
     p.add_argument("--geometry", default=None, help="reconstructor: mvs, oracle, mapanything")
     p.add_argument("--segmenter", default=None, help="segmenter: classical, sim (ORACLE), sam")
     p.add_argument("--embedder", default=None, help="embedder: classical, sim (ORACLE), clip")
     p.add_argument("--state-dir", type=Path, default=None, help="persist the graph here and resume from it")
     p.add_argument("--rerun", type=Path, default=None, metavar="FILE.rrd", help="record a Rerun file")
     p.add_argument("--rerun-serve", action="store_true", help="serve a live Rerun viewer on 127.0.0.1 only")
-    p.add_argument("--set", dest="overrides", action="append", default=[], metavar="PATH=VALUE",
-                   help="override any config field, e.g. --set fusion.voxel_m=0.025 (repeatable)")
-    p.add_argument("--describe", action="store_true", help="print every config field and exit")
-    p.add_argument("--log-level", default=None, help="DEBUG, INFO, WARNING, ERROR")
     return p
 
 
@@ -61,18 +50,13 @@ def main(argv: list[str] | None = None) -> int:
         print("\n".join(describe(MapperConfig)))
         return 0
     values = {
-        "id": a.id,
-        "site": a.site,
-        "zenoh.connect": a.connect,
-        "zenoh.listen": a.listen,
-        "zenoh.mode": a.mode,
+        **process_values(a),
         "geometry.backend": a.geometry,
         "perception.segmenter": a.segmenter,
         "perception.embedder": a.embedder,
         "state_dir": None if a.state_dir is None else str(a.state_dir),
         "rerun.file": None if a.rerun is None else str(a.rerun),
         "rerun.serve": True if a.rerun_serve else None,
-        "log_level": a.log_level.upper() if a.log_level else None,
     }
     try:
         config = load_config(MapperConfig, a.config, values, a.overrides)

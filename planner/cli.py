@@ -10,9 +10,8 @@ from __future__ import annotations
 
 import argparse
 import sys
-from pathlib import Path
 
-from protocol.tomlconfig import ConfigError, describe, load_config
+from protocol.tomlconfig import ConfigError, describe, load_config, process_parser, process_values
 
 EPILOG = """examples:
   argus planner --connect tcp/127.0.0.1:7447                  # asp with the embedded prior
@@ -27,19 +26,11 @@ when the endpoint fails. Exit status: 0 after SIGINT/SIGTERM, 2 on a configurati
 
 
 def parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(
-        prog="argus planner",
-        description="Score the robots' candidate viewpoints against the scene graph and publish NBV goals.",
-        epilog=EPILOG,
-        formatter_class=argparse.RawDescriptionHelpFormatter,
+    p = process_parser(
+        "argus planner",
+        "Score the robots' candidate viewpoints against the scene graph and publish NBV goals.",
+        EPILOG, what="planner", config_help="TOML config file", set_example="planner.asp.n_jitter=2",
     )
-    p.add_argument("--config", type=Path, default=None, help="TOML config file")
-    p.add_argument("--id", default=None, help="planner id (liveliness, status)")
-    p.add_argument("--site", default=None, help="Argus site name")
-    p.add_argument(
-        "--connect", action="append", default=None, help="Zenoh endpoint to connect to (repeatable)"
-    )
-    p.add_argument("--mode", choices=["client", "peer"], default=None, help="Zenoh mode (default client)")
     p.add_argument(
         "--strategy", choices=["see", "asp"], default=None, help="see (geometric) or asp (semantic)"
     )
@@ -51,16 +42,6 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--llm-key-env", default=None, help="env var holding the llm API key")
     p.add_argument("--completions", type=int, default=None, help="completions K per decision")
     p.add_argument("--seed", type=int, default=None, help="sampler seed")
-    p.add_argument(
-        "--set",
-        dest="overrides",
-        action="append",
-        default=[],
-        metavar="PATH=VALUE",
-        help="override any config field, e.g. --set planner.asp.n_jitter=2 (repeatable)",
-    )
-    p.add_argument("--describe", action="store_true", help="print every config field and exit")
-    p.add_argument("--log-level", default=None, help="DEBUG, INFO, WARNING, ERROR")
     return p
 
 
@@ -72,10 +53,7 @@ def main(argv: list[str] | None = None) -> int:
         print("\n".join(["argus planner configuration (TOML):", "", *describe(PlannerNodeConfig)]))
         return 0
     values = {
-        "node_id": a.id,
-        "site": a.site,
-        "zenoh.connect": a.connect,
-        "zenoh.mode": a.mode,
+        **process_values(a, id_field="node_id"),
         "planner.strategy": a.strategy,
         "planner.sampler.kind": a.sampler,
         "planner.sampler.llm.base_url": a.llm_url,
@@ -83,7 +61,6 @@ def main(argv: list[str] | None = None) -> int:
         "planner.sampler.llm.api_key_env": a.llm_key_env,
         "planner.asp.n_completions": a.completions,
         "planner.seed": a.seed,
-        "log_level": a.log_level,
     }
     try:
         config = load_config(PlannerNodeConfig, a.config, values, a.overrides)

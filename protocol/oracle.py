@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+from dataclasses import dataclass, field
+
 import cv2
 import numpy as np
 
@@ -61,3 +63,13 @@ def png_to_depth(data: bytes) -> np.ndarray:
 def ids_to_png(instance_ids: np.ndarray) -> bytes:
     """Instance ids (negative = nothing) to a 16-bit PNG (0 = structure or nothing)."""
     return encode_u16_png(np.clip(instance_ids, 0, 65535).astype(np.uint16))
+
+
+@dataclass(frozen=True)
+class OracleCapture:
+    """Simulator ground truth for one captured image (ORACLE: only simulated sources produce it)."""
+
+    T_world_cam_true: np.ndarray
+    instance_id: np.ndarray
+    depth_m: np.ndarray
+    labels: dict[int, str] = field(default_factory=dict)

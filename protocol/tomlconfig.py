@@ -11,6 +11,7 @@ Overrides use dotted paths; a value is parsed as a TOML value when it can be (``
 
 from __future__ import annotations
 
+import argparse
 import tomllib
 import types
 from pathlib import Path
@@ -109,3 +110,38 @@ def describe(model: type[BaseModel], prefix: str = "") -> list[str]:
         default = "required" if field.is_required() else repr(field.get_default(call_default_factory=True))
         lines.append(f"{path} ({_type_name(ann)}, default {default}): {field.description or ''}")
     return lines
+
+
+def process_parser(prog: str, description: str, epilog: str, *, what: str, config_help: str,
+                   set_example: str, listen: bool = False) -> argparse.ArgumentParser:
+    """The flags every Argus process shares: --config --id --site --connect [--listen] --mode --set
+    --describe --log-level. Each process adds its own flags; :func:`process_values` maps the shared
+    ones onto config paths."""
+    p = argparse.ArgumentParser(prog=prog, description=description, epilog=epilog,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--config", type=Path, default=None, help=config_help)
+    p.add_argument("--id", default=None, help=f"{what} id")
+    p.add_argument("--site", default=None, help="Argus site name")
+    p.add_argument("--connect", action="append", default=None, help="Zenoh endpoint to connect to (repeatable)")
+    if listen:
+        p.add_argument("--listen", action="append", default=None, help="Zenoh endpoint to listen on (peer mode)")
+    p.add_argument("--mode", choices=["client", "peer"], default=None, help="Zenoh mode (default client)")
+    p.add_argument("--set", dest="overrides", action="append", default=[], metavar="PATH=VALUE",
+                   help=f"override any config field, e.g. --set {set_example} (repeatable)")
+    p.add_argument("--describe", action="store_true", help="print every config field and exit")
+    p.add_argument("--log-level", default=None, help="DEBUG, INFO, WARNING, ERROR")
+    return p
+
+
+def process_values(a: argparse.Namespace, id_field: str = "id") -> dict[str, Any]:
+    """Config paths of the shared flags of :func:`process_parser` (unset flags are ``None``)."""
+    values: dict[str, Any] = {
+        id_field: a.id,
+        "site": a.site,
+        "zenoh.connect": a.connect,
+        "zenoh.mode": a.mode,
+        "log_level": a.log_level.upper() if a.log_level else None,
+    }
+    if getattr(a, "listen", None) is not None:
+        values["zenoh.listen"] = a.listen
+    return values

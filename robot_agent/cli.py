@@ -10,9 +10,8 @@ from __future__ import annotations
 
 import argparse
 import sys
-from pathlib import Path
 
-from protocol.tomlconfig import ConfigError, describe, load_config
+from protocol.tomlconfig import ConfigError, describe, load_config, process_parser, process_values
 
 EPILOG = """examples:
   argus robot-agent --config robot_agent/examples/sim.toml --connect tcp/127.0.0.1:7447
@@ -25,44 +24,27 @@ Exit status: 0 after SIGINT/SIGTERM, 2 on a configuration error. Bad goals never
 
 
 def parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(
-        prog="argus robot-agent",
-        description="Run one robot: publish frames with odometry, state and viewpoints; drive to NBV goals.",
-        epilog=EPILOG,
-        formatter_class=argparse.RawDescriptionHelpFormatter,
+    p = process_parser(
+        "argus robot-agent",
+        "Run one robot: publish frames with odometry, state and viewpoints; drive to NBV goals.",
+        EPILOG, what="robot", config_help="TOML config file (see robot_agent/examples/)",
+        set_example="body.seed=3",
     )
-    p.add_argument("--config", type=Path, default=None, help="TOML config file (see robot_agent/examples/)")
-    p.add_argument("--id", default=None, help="robot id")
-    p.add_argument("--site", default=None, help="Argus site name")
-    p.add_argument("--connect", action="append", default=None, help="Zenoh endpoint to connect to (repeatable)")
-    p.add_argument("--mode", choices=["client", "peer"], default=None, help="Zenoh mode (default client)")
     p.add_argument("--body", default=None, help="body type: sim, kinematic")
     p.add_argument("--time-scale", type=float, default=None, help="robot seconds per wall second")
     p.add_argument("--frame-rate", type=float, default=None, help="frames per second while moving")
     p.add_argument("--budget-m", type=float, default=None, help="exploration budget in metres")
     p.add_argument("--budget-steps", type=int, default=None, help="exploration budget in goals reached")
-    p.add_argument("--set", dest="overrides", action="append", default=[], metavar="PATH=VALUE",
-                   help="override any config field, e.g. --set body.seed=3 (repeatable)")
-    p.add_argument("--describe", action="store_true", help="print every config field and exit")
-    p.add_argument("--log-level", default=None, help="DEBUG, INFO, WARNING, ERROR")
     return p
 
 
 def describe_all() -> str:
-    from robot_agent.bodies import available, backend_module
+    from robot_agent.bodies import REGISTRY
     from robot_agent.config import RobotAgentConfig
 
     lines = ["argus robot-agent configuration (TOML):", ""]
     lines += [ln for ln in describe(RobotAgentConfig) if not ln.startswith("body ")]
-    for name in sorted(available()):
-        try:
-            cls = backend_module(name).Config
-        except Exception as e:  # noqa: BLE001 - a broken plug-in must not hide the others
-            lines += ["", f"[body] type = {name!r}: unavailable ({e})"]
-            continue
-        lines += ["", f"[body] type = {name!r}"]
-        lines += [f"  {ln}" for ln in describe(cls, prefix="body.") if not ln.startswith("body.type ")]
-    return "\n".join(lines)
+    return "\n".join(lines + REGISTRY.describe(describe))
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -75,16 +57,12 @@ def main(argv: list[str] | None = None) -> int:
     from robot_agent.config import RobotAgentConfig
 
     values = {
-        "id": a.id,
-        "site": a.site,
-        "zenoh.connect": a.connect,
-        "zenoh.mode": a.mode,
+        **process_values(a),
         "body.type": a.body,
         "motion.time_scale": a.time_scale,
         "frames.moving_rate_hz": a.frame_rate,
         "budget.max_distance_m": a.budget_m,
         "budget.max_steps": a.budget_steps,
-        "log_level": a.log_level,
     }
     try:
         config = load_config(RobotAgentConfig, a.config, values, a.overrides)

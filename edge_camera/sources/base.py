@@ -2,13 +2,14 @@
 
 from __future__ import annotations
 
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import ClassVar, Protocol, runtime_checkable
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
 from protocol.messages import Intrinsics
+from protocol.oracle import OracleCapture
 
 
 class SourceError(RuntimeError):
@@ -27,16 +28,6 @@ class SourceConfig(BaseModel):
 
     model_config = ConfigDict(extra="forbid")
     type: str = Field(description="source backend name (see the registry in edge_camera.sources)")
-
-
-@dataclass(frozen=True)
-class OracleCapture:
-    """Simulator ground truth for one grab (ORACLE: only simulated sources produce it)."""
-
-    T_world_cam_true: np.ndarray
-    instance_id: np.ndarray
-    depth_m: np.ndarray
-    labels: dict[int, str] = field(default_factory=dict)
 
 
 @dataclass(frozen=True)

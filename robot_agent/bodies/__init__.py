@@ -8,11 +8,9 @@ the group ``argus.robot_agent.bodies``.
 
 from __future__ import annotations
 
-import importlib
-from importlib.metadata import entry_points
-from types import ModuleType
 from typing import Any
 
+from protocol.plugins import BackendRegistry
 from robot_agent.bodies.base import BodyConfig, BodyConfigError, RobotBody
 
 BODIES: dict[str, str] = {
@@ -22,35 +20,20 @@ BODIES: dict[str, str] = {
 """Body type name -> backend module."""
 
 ENTRY_POINT_GROUP = "argus.robot_agent.bodies"
-
-
-def available() -> dict[str, str]:
-    """Built-in and plug-in body types (name -> module)."""
-    out = dict(BODIES)
-    for ep in entry_points(group=ENTRY_POINT_GROUP):
-        out.setdefault(ep.name, ep.value)
-    return out
-
-
-def backend_module(name: str) -> ModuleType:
-    types = available()
-    if name not in types:
-        raise BodyConfigError(f"unknown body type {name!r} (known: {', '.join(sorted(types))})")
-    return importlib.import_module(types[name])
+REGISTRY = BackendRegistry("body type", "body", BODIES, ENTRY_POINT_GROUP, BodyConfigError)
+available = REGISTRY.available
+backend_module = REGISTRY.module
 
 
 def parse_body_config(data: Any) -> BodyConfig:
     """Validate a ``[body]`` table with its backend's ``Config``."""
-    if isinstance(data, BodyConfig):
-        return data
-    if not isinstance(data, dict) or not isinstance(data.get("type"), str):
-        raise BodyConfigError("[body] needs a string field 'type'")
-    cls: type[BodyConfig] = backend_module(data["type"]).Config
-    return cls.model_validate(data)
+    config: BodyConfig = REGISTRY.parse_config(data, BodyConfig)
+    return config
 
 
 def create_body(config: BodyConfig) -> RobotBody:
-    body: RobotBody = backend_module(config.type).create(config)
+    """Build the backend object for a validated body config."""
+    body: RobotBody = REGISTRY.create(config)
     return body
 
 

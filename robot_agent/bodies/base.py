@@ -3,13 +3,14 @@
 from __future__ import annotations
 
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from typing import Literal, Protocol, runtime_checkable
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
 from protocol.messages import Intrinsics, Viewpoint
+from protocol.oracle import OracleCapture
 
 BodyStatus = Literal["idle", "moving", "arrived", "failed"]
 
@@ -23,16 +24,6 @@ class BodyConfig(BaseModel):
 
     model_config = ConfigDict(extra="forbid")
     type: str = Field(description="body backend name (see robot_agent.bodies)")
-
-
-@dataclass(frozen=True)
-class OracleCapture:
-    """Simulator ground truth for one capture (ORACLE: only simulated bodies produce it)."""
-
-    T_world_cam_true: np.ndarray
-    instance_id: np.ndarray
-    depth_m: np.ndarray
-    labels: dict[int, str] = field(default_factory=dict)
 
 
 @dataclass(frozen=True)
