@@ -22,7 +22,7 @@ import cv2
 import numpy as np
 
 from mapper.config import MapperCoreConfig
-from mapper.fusion import LiftStats, ObjectMap, UpdateResult, lift_detections
+from mapper.fusion import LiftStats, ObjectMap, UpdateResult, lift_detections, outside_fraction
 from mapper.geometry.contract import Reconstructor, View, anchor_pose, compose
 from mapper.graph_store import GraphStore
 from mapper.keyframes import KeyframeSelector, KeyframeStore
@@ -169,6 +169,14 @@ class MapperCore:
         )
         T_world_cam = geo.T_world_cam[target]
         self.keyframes.add(view, T_world_cam)
+        outside = outside_fraction(vg.points_world, vg.confidence, vg.depth_m, self.config.fusion)
+        if outside > self.config.fusion.max_outside_fraction:
+            # Depth that puts much of the view under the floor is wrong everywhere (scale or matching failure):
+            # fusing it would place objects far from where they are. The pose may still serve later windows.
+            self._count("keyframes_rejected_depth")
+            log.debug("keyframe %s#%d: %.0f %% of its depth outside the room slab, not fused",
+                      view.source_id, view.seq, 100 * outside)
+            return UpdateResult()
         t = time.perf_counter()
         masks = self.segmenter.segment(view, vg)
         dets = self.embedder.embed(view, masks)

@@ -40,6 +40,12 @@ class FusionConfig(BaseModel):
     )
     min_z_m: float = Field(default=-0.15, description="points below this height (under the floor) are dropped")
     max_z_m: float = Field(default=3.5, description="points above this height are dropped")
+    max_outside_fraction: float = Field(
+        default=0.3, ge=0.0, le=1.0,
+        description="a view whose confident points lie outside the [min_z_m, max_z_m] slab (under the floor, "
+        "over the ceiling) more often than this has implausible depth (e.g. a stereo window without overlap) "
+        "and is not fused at all; 1 disables the check",
+    )
     min_mask_pixels: int = Field(default=30, ge=1, description="masks smaller than this are dropped")
     mask_erosion_px: int = Field(
         default=0, ge=0, le=8,
@@ -72,6 +78,10 @@ class FusionConfig(BaseModel):
         default=40, ge=0, description="nodes seen once with fewer points are dropped after prune_after_updates"
     )
     max_nodes: int = Field(default=2000, ge=1, description="hard cap on nodes (least observed dropped)")
+    box_trim_fraction: float = Field(
+        default=0.02, ge=0.0, lt=0.5,
+        description="node boxes ignore this fraction of points at each end of each axis (robust to strays)",
+    )
     max_label_alternatives: int = Field(default=3, ge=0, description="label alternatives kept per node")
     seed: int = Field(default=0, description="seed of point subsampling")
 
@@ -142,11 +152,24 @@ def main_cluster(points: np.ndarray, eps: float, min_samples: int) -> np.ndarray
     return points[labels == best]
 
 
-def fit_box(points: np.ndarray) -> OrientedBox:
-    """Gravity-aligned oriented box of ``points`` (N, 3): min-area footprint rectangle, z from min/max."""
+def trim_outliers(points: np.ndarray, fraction: float, min_points: int = 20) -> np.ndarray:
+    """``points`` (N, 3) inside the per-axis ``[fraction, 1 - fraction]`` quantiles (all when too few)."""
+    pts = np.asarray(points).reshape(-1, 3)
+    if fraction <= 0.0 or len(pts) < min_points:
+        return pts
+    lo, hi = np.quantile(pts, [fraction, 1.0 - fraction], axis=0)
+    keep = np.all((pts >= lo) & (pts <= hi), axis=1)
+    return pts[keep] if int(keep.sum()) >= 3 else pts
+
+
+def fit_box(points: np.ndarray, trim: float = 0.0) -> OrientedBox:
+    """Gravity-aligned oriented box of ``points`` (N, 3): min-area footprint rectangle, z from min/max.
+
+    ``trim`` > 0 first drops points outside the per-axis ``[trim, 1 - trim]`` quantiles (stray points of
+    estimated depth would otherwise stretch the box and move its centre)."""
     import cv2
 
-    pts = np.asarray(points, dtype=np.float32).reshape(-1, 3)
+    pts = trim_outliers(np.asarray(points, dtype=np.float32).reshape(-1, 3), trim)
     if len(pts) == 0:
         return OrientedBox(center=(0.0, 0.0, 0.0), extent=(0.0, 0.0, 0.0))
     zmin, zmax = float(pts[:, 2].min()), float(pts[:, 2].max())
@@ -206,6 +229,20 @@ def resize_mask(mask: np.ndarray, h: int, w: int) -> np.ndarray:
     import cv2
 
     return cv2.resize(mask.astype(np.uint8), (w, h), interpolation=cv2.INTER_NEAREST).astype(bool)
+
+
+def outside_fraction(points_world: np.ndarray, confidence: np.ndarray, depth_m: np.ndarray, cfg: FusionConfig) -> float:
+    """Fraction of a view's confident depth pixels whose world points lie outside the ``[min_z_m, max_z_m]``
+    slab (0 when none is confident): true geometry of a room puts (nearly) none under the floor."""
+    ok = (
+        np.isfinite(depth_m) & (depth_m > 0) & (depth_m <= cfg.max_depth_m) & (confidence >= cfg.min_depth_confidence)
+        & np.all(np.isfinite(points_world), axis=-1)
+    )
+    n = int(ok.sum())
+    if n == 0:
+        return 0.0
+    z = points_world[..., 2][ok]
+    return float(np.count_nonzero((z < cfg.min_z_m) | (z > cfg.max_z_m)) / n)
 
 
 def lift_detections(
@@ -271,6 +308,7 @@ class NodeState:
     first_seen_ns: int
     last_seen_ns: int
     created_update: int
+    box_trim: float = 0.0
     _tree: Any = field(default=None, repr=False)
     _box: OrientedBox | None = field(default=None, repr=False)
 
@@ -289,7 +327,7 @@ class NodeState:
     @property
     def box(self) -> OrientedBox:
         if self._box is None:
-            self._box = fit_box(self.points)
+            self._box = fit_box(self.points, self.box_trim)
         return self._box
 
     @property
@@ -416,6 +454,7 @@ class ObjectMap:
             first_seen_ns=stamp_ns,
             last_seen_ns=stamp_ns,
             created_update=self.updates,
+            box_trim=self.cfg.box_trim_fraction,
         )
         self.nodes[node_id] = node
         return node
@@ -565,6 +604,7 @@ class ObjectMap:
                 first_seen_ns=int(d["first_seen_ns"]),
                 last_seen_ns=int(d["last_seen_ns"]),
                 created_update=int(d["created_update"]),
+                box_trim=self.cfg.box_trim_fraction,
             )
         self.nodes = nodes
         self.next_id = int(state["next_id"])

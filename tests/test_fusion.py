@@ -12,6 +12,7 @@ from mapper.fusion import (
     fit_box,
     lift_detections,
     main_cluster,
+    outside_fraction,
     voxel_downsample,
 )
 from mapper.perception.base import Detection, label_descriptor
@@ -99,6 +100,26 @@ class TestHelpers:
         assert b.yaw_rad == pytest.approx(yaw, abs=0.03)
         assert b.extent[0] == pytest.approx(2.0, abs=0.05) and b.extent[1] == pytest.approx(0.5, abs=0.05)
         assert b.center == pytest.approx((2.0, 1.0, 0.25), abs=0.03)
+
+    def test_fit_box_trim_ignores_strays(self) -> None:
+        rng = np.random.default_rng(2)
+        pts = rng.uniform([0.0, 0.0, 0.0], [1.0, 1.0, 1.0], (1000, 3))
+        strays = np.array([[4.0, 0.5, 0.5], [0.5, -3.0, 0.5], [0.5, 0.5, 3.0]])
+        loose, robust = fit_box(np.vstack([pts, strays])), fit_box(np.vstack([pts, strays]), trim=0.02)
+        assert max(loose.extent) > 3.0
+        assert robust.extent == pytest.approx((1.0, 1.0, 1.0), abs=0.1)
+        assert robust.center == pytest.approx((0.5, 0.5, 0.5), abs=0.05)
+
+    def test_outside_fraction_flags_depth_under_the_floor(self) -> None:
+        cfg = FusionConfig()
+        T = look_at([0.0, -2.0, 1.0], [0.0, 0.0, 0.3])
+        floor = (np.array([-20.0, -20.0, -0.05]), np.array([20.0, 20.0, 0.0]))
+        depth, _ = raycast(T, [floor, CHAIR])
+        conf = (depth > 0).astype(np.float32)
+        assert outside_fraction(world_points(T, depth), conf, depth, cfg) < 0.05
+        far = depth * 3.0  # a scale failure: the floor seen three times too far lies under it
+        assert outside_fraction(world_points(T, far), conf, far, cfg) > 0.5
+        assert outside_fraction(world_points(T, far), np.zeros_like(conf), far, cfg) == 0.0
 
 
 class TestFusion:
