@@ -35,6 +35,11 @@ class FusionConfig(BaseModel):
     )
     max_depth_m: float = Field(default=10.0, gt=0.0, description="pixels farther than this are ignored")
     min_points: int = Field(default=15, ge=1, description="detections with fewer valid 3D points are dropped")
+    min_depth_fraction: float = Field(
+        default=0.1, ge=0.0, le=1.0,
+        description="detections with valid depth on less of their mask than this are dropped (sparse estimated "
+        "depth on an object is mostly its edges and texture, where it is least reliable)",
+    )
     min_object_points: int = Field(
         default=10, ge=3, description="detections with fewer points after downsampling and denoising are dropped"
     )
@@ -277,8 +282,9 @@ def lift_detections(
             k = 2 * cfg.mask_erosion_px + 1
             eroded = cv2.erode(m.astype(np.uint8), np.ones((k, k), np.uint8)).astype(bool)
             m = eroded if int(eroded.sum()) >= cfg.min_points else m
+        n_mask = int(m.sum())
         m = m & valid
-        if int(m.sum()) < cfg.min_points:
+        if int(m.sum()) < max(cfg.min_points, cfg.min_depth_fraction * n_mask):
             stats.dropped_no_depth += 1
             continue
         pts = voxel_downsample(points_world[m], cfg.voxel_m)

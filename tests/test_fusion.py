@@ -110,6 +110,21 @@ class TestHelpers:
         assert robust.extent == pytest.approx((1.0, 1.0, 1.0), abs=0.1)
         assert robust.center == pytest.approx((0.5, 0.5, 0.5), abs=0.05)
 
+    def test_detection_with_sparse_depth_is_dropped(self) -> None:
+        T = look_at([2.0, -1.5, 1.5], [0.25, 0.25, 0.45])
+        depth, idx = raycast(T, [CHAIR])
+        dets = detections(idx, ["chair"])
+        conf = np.zeros_like(depth)
+        ys, xs = np.nonzero(idx == 0)
+        pick = np.arange(0, len(ys), 12)  # confident depth on ~8 % of the mask
+        conf[ys[pick], xs[pick]] = 1.0
+        cfg = FusionConfig(min_points=5, min_object_points=3, dbscan_min_samples=1, dbscan_eps_m=0.5)
+        objs, stats = lift_detections(dets, world_points(T, depth), conf, depth, cfg)
+        assert objs == [] and stats.dropped_no_depth == 1
+        cfg = cfg.model_copy(update={"min_depth_fraction": 0.05})
+        objs, _ = lift_detections(dets, world_points(T, depth), conf, depth, cfg)
+        assert len(objs) == 1
+
     def test_outside_fraction_flags_depth_under_the_floor(self) -> None:
         cfg = FusionConfig()
         T = look_at([0.0, -2.0, 1.0], [0.0, 0.0, 0.3])
