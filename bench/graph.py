@@ -117,6 +117,8 @@ def run_mapping(views: list[Any], geometry: str, threads: int) -> tuple[Any, dic
         "views_unposed_skipped": int(core.counters.get("views_unposed_skipped", 0)),
         "detections": int(core.counters.get("detections", 0)),
         "detections_dropped_no_depth": int(core.counters.get("detections_dropped_no_depth", 0)),
+        "detections_dropped_noise": int(core.counters.get("detections_dropped_noise", 0)),
+        "keyframes_rejected_depth": int(core.counters.get("keyframes_rejected_depth", 0)),
         "update_s_mean": float(times.mean()),
         "update_s_p50": float(np.percentile(times, 50)),
         "update_s_p95": float(np.percentile(times, 95)),
