@@ -84,7 +84,7 @@ class FusionConfig(BaseModel):
     )
     max_nodes: int = Field(default=2000, ge=1, description="hard cap on nodes (least observed dropped)")
     box_trim_fraction: float = Field(
-        default=0.02, ge=0.0, lt=0.5,
+        default=0.005, ge=0.0, lt=0.5,
         description="node boxes ignore this fraction of points at each end of each axis (robust to strays)",
     )
     max_label_alternatives: int = Field(default=3, ge=0, description="label alternatives kept per node")
