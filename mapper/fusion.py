@@ -317,10 +317,12 @@ class NodeState:
     box_trim: float = 0.0
     _tree: Any = field(default=None, repr=False)
     _box: OrientedBox | None = field(default=None, repr=False)
+    _full_box: OrientedBox | None = field(default=None, repr=False)
 
     def touch(self) -> None:
         self._tree = None
         self._box = None
+        self._full_box = None
 
     @property
     def tree(self) -> Any:
@@ -335,6 +337,15 @@ class NodeState:
         if self._box is None:
             self._box = fit_box(self.points, self.box_trim)
         return self._box
+
+    @property
+    def full_box(self) -> OrientedBox:
+        """The box of all points, strays included (duplicate merging compares these)."""
+        if self.box_trim <= 0:
+            return self.box
+        if self._full_box is None:
+            self._full_box = fit_box(self.points)
+        return self._full_box
 
     @property
     def aabb(self) -> tuple[np.ndarray, np.ndarray]:
@@ -533,7 +544,7 @@ class ObjectMap:
                 if sim < cfg.merge_similarity:
                     continue
                 ov = max(overlap_fraction(a.points, b, cfg.radius_m), overlap_fraction(b.points, a, cfg.radius_m))
-                if ov >= cfg.merge_overlap or box_overlap(a.box, b.box) >= cfg.merge_box_overlap:
+                if ov >= cfg.merge_overlap or box_overlap(a.full_box, b.full_box) >= cfg.merge_box_overlap:
                     pairs.append((ov + sim, a_id, b_id))
         for _, a_id, b_id in sorted(pairs, key=lambda p: (-p[0], p[1], p[2])):
             if a_id not in self.nodes or b_id not in self.nodes:

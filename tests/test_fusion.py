@@ -7,6 +7,7 @@ import pytest
 
 from mapper.fusion import (
     FusionConfig,
+    Object3D,
     ObjectMap,
     dbscan_labels,
     fit_box,
@@ -109,6 +110,14 @@ class TestHelpers:
         assert max(loose.extent) > 3.0
         assert robust.extent == pytest.approx((1.0, 1.0, 1.0), abs=0.1)
         assert robust.center == pytest.approx((0.5, 0.5, 0.5), abs=0.05)
+
+    def test_node_box_trimmed_but_merging_sees_all_points(self) -> None:
+        rng = np.random.default_rng(3)
+        pts = np.vstack([rng.uniform(0.0, 1.0, (2000, 3)), [[3.0, 0.5, 0.5]]]).astype(np.float32)
+        omap = ObjectMap(FusionConfig(box_trim_fraction=0.005))
+        node = omap._new_node(Object3D(pts, "chair", 0.9, label_descriptor("chair")), "cam0", 1)
+        assert node.box.extent[0] == pytest.approx(1.0, abs=0.05)
+        assert max(node.full_box.extent[:2]) > 2.5
 
     def test_detection_with_sparse_depth_is_dropped(self) -> None:
         T = look_at([2.0, -1.5, 1.5], [0.25, 0.25, 0.45])
