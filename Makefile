@@ -8,7 +8,10 @@ PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed-$(shell sha1sum pyproject.toml | cut -c1-12)
 export PYTHONUNBUFFERED := 1
 
-.PHONY: install demo test test-all lint bench clean
+.PHONY: install demo test test-all lint typecheck bench clean
+
+# mypy-clean: the protocol and the pure modules (geometry, fusion, relations, planner maths)
+TYPED := protocol mapper/geometry mapper/fusion.py mapper/relations.py planner/gain.py planner/frontier.py planner/geometry.py
 
 install: $(STAMP)
 
@@ -33,10 +36,13 @@ demo: install
 lint: install
 	$(VENV)/bin/ruff check .
 
-test: install lint
+typecheck: install
+	$(VENV)/bin/mypy $(TYPED)
+
+test: install lint typecheck
 	$(PY) -m pytest -q -x --durations=10
 
-test-all: install lint
+test-all: install lint typecheck
 	$(PY) -m pytest -q -m '' --durations=20
 
 bench: install
