@@ -1,6 +1,6 @@
 # Two commands do everything on a fresh machine:
 #   make demo   install into .venv and run the whole stack on the embedded simulated world
-#   make test   install into .venv, lint, and run the fast test tier
+#   make test   install into .venv, lint, type-check, and run the fast test tier
 SHELL := /bin/bash
 PYTHON ?= python3
 VENV := .venv
