@@ -15,7 +15,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from edge_camera.sources.base import Grab, SourceError
+from edge_camera.sources.base import Grab, SourceBase, SourceError
 
 log = logging.getLogger(__name__)
 
@@ -99,3 +99,23 @@ class LiveCapture:
             if self._thread.is_alive():
                 log.warning("%s: capture thread still blocked; abandoning it", self.what)
             self._thread = None
+
+
+class LiveSourceBase(SourceBase):
+    """A source backed by a :class:`LiveCapture` reader thread (devices and network streams):
+    subclasses set ``self._live`` in ``__init__``; reads return the newest frame."""
+
+    _live: LiveCapture
+
+    @property
+    def superseded(self) -> int:  # type: ignore[override]
+        return self._live.superseded
+
+    def open(self) -> None:
+        self._live.open()
+
+    def read(self) -> Grab:
+        return self._live.latest()
+
+    def close(self) -> None:
+        self._live.close()

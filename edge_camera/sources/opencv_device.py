@@ -7,8 +7,8 @@ from typing import Any, Literal
 import cv2
 from pydantic import Field
 
-from edge_camera.sources._live import LiveCapture
-from edge_camera.sources.base import Grab, SourceBase, SourceConfig
+from edge_camera.sources._live import LiveCapture, LiveSourceBase
+from edge_camera.sources.base import SourceConfig
 
 _APIS = {"any": cv2.CAP_ANY, "v4l2": cv2.CAP_V4L2, "gstreamer": cv2.CAP_GSTREAMER, "ffmpeg": cv2.CAP_FFMPEG}
 
@@ -26,7 +26,7 @@ class Config(SourceConfig):
     read_timeout_s: float = Field(default=5.0, gt=0, description="a stall longer than this is a fault")
 
 
-class OpenCVDevice(SourceBase):
+class OpenCVDevice(LiveSourceBase):
     def __init__(self, config: Config) -> None:
         self.config = config
         self._live = LiveCapture(self._open_capture, f"camera device {config.device}", config.read_timeout_s)
@@ -44,19 +44,6 @@ class OpenCVDevice(SourceBase):
             cap.set(cv2.CAP_PROP_FPS, c.fps)
         cap.set(cv2.CAP_PROP_BUFFERSIZE, 1)
         return cap
-
-    @property
-    def superseded(self) -> int:  # type: ignore[override]
-        return self._live.superseded
-
-    def open(self) -> None:
-        self._live.open()
-
-    def read(self) -> Grab:
-        return self._live.latest()
-
-    def close(self) -> None:
-        self._live.close()
 
 
 def create(config: Config) -> OpenCVDevice:

@@ -7,8 +7,8 @@ from typing import Any, Literal
 import cv2
 from pydantic import Field, field_validator
 
-from edge_camera.sources._live import LiveCapture
-from edge_camera.sources.base import Grab, SourceBase, SourceConfig
+from edge_camera.sources._live import LiveCapture, LiveSourceBase
+from edge_camera.sources.base import SourceConfig
 
 
 class Config(SourceConfig):
@@ -25,7 +25,7 @@ class Config(SourceConfig):
         return v
 
 
-class Stream(SourceBase):
+class Stream(LiveSourceBase):
     def __init__(self, config: Config) -> None:
         self.config = config
         self._live = LiveCapture(self._open_capture, f"stream {self._redacted()}", config.read_timeout_s)
@@ -41,19 +41,6 @@ class Stream(SourceBase):
         ms = int(c.open_timeout_s * 1000)
         params = [cv2.CAP_PROP_OPEN_TIMEOUT_MSEC, ms, cv2.CAP_PROP_READ_TIMEOUT_MSEC, int(c.read_timeout_s * 1000)]
         return cv2.VideoCapture(c.url, cv2.CAP_FFMPEG, params)
-
-    @property
-    def superseded(self) -> int:  # type: ignore[override]
-        return self._live.superseded
-
-    def open(self) -> None:
-        self._live.open()
-
-    def read(self) -> Grab:
-        return self._live.latest()
-
-    def close(self) -> None:
-        self._live.close()
 
 
 def create(config: Config) -> Stream:
