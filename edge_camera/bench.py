@@ -173,7 +173,10 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--connect", default=None, help="use this router instead of two in-process peers")
     p.add_argument("--threads", type=int, default=1, help="OpenCV threads (an edge box has few cores)")
     p.add_argument("--out", type=Path, default=None, help="write the results as JSON here")
+    p.add_argument("--quick", action="store_true", help="at most 30 frames per source (smoke run)")
     a = p.parse_args(argv)
+    if a.quick:
+        a.frames = min(a.frames, 30)
     cv2.setNumThreads(a.threads)
     results = run(a.frames, [s.strip() for s in a.sources.split(",") if s.strip()], a.width, a.height,
                   a.quality, a.connect)

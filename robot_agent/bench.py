@@ -142,7 +142,10 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--explore-steps", type=int, default=0, help="run a fast-sim exploration of this many goals")
     p.add_argument("--time-scale", type=float, default=50.0)
     p.add_argument("--out", type=Path, default=None)
+    p.add_argument("--quick", action="store_true", help="at most 5 frames per source (smoke run)")
     a = p.parse_args(argv)
+    if a.quick:
+        a.frames = min(a.frames, 5)
     import cv2
 
     cv2.setNumThreads(1)
