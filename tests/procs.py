@@ -108,3 +108,49 @@ class Proc:
                 self.popen.wait(timeout=5)
         self._reader.join(timeout=2)
         return self.popen.returncode
+
+
+class FramePeer:
+    """A client session collecting one source's frames and its process's Status messages.
+
+    Subclasses add their own subscriptions to ``self._subs`` (liveliness, robot state, ...).
+    """
+
+    def __init__(self, router: str, frame_key: str, status_key: str) -> None:
+        from protocol.session import ZenohSettings, open_session
+
+        self.session = open_session(ZenohSettings(mode="client", connect=[router]))
+        self.frames: list = []
+        self.statuses: list = []
+        self._lock = threading.Lock()
+        self._subs = [
+            self.session.declare_subscriber(frame_key, self._on_frame),
+            self.session.declare_subscriber(status_key, self._on_status),
+        ]
+
+    def _on_frame(self, sample) -> None:  # noqa: ANN001 - zenoh.Sample
+        from protocol.transport import decode_frame_sample
+
+        frame = decode_frame_sample(sample)
+        with self._lock:
+            self.frames.append(frame)
+
+    def _on_status(self, sample) -> None:  # noqa: ANN001
+        from protocol.codec import DecodeError, decode
+        from protocol.messages import Status
+
+        try:
+            msg = decode(sample.payload.to_bytes(), Status)
+        except DecodeError:
+            return
+        with self._lock:
+            self.statuses.append(msg)
+
+    def n_frames(self) -> int:
+        with self._lock:
+            return len(self.frames)
+
+    def close(self) -> None:
+        for s in self._subs:
+            s.undeclare()
+        self.session.close()

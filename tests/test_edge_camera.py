@@ -5,66 +5,32 @@ from __future__ import annotations
 import json
 import shutil
 import signal
-import threading
 from pathlib import Path
 
 import cv2
 import numpy as np
 import pytest
 
-from protocol.codec import DecodeError, decode
+from protocol.codec import decode
 from protocol.jpeg import decode_jpeg
 from protocol.keys import Keys
-from protocol.messages import Status
-from protocol.session import ZenohSettings, open_session
-from protocol.transport import Frame, decode_frame_sample
-from tests.procs import Proc, wait_for
+from tests.procs import FramePeer, Proc, wait_for
 
 KEYS = Keys("default")
 
 
-class Listener:
+class Listener(FramePeer):
     """A client session collecting frames, Status messages and liveliness changes of one camera."""
 
     def __init__(self, router: str, camera_id: str) -> None:
-        self.session = open_session(ZenohSettings(mode="client", connect=[router]))
-        self.frames: list[Frame] = []
-        self.statuses: list[Status] = []
+        super().__init__(router, KEYS.cam_frame(camera_id), KEYS.status("edge-camera", camera_id))
         self.alive_events: list[str] = []
-        self._lock = threading.Lock()
-        self._subs = [
-            self.session.declare_subscriber(KEYS.cam_frame(camera_id), self._on_frame),
-            self.session.declare_subscriber(KEYS.status("edge-camera", camera_id), self._on_status),
-            self.session.liveliness().declare_subscriber(
-                KEYS.alive("edge-camera", camera_id), self._on_alive, history=True
-            ),
-        ]
-
-    def _on_frame(self, sample) -> None:  # noqa: ANN001 - zenoh.Sample
-        frame = decode_frame_sample(sample)
-        with self._lock:
-            self.frames.append(frame)
-
-    def _on_status(self, sample) -> None:  # noqa: ANN001
-        try:
-            msg = decode(sample.payload.to_bytes(), Status)
-        except DecodeError:
-            return
-        with self._lock:
-            self.statuses.append(msg)
+        self._subs.append(self.session.liveliness().declare_subscriber(
+            KEYS.alive("edge-camera", camera_id), self._on_alive, history=True))
 
     def _on_alive(self, sample) -> None:  # noqa: ANN001
         with self._lock:
             self.alive_events.append(str(sample.kind))
-
-    def n_frames(self) -> int:
-        with self._lock:
-            return len(self.frames)
-
-    def close(self) -> None:
-        for s in self._subs:
-            s.undeclare()
-        self.session.close()
 
 
 @pytest.fixture

@@ -4,58 +4,36 @@ from __future__ import annotations
 
 import math
 import signal
-import threading
 import time
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from protocol.codec import DecodeError, decode, encode
+from protocol.codec import decode, encode
 from protocol.jpeg import decode_jpeg
 from protocol.keys import Keys
 from protocol.messages import NbvGoal, OracleFrame, RobotState, Status, ViewpointSet
-from protocol.session import ZenohSettings, open_session
-from protocol.transport import Frame, decode_frame_sample
-from tests.procs import Proc, wait_for
+from protocol.transport import Frame
+from tests.procs import FramePeer, Proc, wait_for
 
 KEYS = Keys("default")
 RID = "rob_t"
 
 
-class RobotClient:
+class RobotClient(FramePeer):
     """A planner-like peer: collects one robot's states, frames and Status; sends goals."""
 
     def __init__(self, router: str, robot_id: str = RID) -> None:
+        super().__init__(router, KEYS.robot_frame(robot_id), KEYS.status("robot-agent", robot_id))
         self.robot_id = robot_id
-        self.session = open_session(ZenohSettings(mode="client", connect=[router]))
         self.states: list[RobotState] = []
-        self.frames: list[Frame] = []
-        self.statuses: list[Status] = []
-        self._lock = threading.Lock()
-        self._subs = [
-            self.session.declare_subscriber(KEYS.robot_state(robot_id), self._on_state),
-            self.session.declare_subscriber(KEYS.robot_frame(robot_id), self._on_frame),
-            self.session.declare_subscriber(KEYS.status("robot-agent", robot_id), self._on_status),
-        ]
+        self._subs.append(self.session.declare_subscriber(KEYS.robot_state(robot_id), self._on_state))
 
     def _on_state(self, sample) -> None:  # noqa: ANN001
         msg = decode(sample.payload.to_bytes(), RobotState)
         with self._lock:
             self.states.append(msg)
-
-    def _on_frame(self, sample) -> None:  # noqa: ANN001
-        frame = decode_frame_sample(sample)
-        with self._lock:
-            self.frames.append(frame)
-
-    def _on_status(self, sample) -> None:  # noqa: ANN001
-        try:
-            msg = decode(sample.payload.to_bytes(), Status)
-        except DecodeError:
-            return
-        with self._lock:
-            self.statuses.append(msg)
 
     def send(self, payload: bytes) -> None:
         self.session.put(KEYS.robot_goal(self.robot_id), payload)
@@ -79,10 +57,6 @@ class RobotClient:
         with self._lock:
             return max((s.counters.get(name, 0.0) for s in self.statuses), default=0.0)
 
-    def close(self) -> None:
-        for s in self._subs:
-            s.undeclare()
-        self.session.close()
 
 
 @pytest.fixture
