@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import argparse
 import logging
+import os
 import sys
 from pathlib import Path
 
@@ -27,8 +28,10 @@ def run(settings: ZenohSettings, site: str = "default", ready_file: Path | None 
         zid = str(session.info.zid())
         token = session.liveliness().declare_token(Keys(site).alive("router", zid[:32]))
         log.info("router %s listening on %s", zid, ", ".join(settings.listen) or "(config file)")
-        if ready_file is not None:
-            ready_file.write_text(zid)
+        if ready_file is not None:  # atomic, so a watcher never reads it half-written
+            tmp = ready_file.with_name(ready_file.name + ".tmp")
+            tmp.write_text(zid)
+            os.replace(tmp, ready_file)
         stop.wait()
         log.info("router shutting down")
         token.undeclare()

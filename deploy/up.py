@@ -653,7 +653,10 @@ def run(
                 code = 1
                 break
             if stack.healthy_at is not None and ready_file is not None and not ready_file.exists():
-                ready_file.write_text(",".join(str(p) for p in stack.pids()))
+                # Atomic: a watcher polling for the file must never read it half-written.
+                tmp = ready_file.with_name(ready_file.name + ".tmp")
+                tmp.write_text(",".join(str(p) for p in stack.pids()))
+                os.replace(tmp, ready_file)
             waited_s = time.monotonic() - stack.started_at
             if not warned and stack.healthy_at is None and waited_s > launch.health_timeout_s:
                 warned = True
