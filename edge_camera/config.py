@@ -9,8 +9,7 @@ from pydantic import BaseModel, ConfigDict, Field, SerializeAsAny, field_validat
 
 from edge_camera.sources import parse_source_config
 from edge_camera.sources.base import SourceConfig
-from protocol.keys import validate_id
-from protocol.session import ZenohSettings
+from protocol.tomlconfig import AgentConfig
 
 
 class PublishConfig(BaseModel):
@@ -36,13 +35,10 @@ class ReconnectConfig(BaseModel):
     factor: float = Field(default=2.0, ge=1.0, description="wait multiplier per consecutive failure")
 
 
-class EdgeCameraConfig(BaseModel):
+class EdgeCameraConfig(AgentConfig):
     """One fixed camera: where it reads, how it publishes, where the router is."""
 
-    model_config = ConfigDict(extra="forbid")
     id: str = Field(default="cam0", description="camera id (a single key chunk: letters, digits, _ . -)")
-    site: str = Field(default="default", description="Argus site name (key prefix argus/<site>/...)")
-    key_prefix: str = Field(default="argus", description="top-level key prefix")
     source: SerializeAsAny[SourceConfig] = Field(
         description="[source] table: 'type' picks the backend (opencv, stream, video, folder, pattern, sim); "
         "the other fields belong to that backend (see --describe)"
@@ -52,14 +48,6 @@ class EdgeCameraConfig(BaseModel):
         default=None, description="OpenCV YAML or JSON file with intrinsics and/or T_world_cam (see calibration.py)"
     )
     reconnect: ReconnectConfig = Field(default_factory=ReconnectConfig, description="back-off on faults")
-    status_period_s: float = Field(default=2.0, gt=0, description="seconds between Status messages")
-    zenoh: ZenohSettings = Field(default_factory=ZenohSettings, description="how to join the Zenoh network")
-    log_level: str = Field(default="INFO", description="DEBUG, INFO, WARNING or ERROR")
-
-    @field_validator("id", "site")
-    @classmethod
-    def _chunk(cls, v: str) -> str:
-        return validate_id(v)
 
     @field_validator("source", mode="before")
     @classmethod

@@ -17,7 +17,10 @@ import types
 from pathlib import Path
 from typing import Annotated, Any, Literal, TypeVar, Union, get_args, get_origin
 
-from pydantic import BaseModel, ValidationError
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+
+from protocol.keys import validate_id
+from protocol.session import ZenohSettings
 
 C = TypeVar("C", bound=BaseModel)
 
@@ -145,3 +148,23 @@ def process_values(a: argparse.Namespace, id_field: str = "id") -> dict[str, Any
     if getattr(a, "listen", None) is not None:
         values["zenoh.listen"] = a.listen
     return values
+
+
+class AgentConfig(BaseModel):
+    """Fields every edge agent (camera, robot) shares: identity on the wire, status, Zenoh, logging.
+
+    Subclasses redeclare ``id`` with their own default and description.
+    """
+
+    model_config = ConfigDict(extra="forbid")
+    id: str = Field(default="agent0", description="id (a single key chunk: letters, digits, _ . -)")
+    site: str = Field(default="default", description="Argus site name (key prefix argus/<site>/...)")
+    key_prefix: str = Field(default="argus", description="top-level key prefix")
+    status_period_s: float = Field(default=2.0, gt=0, description="seconds between Status messages")
+    zenoh: ZenohSettings = Field(default_factory=ZenohSettings, description="how to join the Zenoh network")
+    log_level: str = Field(default="INFO", description="DEBUG, INFO, WARNING or ERROR")
+
+    @field_validator("id", "site")
+    @classmethod
+    def _chunk(cls, v: str) -> str:
+        return validate_id(v)

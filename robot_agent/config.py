@@ -6,8 +6,7 @@ from typing import Any
 
 from pydantic import BaseModel, ConfigDict, Field, SerializeAsAny, field_validator
 
-from protocol.keys import validate_id
-from protocol.session import ZenohSettings
+from protocol.tomlconfig import AgentConfig
 from robot_agent.bodies import parse_body_config
 from robot_agent.bodies.base import BodyConfig
 
@@ -44,13 +43,10 @@ class BudgetConfig(BaseModel):
     max_steps: int | None = Field(default=None, gt=0, description="goals (arrivals) allowed")
 
 
-class RobotAgentConfig(BaseModel):
+class RobotAgentConfig(AgentConfig):
     """One robot: its body backend, what it publishes and where the router is."""
 
-    model_config = ConfigDict(extra="forbid")
     id: str = Field(default="robot0", description="robot id (a single key chunk: letters, digits, _ . -)")
-    site: str = Field(default="default", description="Argus site name (key prefix argus/<site>/...)")
-    key_prefix: str = Field(default="argus", description="top-level key prefix")
     body: SerializeAsAny[BodyConfig] = Field(
         description="[body] table: 'type' picks the backend (sim, kinematic); the other fields belong to it"
     )
@@ -61,14 +57,6 @@ class RobotAgentConfig(BaseModel):
     viewpoints_period_s: float = Field(
         default=5.0, gt=0, description="seconds between ViewpointSet re-publications (also served on query)"
     )
-    status_period_s: float = Field(default=2.0, gt=0, description="seconds between Status messages")
-    zenoh: ZenohSettings = Field(default_factory=ZenohSettings, description="how to join the Zenoh network")
-    log_level: str = Field(default="INFO", description="DEBUG, INFO, WARNING or ERROR")
-
-    @field_validator("id", "site")
-    @classmethod
-    def _chunk(cls, v: str) -> str:
-        return validate_id(v)
 
     @field_validator("body", mode="before")
     @classmethod
