@@ -11,11 +11,20 @@ Conventions
   heading, tilted by ``pitch_deg`` (negative looks down).
 * Pixel coordinates: ``(u, v)`` with u to the right and v down; the centre of the top-left pixel is
   (0, 0).
+* Pose tolerance: a pose read from outside (a header, a calibration file, a dataset) goes through
+  :func:`check_pose`. Its rotation may be off orthonormal by up to ``ROTATION_TOLERANCE`` = 1e-2,
+  measured as ``||R^T R - I||_F`` (poses written with 6 decimals are off by ~1e-6, float32 round trips
+  by ~1e-7); such a rotation is replaced by the nearest rotation in SO(3) (SVD) and reported as
+  projected. Anything further off (a shear, a scale), a reflection (det R <= 0), a non-finite entry, a
+  last row other than [0, 0, 0, 1] (atol 1e-6) or a shape other than 4x4 is a :class:`PoseError`
+  naming the pose's source.
 
 Everything here is pure numpy with no I/O.
 """
 
 from __future__ import annotations
+
+from dataclasses import dataclass
 
 import numpy as np
 from numpy.typing import ArrayLike, NDArray
@@ -23,19 +32,83 @@ from numpy.typing import ArrayLike, NDArray
 F64 = NDArray[np.float64]
 
 
-def as_pose(T: ArrayLike) -> F64:
-    """Return ``T`` as a float64 4x4 array, raising ``ValueError`` if it is not a finite rigid pose."""
-    M = np.asarray(T, dtype=np.float64)
+ROTATION_TOLERANCE = 1e-2
+"""Largest ``||R^T R - I||_F`` a pose's rotation may have; below it the rotation is projected onto SO(3)."""
+PROJECTION_THRESHOLD = 1e-9
+"""Residual above which a rotation counts as projected (float64 rounding of a true rotation is ~1e-15)."""
+LAST_ROW_ATOL = 1e-6
+"""How far a pose's last row may be from [0, 0, 0, 1], per entry."""
+
+
+class PoseError(ValueError):
+    """A matrix that is not a usable rigid pose; the message names its source and what is wrong."""
+
+
+@dataclass(frozen=True)
+class PoseCheck:
+    """What :func:`check_pose` found.
+
+    ``T``: the cleaned float64 4x4 pose (rotation in SO(3), last row exactly [0, 0, 0, 1], a new
+    array). ``residual``: ``||R^T R - I||_F`` of the rotation as given. ``projected``: whether the
+    rotation was replaced by its nearest rotation (``residual > PROJECTION_THRESHOLD``).
+    """
+
+    T: F64
+    residual: float
+    projected: bool
+
+
+def nearest_rotation(M: ArrayLike) -> F64:
+    """The rotation in SO(3) nearest to a 3x3 ``M`` in the Frobenius norm (SVD, reflection fixed)."""
+    U, _, Vt = np.linalg.svd(np.asarray(M, dtype=np.float64))
+    d = 1.0 if np.linalg.det(U @ Vt) > 0.0 else -1.0  # U Vt is orthogonal: det is +1 or -1
+    return U @ np.diag([1.0, 1.0, d]) @ Vt
+
+
+def check_pose(T: ArrayLike, source: str = "pose") -> PoseCheck:
+    """Validate and clean a rigid pose ``T`` (4x4, see the module's conventions for the tolerance).
+
+    ``source`` names the pose in error messages, e.g. ``"robot-1 frame 42 pose"``. Raises
+    :class:`PoseError` for a wrong shape, a non-finite entry, a wrong last row, a reflection or a
+    rotation off orthonormal by more than ``ROTATION_TOLERANCE``.
+    """
+    try:
+        M = np.array(T, dtype=np.float64)  # a copy: the caller's array is never changed
+    except (TypeError, ValueError) as e:
+        raise PoseError(f"{source}: not a numeric matrix ({e})") from None
     if M.shape != (4, 4):
-        raise ValueError(f"a pose must be 4x4, got shape {M.shape}")
-    if not np.all(np.isfinite(M)):
-        raise ValueError("a pose must be finite")
-    if not np.allclose(M[3], [0.0, 0.0, 0.0, 1.0], atol=1e-6):
-        raise ValueError("a pose's last row must be [0, 0, 0, 1]")
+        hint = {
+            (3, 3): " (a 3x3 is a bare rotation or a camera matrix, not a pose)",
+            (3, 4): " (a 3x4 is [R | t]: add the row [0, 0, 0, 1])",
+        }.get(M.shape, "")
+        raise PoseError(f"{source}: a pose must be a 4x4 homogeneous matrix, got shape {M.shape}{hint}")
+    bad = ~np.isfinite(M)
+    if bad.any():
+        where = ", ".join(f"[{i}, {j}]" for i, j in np.argwhere(bad)[:4])
+        raise PoseError(f"{source}: a pose must be finite, got NaN or inf at {where}")
+    if not np.allclose(M[3], [0.0, 0.0, 0.0, 1.0], rtol=0.0, atol=LAST_ROW_ATOL):
+        raise PoseError(f"{source}: a pose's last row must be [0, 0, 0, 1], got {M[3].tolist()}")
     R = M[:3, :3]
-    if not np.allclose(R @ R.T, np.eye(3), atol=1e-4) or np.linalg.det(R) < 0.0:
-        raise ValueError("a pose's rotation must be orthonormal with determinant +1")
-    return M
+    with np.errstate(over="ignore", invalid="ignore"):
+        det = float(np.linalg.det(R))
+        residual = float(np.linalg.norm(R.T @ R - np.eye(3)))
+    if not det > 0.0:
+        raise PoseError(f"{source}: pose rotation is a reflection or degenerate (det R = {det:.3g} <= 0)")
+    if not residual <= ROTATION_TOLERANCE:  # also catches a NaN residual (overflow)
+        raise PoseError(
+            f"{source}: pose rotation is not orthonormal (||R^T R - I|| = {residual:.3g} > "
+            f"{ROTATION_TOLERANCE:g}): a shear or scale in the pose?"
+        )
+    projected = residual > PROJECTION_THRESHOLD
+    if projected:
+        M[:3, :3] = nearest_rotation(R)
+    M[3] = [0.0, 0.0, 0.0, 1.0]
+    return PoseCheck(T=M, residual=residual, projected=projected)
+
+
+def as_pose(T: ArrayLike, source: str = "pose") -> F64:
+    """``T`` as a clean float64 4x4 rigid pose (see :func:`check_pose`); raises :class:`PoseError`."""
+    return check_pose(T, source).T
 
 
 def make_pose(R: ArrayLike, t: ArrayLike) -> F64:
