@@ -14,7 +14,7 @@ Either part may be absent, not both. A calibration's pose is trusted (``pose_tru
 from __future__ import annotations
 
 import json
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -22,7 +22,7 @@ import cv2
 import numpy as np
 
 from protocol.messages import Intrinsics
-from protocol.poses import as_pose
+from protocol.poses import PoseError, as_pose
 
 
 class CalibrationError(ValueError):
@@ -120,7 +120,8 @@ def load_calibration(path: Path) -> Calibration:
         raise CalibrationError(f"calibration file {path} holds neither camera_matrix nor T_world_cam")
     if calib.T_world_cam is not None:
         try:
-            as_pose(calib.T_world_cam)
-        except ValueError as e:
-            raise CalibrationError(f"T_world_cam in {path}: {e}") from None
+            # A surveyed pose written with a few decimals is projected onto SO(3) here, once.
+            calib = replace(calib, T_world_cam=as_pose(calib.T_world_cam, source=f"T_world_cam in {path}"))
+        except PoseError as e:
+            raise CalibrationError(str(e)) from None
     return calib
