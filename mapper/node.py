@@ -6,11 +6,17 @@ the JPEGs; feeds the core; publishes each GraphDelta, each changed node under ``
 (deleting removed ones), a GraphSnapshot and the PointMap at bounded rates; answers queries on
 ``graph/**`` (``graph/snapshot``, ``graph/nodes?label=..;near=..;radius=..;id=..;since_version=..``,
 ``graph/node/<id>``); reports status; persists the graph atomically so a restart resumes it.
+
+Each frame's pose is checked on arrival (:func:`protocol.poses.check_pose`): a nearly rigid one is
+projected onto SO(3) (counter ``poses_projected``); any other is dropped with its frame (counter
+``frames_bad_pose``, one warning per source per ``BAD_POSE_LOG_PERIOD_S``). A pose that is not a
+finite 4x4 never decodes (``header_errors``).
 """
 
 from __future__ import annotations
 
 import collections
+import dataclasses
 import logging
 import threading
 import time
@@ -26,6 +32,7 @@ from protocol.jpeg import JpegError, decode_jpeg
 from protocol.keys import Keys
 from protocol.messages import GraphDelta, GraphSnapshot, OracleFrame
 from protocol.oracle import decode_u16_png, png_to_depth
+from protocol.poses import PoseError, check_pose
 from protocol.query import GraphQuery
 from protocol.session import open_session
 from protocol.transport import (
@@ -43,6 +50,8 @@ if TYPE_CHECKING:
 
 log = logging.getLogger(__name__)
 ROLE = "mapper"
+BAD_POSE_LOG_PERIOD_S = 10.0
+"""At most one warning per source per this many seconds about frames dropped for a bad pose."""
 
 
 def needs_oracle(config: MapperConfig) -> bool:
@@ -70,6 +79,34 @@ def oracle_data(msg: OracleFrame) -> OracleData:
     )
 
 
+class PerSourceLog:
+    """Logs at most one warning per source per ``period_s`` and says how many were held back since.
+
+    Thread-safe (Zenoh callbacks); remembers at most ``max_sources`` sources, so made-up source ids
+    cannot grow it without bound (a forgotten source may just be reported again sooner).
+    """
+
+    def __init__(self, logger: logging.Logger, period_s: float, max_sources: int = 1024) -> None:
+        self._log, self.period_s, self.max_sources = logger, period_s, max_sources
+        self._lock = threading.Lock()
+        self._last: collections.OrderedDict[str, tuple[float, int]] = collections.OrderedDict()
+
+    def warning(self, source: str, message: str) -> bool:
+        """Log ``message`` unless ``source`` was reported less than ``period_s`` ago; True when logged."""
+        now = time.monotonic()
+        with self._lock:
+            last, held = self._last.get(source, (-float("inf"), 0))
+            logged = now - last >= self.period_s
+            self._last[source] = (now, 0) if logged else (last, held + 1)
+            self._last.move_to_end(source)
+            while len(self._last) > self.max_sources:
+                self._last.popitem(last=False)
+        if logged:
+            more = f" ({held} more from {source} held back since the last report)" if held else ""
+            self._log.warning("%s%s", message, more)
+        return logged
+
+
 class MapperNode:
     """One mapper process. ``run(stop)`` blocks until ``stop`` is set; tests may call it directly."""
 
@@ -87,6 +124,7 @@ class MapperNode:
         )
         self._session: zenoh.Session | None = None
         self._rerun: Any = None
+        self._bad_pose_log = PerSourceLog(log, BAD_POSE_LOG_PERIOD_S, max_sources=4 * config.max_sources)
         self._last_snapshot = (-1, 0.0)
         self._last_map = (-1, 0.0)
         self._last_save = (-1, 0.0)
@@ -138,7 +176,30 @@ class MapperNode:
             self.counters.add("header_errors")
             log.debug("bad frame sample on %s: %s", sample.key_expr, e)
             return
-        self.slots.put(frame.key, frame)
+        # Checked on arrival: a bad-pose frame never takes a ring slot from its source's good frames.
+        checked = self._checked_pose(frame)
+        if checked is not None:
+            self.slots.put(checked.key, checked)
+
+    def _checked_pose(self, frame: Frame) -> Frame | None:
+        """``frame`` with its pose projected onto SO(3) when slightly off (``poses_projected``), or None
+        when the pose is unusable (``frames_bad_pose``, a rate-limited warning); the frame is dropped.
+
+        Shape and finiteness were already checked by the codec (a header failing them is a header error).
+        """
+        h = frame.header
+        if h.T_world_cam is None:
+            return frame
+        try:
+            checked = check_pose(h.T_world_cam, source=f"{h.source_id} frame {h.seq} pose")
+        except PoseError as e:
+            self.counters.add("frames_bad_pose")
+            self._bad_pose_log.warning(h.source_id, f"dropped a frame: {e}")
+            return None
+        if not checked.projected:
+            return frame
+        self.counters.add("poses_projected")
+        return dataclasses.replace(frame, header=h.model_copy(update={"T_world_cam": checked.T.tolist()}))
 
     def _on_oracle(self, sample: zenoh.Sample) -> None:
         try:

@@ -276,8 +276,9 @@ class Peer:
 
         self.session.put(key, payload, attachment=attachment, congestion_control=zenoh.CongestionControl.BLOCK)
 
-    def send_view(self, eye: list[float], seq: int, source: str = SRC) -> None:
-        """A valid frame of the ray-cast scene with its ORACLE sample (sent first)."""
+    def send_view(self, eye: list[float], seq: int, source: str = SRC, header_pose: np.ndarray | None = None) -> None:
+        """A valid frame of the ray-cast scene with its ORACLE sample (sent first); ``header_pose`` replaces
+        the header's (true) pose."""
         v = view(eye, seq, source)
         assert v.oracle is not None and v.oracle.instance_id is not None
         self.put(KEYS.oracle("robot", source), encode(OracleFrame(
@@ -285,7 +286,8 @@ class Peer:
             ids_png=ids_to_png(v.oracle.instance_id), depth_png=depth_to_png(v.oracle.depth_m),
             labels={str(k): lab for k, lab in LABELS.items()},
         )))
-        self.put(KEYS.robot_frame(source), encode_jpeg(v.image), encode(header(source, seq, v.T_world_cam)))
+        T = v.T_world_cam if header_pose is None else header_pose
+        self.put(KEYS.robot_frame(source), encode_jpeg(v.image), encode(header(source, seq, T)))
 
     def close(self) -> None:
         for s in self.subs:
@@ -705,6 +707,59 @@ def test_mapper_still_ingests_a_new_source_after_made_up_sources(lone_mapper: tu
              or peer.counter(MAPPER, "frames_without_oracle") > base.get("frames_without_oracle", 0), timeout=3,
              what=f"the new source's frame processed or dropped; counters {peer.counters(MAPPER)}")
     assert peer.counter(MAPPER, "frames_processed") == base.get("frames_processed", 0) + 1
+
+
+def test_mapper_drops_bad_poses_projects_nearly_rigid_ones_and_still_ingests(lone_mapper: tuple[Proc, Peer]) -> None:
+    mapper, peer = lone_mapper
+    base = peer.counters(MAPPER)
+    tiny = encode_jpeg(np.zeros((INTR.height, INTR.width, 3), np.uint8))
+    T = view(EYES[0], 1).T_world_cam
+    assert T is not None
+
+    def posed(R: np.ndarray | None = None, last_row: list[float] | None = None) -> np.ndarray:
+        out = T.copy()
+        if R is not None:
+            out[:3, :3] = R
+        if last_row is not None:
+            out[3] = last_row
+        return out
+
+    # The codec refuses a NaN or 3x3 pose while decoding the header (header_errors): no FrameHeader exists.
+    for src, pose in (("pose_nan", [[math.nan] * 4] * 4), ("pose_3x3", np.eye(3).tolist())):
+        body = {**header(src, 1).model_dump(), "T_world_cam": pose}
+        peer.put(KEYS.robot_frame(src), tiny, envelope("frame_header", body))
+    # Well-formed 4x4 headers whose pose is no rigid transform: the mapper drops them (frames_bad_pose), one
+    # warning for the source. The shear comes first, so that is the warning.
+    bad_poses = [
+        posed(T[:3, :3] @ np.array([[1.0, 0.05, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]])),  # shear
+        posed(T[:3, :3] @ np.diag([1.0, 1.0, -1.0])),  # reflection
+        posed(last_row=[0.0, 0.0, 1e-3, 1.0]),  # not homogeneous
+    ]
+    for i, Tb in enumerate(bad_poses):
+        peer.put(KEYS.robot_frame("pose_bad"), tiny, encode(header("pose_bad", 10 + i, Tb)))
+    # A full valid frame whose pose is off orthonormal by ~1e-3: projected onto SO(3) and ingested.
+    near = posed(T[:3, :3] * (1 + 5e-4))
+    peer.send_view(EYES[0], 1, header_pose=near)
+    expected = {"header_errors": 2, "frames_bad_pose": 3, "poses_projected": 1, "frames_processed": 1}
+    grew = peer.wait_counts(MAPPER, base, expected, proc=mapper)
+    assert grew == expected
+    wait_for(lambda: "dropped a frame: pose_bad frame 10 pose: pose rotation is not orthonormal "
+                     "(||R^T R - I|| = 0.0708 > 0.01)" in mapper.output,
+             timeout=5, what=f"the shear's warning in the mapper's log:\n{mapper.output[-2000:]}")
+    assert mapper.output.count("dropped a frame: pose_bad") == 1  # rate-limited per source
+
+    # Still ingesting: the next valid frame is processed and grows the graph.
+    n0 = len(peer.deltas)
+    version = peer.snapshot().version
+    peer.send_view(EYES[1], 2)
+    peer.wait_counts(MAPPER, base, {"frames_processed": 2}, proc=mapper)
+    wait_for(lambda: len(peer.deltas) > n0, timeout=30, what=f"a delta after the bad poses\n{mapper.output[-2000:]}")
+    assert peer.snapshot().version > version
+    counts = peer.counters(MAPPER)
+    for name in ("decode_errors", "keyframe_errors", "frames_without_oracle"):
+        assert counts.get(name, 0.0) == base.get(name, 0.0), name
+    assert counts["frames_bad_pose"] - base.get("frames_bad_pose", 0.0) == 3
+    assert mapper.alive()
 
 
 def test_planner_keeps_its_map_when_a_malformed_point_map_arrives(stack: Stack) -> None:
