@@ -1,17 +1,58 @@
-"""Feature tracks, triangulation and bundle adjustment with pose priors as soft constraints.
+"""Feature tracks, triangulation and bundle adjustment with pose priors, on a GTSAM factor graph.
 
-Odometry and recorded poses are priors, not truth: a bundle adjustment over feature tracks moves them
-to agree with the images while a prior term per camera keeps the gauge and the metric scale. Cameras
-with a surveyed calibration are held fixed. Pure numpy / scipy.
+Odometry and recorded poses are priors, not truth: a bundle adjustment over feature tracks moves them to
+agree with the images. Images carry no metric scale at all (scaling every camera centre and point about
+one point leaves every reprojection unchanged), so the metric scale must come from the priors alone.
+
+The factor graph (``bundle_adjust``), one ``Pose3`` per camera (key ``X(i)``, ``T_world_cam``: gtsam's
+camera axes are OpenCV's) and one ``Point3`` per track point (key ``L(j)``):
+
+* ``GenericProjectionFactorCal3_S2`` per observation, with a Huber loss: wrong matches that survived the
+  match filters cost linearly, not quadratically.
+* ``PriorFactorPose3`` on every free camera with a prior: it holds the world frame (gauge) and keeps
+  the solution near the odometry.
+* ``BetweenFactorPose3`` between consecutive prior-having cameras (list order, within a
+  ``prior_group``), from their prior relative pose. Odometry drifts absolutely but is good relatively:
+  at video rate consecutive cameras are 1-3 cm apart while the absolute prior sigma is ~5 cm, so an
+  absolute prior alone lets the cameras slide together and the scene shrinks (seen as ~0.6x depth on
+  real frames). The translation sigma grows with the step length (``rel_trans_frac``). The rotation
+  sigma defaults to the absolute one, because priors without odometry (independent per-frame errors)
+  must not be held together; pass an odometry-grade ``sigma_rel_rot_deg`` (~0.02-0.05 deg for a gyro)
+  for video: at 1 cm steps and 1-2 m depth a 0.04 deg yaw trades against a uniform shift of inverse
+  depth, i.e. ~8 % of point depth, which the pixels barely see.
+* Cameras marked ``fixed`` (surveyed calibrations) enter as ``NonlinearEqualityPose3`` and come back
+  bit-identical.
+
+Scale safety by construction: after optimisation the scale ``s`` of the refined camera centres relative
+to the prior centres is measured (least squares, prior = refined / s, over the cameras with a prior or
+fixed, about their centroid or about the fixed camera's centre) and the solution is rescaled by
+``1 / s`` about that point (centres and points; rotations and every reprojection unchanged), then
+translated so the centroids coincide when no camera is fixed. The result therefore has the priors'
+scale exactly, whatever the images pulled towards. Two fixed cameras at different places pin the scale
+themselves and nothing is rescaled.
+
+Degeneracies keep the priors unchanged and say why in ``BundleResult.status`` ("ok" otherwise):
+
+* ``no_cameras``: no camera is free to refine.
+* ``no_prior``: fewer than two cameras carry a prior or are fixed, or they all sit at one place (with
+  parallax from the others): nothing holds the metric scale.
+* ``few_inliers``: fewer than ``min_inliers`` observations (before) or inlier observations (after the
+  optimisation): too little evidence to move the odometry.
+* ``low_parallax``: the median over points of the largest angle between observing rays (prior poses)
+  is below ``min_parallax_deg``: a (near) pure rotation, depth and translation are unobservable.
+* ``scale_change``: the images asked for a scale change ``|1 - s|`` above ``max_scale_change``; that
+  is a sign of wrong matches (static overlays, a moving object), since odometry does not allow it.
+* ``solver_failed``: the linear solver gave up (an indeterminate system).
 """
 
 from __future__ import annotations
 
 from dataclasses import dataclass, field
 
+import gtsam
 import numpy as np
+from gtsam.symbol_shorthand import L, X
 from numpy.typing import NDArray
-from scipy.spatial.transform import Rotation
 
 F64 = NDArray[np.float64]
 I64 = NDArray[np.int64]
@@ -92,32 +133,90 @@ class BundleProblem:
     """Observations of points in cameras: obs_cam[k] sees obs_pt[k] at obs_uv[k] (pixels)."""
 
     Ks: list[F64]
+    """3x3 intrinsics per camera."""
     T_world_cam: list[F64]
+    """4x4 pose priors (camera to world, OpenCV axes); also the starting point."""
     points_world: F64
+    """(P, 3) starting points, usually triangulated with the priors."""
     obs_cam: I64
     obs_pt: I64
     obs_uv: F64
     fixed: list[bool] = field(default_factory=list)
+    """Per camera: held exactly (surveyed). Empty: none fixed."""
     has_prior: list[bool] = field(default_factory=list)
+    """Per camera: its pose is a prior (odometry, recorded). Empty: all. Without a prior a camera is only
+    a starting guess (e.g. a PnP registration) and is free."""
+    prior_group: list[int] = field(default_factory=list)
+    """Per camera: odometry source. Between-factors link consecutive cameras of one group only (two
+    robots, or a robot and a hand-held phone, share no odometry). Empty: one group."""
 
 
 @dataclass
 class BundleResult:
     T_world_cam: list[F64]
+    """Refined poses; the input priors themselves when ``status`` is not "ok"."""
     points_world: F64
+    """(P, 3) refined points; the input points when ``status`` is not "ok"."""
     inlier_obs: NDArray[np.bool_]
+    """Per observation: in front of its camera and reprojected within 3 * huber_px (returned solution)."""
     rms_px_before: float
+    """RMS reprojection error of the priors and input points (observations in front of their camera)."""
     rms_px_after: float
+    """The same for the returned solution."""
     n_iterations: int
+    """Levenberg-Marquardt iterations (0 when it did not run)."""
+    status: str = "ok"
+    """"ok" or why the priors were kept: no_cameras, no_prior, few_inliers, low_parallax, scale_change,
+    solver_failed (see the module docstring)."""
+    scale_correction: float = 1.0
+    """1 / s, the factor applied to bring the refined scale back to the priors' (reported, not applied,
+    when the status is scale_change or few_inliers after the optimisation)."""
+    median_parallax_deg: float = 0.0
+    """Median over points of the largest angle between their observing rays, with the prior poses."""
+    n_inliers: int = 0
+    """Number of True entries of ``inlier_obs``."""
 
 
-def _skew(v: F64) -> F64:
-    """Cross-product matrices (..., 3, 3) of vectors (..., 3)."""
-    z = np.zeros(v.shape[:-1])
-    return np.stack(
-        [np.stack([z, -v[..., 2], v[..., 1]], -1), np.stack([v[..., 2], z, -v[..., 0]], -1),
-         np.stack([-v[..., 1], v[..., 0], z], -1)], -2
-    )
+def _obs_errors(Ks: list[F64], T_world_cam: list[F64], X_world: F64, oc: I64, op: I64, uv: F64) -> tuple[F64, F64]:
+    """Reprojection error (px) and camera z of every observation; vectorised over observations."""
+    T_cw = np.stack([np.linalg.inv(T) for T in T_world_cam]) if T_world_cam else np.zeros((0, 4, 4))
+    Kst = np.stack(Ks) if Ks else np.zeros((0, 3, 3))
+    p = np.einsum("nij,nj->ni", T_cw[oc, :3, :3], X_world[op]) + T_cw[oc, :3, 3]
+    q = np.einsum("nij,nj->ni", Kst[oc], p)
+    z = p[:, 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        err = np.linalg.norm(q[:, :2] / q[:, 2:3] - uv, axis=1)
+    return err, z
+
+
+def _rms(err: F64, z: F64) -> float:
+    ok = (z > 0) & np.isfinite(err)
+    return float(np.sqrt(np.mean(err[ok] ** 2))) if ok.any() else 0.0
+
+
+def _median_parallax_deg(centres: F64, X_world: F64, oc: I64, op: I64) -> float:
+    """Median over points (with >= 2 observations) of the largest angle between observing rays."""
+    order = np.argsort(op, kind="stable")
+    pt, cam = op[order], oc[order]
+    rays = X_world[pt] - centres[cam]
+    rays /= np.maximum(np.linalg.norm(rays, axis=1, keepdims=True), 1e-300)
+    min_cos = np.full(X_world.shape[0], np.inf)
+    # Observations of one point are contiguous after the sort, so comparing every observation with the
+    # d-th next one for d = 1 .. (longest track - 1) visits every pair of rays of every point.
+    longest = int(np.bincount(pt).max()) if len(pt) else 0
+    for d in range(1, longest):
+        same = pt[:-d] == pt[d:]
+        cos = np.sum(rays[:-d][same] * rays[d:][same], axis=1)
+        np.minimum.at(min_cos, pt[:-d][same], cos)
+    seen = np.isfinite(min_cos)
+    if not seen.any():
+        return 0.0
+    return float(np.degrees(np.median(np.arccos(np.clip(min_cos[seen], -1.0, 1.0)))))
+
+
+def _pose_noise(rot_rad: float, trans_m: float) -> gtsam.noiseModel.Base:
+    # gtsam orders Pose3 tangent vectors (rotation, translation), both in the pose's local frame.
+    return gtsam.noiseModel.Diagonal.Sigmas(np.array([rot_rad] * 3 + [trans_m] * 3))
 
 
 def bundle_adjust(
@@ -126,128 +225,148 @@ def bundle_adjust(
     sigma_trans_m: float = 0.03,
     huber_px: float = 2.0,
     max_iterations: int = 20,
+    *,
+    sigma_px: float = 1.0,
+    sigma_rel_rot_deg: float | None = None,
+    sigma_rel_trans_m: float = 0.005,
+    rel_trans_frac: float = 0.05,
+    min_parallax_deg: float = 1.0,
+    min_inliers: int = 30,
+    max_scale_change: float = 0.05,
 ) -> BundleResult:
-    """Refine camera poses and points: Huber reprojection error plus a prior per camera.
+    """Refine camera poses and points against the pose priors (see the module docstring).
 
-    The prior pulls each non-fixed camera with ``has_prior`` towards its starting pose (rotation in
-    units of ``sigma_rot_deg``, camera centre in units of ``sigma_trans_m``, both scaled so that one
-    sigma costs like ``huber_px`` of reprojection error), which fixes the gauge and keeps the metric
-    scale of the priors. Cameras with ``fixed`` do not move. Levenberg-Marquardt with analytic
-    Jacobians and the Schur complement on the points (cameras are few, points many).
+    sigma_rot_deg / sigma_trans_m: absolute prior per free camera with ``has_prior``. huber_px: Huber
+    threshold of the reprojection error; sigma_px: its standard deviation (weight of the images against
+    the priors). sigma_rel_rot_deg (None: sigma_rot_deg), sigma_rel_trans_m + rel_trans_frac * step
+    length: between-factors on consecutive prior-having cameras. min_parallax_deg, min_inliers,
+    max_scale_change: the degeneracy checks. Returns the refined solution, or the priors with a status saying why.
     """
     n_cam = len(prob.Ks)
-    n_pt = prob.points_world.shape[0]
     fixed = np.array(prob.fixed or [False] * n_cam, bool)
-    has_prior = np.array(prob.has_prior or [True] * n_cam, bool) & ~fixed
-    oc, op, ouv = prob.obs_cam, prob.obs_pt, prob.obs_uv
-    n_obs = len(oc)
-    fxy = np.stack([[K[0, 0], K[1, 1]] for K in prob.Ks])
-    cxy = np.stack([K[:2, 2] for K in prob.Ks])
-    R_prior = np.stack([np.linalg.inv(T)[:3, :3] for T in prob.T_world_cam])  # R_cam_world
-    C_prior = np.stack([T[:3, 3] for T in prob.T_world_cam])
-    w_rot = huber_px / np.deg2rad(sigma_rot_deg)
-    w_trans = huber_px / sigma_trans_m
+    has_prior = np.array(prob.has_prior or [True] * n_cam, bool)
+    group = np.array(prob.prior_group or [0] * n_cam, np.int64)
+    anchored = fixed | has_prior  # cameras whose pose carries metric information
+    T_prior = [np.asarray(T, np.float64) for T in prob.T_world_cam]
+    C_prior = np.stack([T[:3, 3] for T in T_prior]) if n_cam else np.zeros((0, 3))
+    pts0 = np.asarray(prob.points_world, np.float64).reshape(-1, 3)
+    oc = np.asarray(prob.obs_cam, np.int64)
+    op = np.asarray(prob.obs_pt, np.int64)
+    ouv = np.asarray(prob.obs_uv, np.float64).reshape(-1, 2)
 
-    def residuals(R: F64, C: F64, X: F64) -> tuple[F64, F64, F64, F64]:
-        p = np.einsum("nij,nj->ni", R[oc], X[op] - C[oc])
-        z = np.maximum(p[:, 2], 1e-6)
-        uv = p[:, :2] / z[:, None] * fxy[oc] + cxy[oc]
-        r_rot = w_rot * Rotation.from_matrix(np.einsum("nij,nkj->nik", R, R_prior)).as_rotvec()
-        r_c = w_trans * (C - C_prior)
-        return uv - ouv, p, r_rot, r_c
+    err0, z0 = _obs_errors(prob.Ks, T_prior, pts0, oc, op, ouv)
+    rms0 = _rms(err0, z0)
 
-    def cost(r: F64, r_rot: F64, r_c: F64) -> float:
-        e = np.linalg.norm(r, axis=1)
-        rho = np.where(e <= huber_px, 0.5 * e**2, huber_px * (e - 0.5 * huber_px))
-        return float(rho.sum() + 0.5 * ((r_rot[has_prior] ** 2).sum() + (r_c[has_prior] ** 2).sum()))
+    # Points seen by one camera only, or not finite, add nothing but an unobservable depth: leave them out.
+    finite = np.all(np.isfinite(pts0), axis=1)
+    n_views = np.zeros(len(pts0), np.int64)
+    for c in range(n_cam):
+        seen = np.zeros(len(pts0), bool)
+        seen[op[oc == c]] = True
+        n_views += seen
+    in_graph_pt = finite & (n_views >= 2)
+    in_graph_obs = in_graph_pt[op] if len(op) else np.zeros(0, bool)
+    parallax = _median_parallax_deg(C_prior, pts0, oc[in_graph_obs], op[in_graph_obs])
 
-    R, C, X = R_prior.copy(), C_prior.copy(), prob.points_world.astype(np.float64).copy()
-    r, p, r_rot, r_c = residuals(R, C, X)
-    rms0 = float(np.sqrt(np.mean(np.sum(r**2, 1)))) if n_obs else 0.0
-    cur = cost(r, r_rot, r_c)
-    lam = 1e-3
-    it = 0
-    free_idx = np.flatnonzero(~fixed)
-    for it in range(1, max_iterations + 1):  # noqa: B007
-        e = np.linalg.norm(r, axis=1)
-        w = np.where(e <= huber_px, 1.0, huber_px / np.maximum(e, 1e-12))
-        z = np.maximum(p[:, 2], 1e-6)
-        f = fxy[oc]
-        J_proj = np.zeros((n_obs, 2, 3))
-        J_proj[:, 0, 0] = f[:, 0] / z
-        J_proj[:, 0, 2] = -f[:, 0] * p[:, 0] / z**2
-        J_proj[:, 1, 1] = f[:, 1] / z
-        J_proj[:, 1, 2] = -f[:, 1] * p[:, 1] / z**2
-        Jp = J_proj @ R[oc]  # d uv / d X
-        Jc = np.concatenate([J_proj @ -_skew(p), -Jp], axis=2)  # d uv / d (omega, C)
-        wJc = Jc * w[:, None, None]
-        wJp = Jp * w[:, None, None]
-        Hcc = np.zeros((n_cam, 6, 6))
-        np.add.at(Hcc, oc, np.einsum("kai,kaj->kij", wJc, Jc))
-        bc = np.zeros((n_cam, 6))
-        np.add.at(bc, oc, np.einsum("kai,ka->ki", wJc, r))
-        Hpp = np.zeros((n_pt, 3, 3))
-        np.add.at(Hpp, op, np.einsum("kai,kaj->kij", wJp, Jp))
-        bp = np.zeros((n_pt, 3))
-        np.add.at(bp, op, np.einsum("kai,ka->ki", wJp, r))
-        Hcp = np.zeros((n_pt, n_cam, 6, 3))
-        np.add.at(Hcp, (op, oc), np.einsum("kai,kaj->kij", wJc, Jp))
-        pr = np.flatnonzero(has_prior)
-        Hcc[pr, :3, :3] += w_rot**2 * np.eye(3)
-        Hcc[pr, 3:, 3:] += w_trans**2 * np.eye(3)
-        bc[pr, :3] += w_rot * r_rot[pr]
-        bc[pr, 3:] += w_trans * r_c[pr]
-        improved = False
-        for _ in range(8):
-            Hpp_d = Hpp + lam * (np.einsum("nii->ni", Hpp)[:, :, None] * np.eye(3) + 1e-9 * np.eye(3))
-            Hpp_inv = np.linalg.inv(Hpp_d)
-            Y = np.einsum("nmas,nst->nmat", Hcp, Hpp_inv)  # (P, cam, 6, 3)
-            Yr = Y.transpose(1, 2, 0, 3).reshape(6 * n_cam, 3 * n_pt)
-            Hr = Hcp.transpose(1, 2, 0, 3).reshape(6 * n_cam, 3 * n_pt)
-            Hcc_d = Hcc.copy()
-            Hcc_d += lam * (np.einsum("nii->ni", Hcc)[:, :, None] * np.eye(6) + 1e-9 * np.eye(6))
-            S = np.zeros((6 * n_cam, 6 * n_cam))
-            for i in range(n_cam):
-                S[6 * i : 6 * i + 6, 6 * i : 6 * i + 6] = Hcc_d[i]
-            S -= Yr @ Hr.T
-            rhs = bc.reshape(-1) - Yr @ bp.reshape(-1)
-            sel = np.concatenate([np.arange(6 * i, 6 * i + 6) for i in free_idx]) if len(free_idx) else np.zeros(0, int)
-            dc = np.zeros(6 * n_cam)
-            if len(sel):
-                try:
-                    dc[sel] = -np.linalg.solve(S[np.ix_(sel, sel)], rhs[sel])
-                except np.linalg.LinAlgError:
-                    lam *= 10
-                    continue
-            dcs = dc.reshape(n_cam, 6)
-            dX = -np.einsum("nst,nt->ns", Hpp_inv, bp + np.einsum("nmas,ma->ns", Hcp, dcs))
-            R_new = np.einsum("nij,njk->nik", Rotation.from_rotvec(dcs[:, :3]).as_matrix(), R)
-            C_new = C + dcs[:, 3:]
-            X_new = X + dX
-            r_n, p_n, rr_n, rc_n = residuals(R_new, C_new, X_new)
-            new = cost(r_n, rr_n, rc_n)
-            if new < cur:
-                R, C, X, r, p, r_rot, r_c = R_new, C_new, X_new, r_n, p_n, rr_n, rc_n
-                rel = (cur - new) / max(cur, 1e-12)
-                cur = new
-                lam = max(lam / 3, 1e-7)
-                improved = True
-                break
-            lam *= 10
-        if not improved or rel < 1e-5:
-            break
-    err = np.linalg.norm(r, axis=1)
-    T_out = []
+    def keep_priors(status: str, scale_correction: float = 1.0, n_iterations: int = 0) -> BundleResult:
+        inl = (err0 < 3.0 * huber_px) & (z0 > 0)
+        return BundleResult(
+            T_world_cam=[T.copy() for T in T_prior], points_world=pts0.copy(), inlier_obs=inl,
+            rms_px_before=rms0, rms_px_after=rms0, n_iterations=n_iterations, status=status,
+            scale_correction=scale_correction, median_parallax_deg=parallax, n_inliers=int(inl.sum()),
+        )
+
+    if not np.any(~fixed):
+        return keep_priors("no_cameras")
+    # Anchors all at one place hold no scale either; under a pure rotation, though, low_parallax says more.
+    anchors_coincide = np.ptp(C_prior[anchored], axis=0).max() <= 1e-9 if anchored.any() else True
+    if anchored.sum() < 2 or (anchors_coincide and parallax >= min_parallax_deg):
+        return keep_priors("no_prior")
+    if in_graph_obs.sum() < min_inliers:
+        return keep_priors("few_inliers")
+    if parallax < min_parallax_deg:
+        return keep_priors("low_parallax")
+
+    graph = gtsam.NonlinearFactorGraph()
+    values = gtsam.Values()
+    poses = [gtsam.Pose3(T) for T in T_prior]
     for i in range(n_cam):
-        T = np.eye(4)
-        T[:3, :3] = R[i].T
-        T[:3, 3] = C[i]
-        T_out.append(T)
+        values.insert(X(i), poses[i])
+        if fixed[i]:
+            graph.add(gtsam.NonlinearEqualityPose3(X(i), poses[i]))
+    prior_noise = _pose_noise(np.radians(sigma_rot_deg), sigma_trans_m)
+    chain = np.flatnonzero(has_prior & ~fixed)
+    for i in chain.tolist():
+        graph.add(gtsam.PriorFactorPose3(X(i), poses[i], prior_noise))
+    # Rotation carries no scale, so by default the relative rotation is trusted no more than the absolute
+    # one: priors with independent rotation errors (no odometry) must not be held together more tightly.
+    rel_rot_rad = np.radians(sigma_rot_deg if sigma_rel_rot_deg is None else sigma_rel_rot_deg)
+    for g in np.unique(group[chain]):
+        members = chain[group[chain] == g]
+        for a, b in zip(members[:-1], members[1:], strict=True):
+            rel = poses[a].between(poses[b])
+            step_m = float(np.linalg.norm(rel.translation()))
+            noise = _pose_noise(rel_rot_rad, sigma_rel_trans_m + rel_trans_frac * step_m)
+            graph.add(gtsam.BetweenFactorPose3(X(int(a)), X(int(b)), rel, noise))
+    pt_ids = np.flatnonzero(in_graph_pt)
+    for j in pt_ids.tolist():
+        values.insert(L(j), pts0[j])
+    cals = [gtsam.Cal3_S2(K[0, 0], K[1, 1], K[0, 1], K[0, 2], K[1, 2]) for K in prob.Ks]
+    pix_noise = gtsam.noiseModel.Robust.Create(
+        gtsam.noiseModel.mEstimator.Huber.Create(huber_px / sigma_px), gtsam.noiseModel.Isotropic.Sigma(2, sigma_px)
+    )
+    x_keys = [X(i) for i in range(n_cam)]
+    sel = np.flatnonzero(in_graph_obs)
+    for c, j, uv in zip(oc[sel].tolist(), op[sel].tolist(), ouv[sel], strict=True):
+        graph.add(gtsam.GenericProjectionFactorCal3_S2(uv, pix_noise, x_keys[c], L(j), cals[c]))
+
+    params = gtsam.LevenbergMarquardtParams()
+    params.setMaxIterations(max_iterations)
+    optimizer = gtsam.LevenbergMarquardtOptimizer(graph, values, params)
+    try:
+        out = optimizer.optimize()
+    except RuntimeError:
+        return keep_priors("solver_failed", n_iterations=optimizer.iterations())
+    n_it = optimizer.iterations()
+
+    T_ref = [T_prior[i].copy() if fixed[i] else out.atPose3(X(i)).matrix() for i in range(n_cam)]
+    pts = pts0.copy()
+    if len(pt_ids):
+        pts[pt_ids] = gtsam.utilities.extractPoint3(out)  # sorted by key, i.e. by point index
+    C_ref = np.stack([T[:3, 3] for T in T_ref])
+
+    # Scale about a fixed camera when there is one (it must not move), else about the centroid of the
+    # anchored cameras; two fixed cameras at different places pin the scale by themselves.
+    fixed_ids = np.flatnonzero(fixed)
+    if len(fixed_ids) and np.ptp(C_prior[fixed_ids], axis=0).max() > 1e-9:
+        s = 1.0
+        c_ref = c_pri = C_prior[fixed_ids[0]]
+    else:
+        c_pri = C_prior[fixed_ids[0]] if len(fixed_ids) else C_prior[anchored].mean(0)
+        c_ref = C_ref[fixed_ids[0]] if len(fixed_ids) else C_ref[anchored].mean(0)
+        # Regress the priors on the refined centres (prior = s_inv * refined): the images fix the shape far
+        # better than the priors do, and regressing the other way would inflate the scale by the priors'
+        # own noise (regression dilution). Multiplying by s_inv makes that scale exactly 1.
+        d_ref, d_pri = C_ref[anchored] - c_ref, C_prior[anchored] - c_pri
+        den = float(np.sum(d_ref**2))
+        s_inv = float(np.sum(d_ref * d_pri)) / den if den > 1e-18 else 1.0
+        s = 1.0 / s_inv if s_inv > 0 else 0.0
+    if not s > 0:
+        return keep_priors("scale_change", n_iterations=n_it)
+    for T in T_ref:
+        T[:3, 3] = c_pri + (T[:3, 3] - c_ref) / s
+    pts = np.where(in_graph_pt[:, None], c_pri + (pts - c_ref) / s, pts)
+    for i in fixed_ids.tolist():
+        T_ref[i] = T_prior[i].copy()  # exact, not merely to rounding
+
+    err, z = _obs_errors(prob.Ks, T_ref, pts, oc, op, ouv)
+    inl = (err < 3.0 * huber_px) & (z > 0)
+    if inl.sum() < min_inliers:
+        return keep_priors("few_inliers", 1.0 / s, n_it)
+    if abs(1.0 - s) > max_scale_change:
+        return keep_priors("scale_change", 1.0 / s, n_it)
     return BundleResult(
-        T_world_cam=T_out,
-        points_world=X,
-        inlier_obs=(err < 3.0 * huber_px) & (p[:, 2] > 0),
-        rms_px_before=rms0,
-        rms_px_after=float(np.sqrt(np.mean(err**2))) if n_obs else 0.0,
-        n_iterations=it,
+        T_world_cam=T_ref, points_world=pts, inlier_obs=inl, rms_px_before=rms0, rms_px_after=_rms(err, z),
+        n_iterations=n_it, status="ok", scale_correction=1.0 / s, median_parallax_deg=parallax,
+        n_inliers=int(inl.sum()),
     )
