@@ -36,24 +36,40 @@ class PerceptionConfig(BaseModel):
 
 
 class KeyframeConfig(BaseModel):
-    """Keyframe selection (motion / novelty) and the window of views handed to geometry."""
+    """Keyframe selection (parallax / rotation / novelty) and the source views handed to geometry."""
 
     model_config = ConfigDict(extra="forbid")
-    min_translation_m: float = Field(default=0.3, ge=0.0, description="camera motion that makes a new keyframe")
+    min_baseline_ratio: float = Field(
+        default=0.08, ge=0.0,
+        description="a posed view is a keyframe once its baseline to its source's last keyframe reaches this "
+        "fraction of the scene depth (parallax, not arrival order: video-rate frames 1-3 cm apart are not)",
+    )
+    min_translation_m: float = Field(
+        default=0.3, ge=0.0, description="camera motion that makes a keyframe whatever the depth (far scenes)"
+    )
     min_rotation_deg: float = Field(default=20.0, ge=0.0, description="camera rotation that makes a new keyframe")
+    assumed_depth_m: float = Field(
+        default=1.0, gt=0.0,
+        description="typical scene depth assumed before a source's first depth map (short: a keyframe too many early "
+        "costs less than a source without parallax)"
+    )
     novelty_threshold: float = Field(
         default=0.08, ge=0.0, description="mean abs. change of a 32x24 grey thumbnail (0..1) that counts as new"
     )
     refresh_s: float = Field(
         default=30.0, ge=0.0, description="a static camera is reconsidered after this long (if its image changed)"
     )
-    max_keyframes: int = Field(default=32, ge=2, description="keyframes kept for windows (oldest dropped)")
-    max_deferred: int = Field(default=8, ge=0, description="keyframes without neighbours kept for a retry")
-    window_neighbours: int = Field(default=3, ge=0, description="neighbour keyframes per geometry window")
-    neighbour_max_distance_m: float = Field(default=3.0, gt=0.0, description="farthest neighbour camera")
-    neighbour_max_angle_deg: float = Field(default=70.0, gt=0.0, description="largest viewing-direction change")
-    neighbour_min_baseline_m: float = Field(
-        default=0.05, ge=0.0, description="neighbours closer than this (and barely rotated) add no parallax"
+    max_keyframes: int = Field(default=32, ge=2, description="keyframes kept as source candidates (oldest dropped)")
+    max_deferred: int = Field(default=8, ge=0, description="keyframes without usable sources kept for a retry")
+    window_neighbours: int = Field(default=3, ge=0, description="source keyframes per geometry window")
+    neighbour_max_distance_m: float = Field(default=3.0, gt=0.0, description="farthest source camera")
+    neighbour_max_angle_deg: float = Field(default=60.0, gt=0.0, description="largest viewing-direction change")
+    source_min_triangulation_deg: float = Field(
+        default=1.5, ge=0.0,
+        description="a source needs at least this triangulation angle at the target's typical depth (parallax)",
+    )
+    source_min_overlap: float = Field(
+        default=0.3, ge=0.0, le=1.0, description="fraction of the target's view a source must also see"
     )
 
 

@@ -49,6 +49,13 @@ class KeyframeResult:
     timings_s: dict[str, float] = field(default_factory=dict)
 
 
+def typical_depth(depth_m: np.ndarray, confidence: np.ndarray, min_pixels: int = 50) -> float | None:
+    """Median confident depth of a view (None when too few pixels are confident): the scale that parallax
+    thresholds and source selection are measured against."""
+    ok = (confidence >= 0.5) & np.isfinite(depth_m) & (depth_m > 0)
+    return float(np.median(depth_m[ok])) if int(ok.sum()) >= min_pixels else None
+
+
 class MapperCore:
     """Keyframes -> geometry -> perception -> fusion -> edges -> versioned graph."""
 
@@ -99,7 +106,7 @@ class MapperCore:
             # Retry the oldest deferred keyframe that now has neighbours (one per call bounds the time).
             for _ in range(len(self._deferred)):
                 old = self._deferred.popleft()
-                if self.keyframes.neighbours(old):
+                if self.keyframes.neighbours(old, self.selector.scene_depth(old.source_id)):
                     extra = self._timed(old)
                     if extra is not None:
                         results.append(extra)
@@ -140,7 +147,7 @@ class MapperCore:
         return delta
 
     def _window(self, view: View) -> tuple[list[View], int]:
-        nbrs = self.keyframes.neighbours(view)
+        nbrs = self.keyframes.neighbours(view, self.selector.scene_depth(view.source_id))
         if view.T_world_cam is not None or self.config.geometry.backend == "oracle" or not nbrs:
             return [view, *nbrs], 0
         # An unposed view is registered against posed neighbours: put one first to anchor the window.
@@ -168,7 +175,10 @@ class MapperCore:
             points_world=geo.points_world[target], depth_m=geo.depth_m[target], confidence=geo.confidence[target]
         )
         T_world_cam = geo.T_world_cam[target]
-        self.keyframes.add(view, T_world_cam)
+        depth_m = typical_depth(vg.depth_m, vg.confidence)
+        if depth_m is not None:
+            self.selector.observe_depth(view.source_id, depth_m)
+        self.keyframes.add(view, T_world_cam, depth_m)
         outside = outside_fraction(vg.points_world, vg.confidence, vg.depth_m, self.config.fusion)
         if outside > self.config.fusion.max_outside_fraction:
             # Depth that puts much of the view under the floor is wrong everywhere (scale or matching failure):

@@ -1,9 +1,14 @@
-"""Keyframe selection and geometry windows (pure: no I/O).
+"""Keyframe selection and geometry windows by parallax (pure: no I/O).
 
-A view becomes a keyframe when its camera moved or turned enough since its source's last keyframe, or,
-for a camera without a pose (or a static one after ``refresh_s``), when its image changed enough.
-Windows for the reconstructor are the new keyframe plus the nearest stored keyframes with a usable
-baseline (poses known or registered), newest first when nothing is posed.
+A posed view becomes a keyframe when it moved far enough from its source's last keyframe *relative to the
+scene depth* (baseline / depth >= ``min_baseline_ratio``), or turned enough; at 30 fps most frames are
+1-3 cm apart and add no depth a keyframe does not already give. A camera without a pose (or a static
+one after ``refresh_s``) becomes a keyframe when its image changed enough.
+
+The window for the reconstructor is the new keyframe plus the stored keyframes of ANY source (robots and
+calibrated fixed cameras alike) that make the best stereo partners for it: triangulation angle at its
+typical depth, overlap and viewing-angle change (``mapper.geometry.viewselect``), never simply the last
+frames that arrived.
 """
 
 from __future__ import annotations
@@ -16,6 +21,8 @@ import numpy as np
 
 from mapper.config import KeyframeConfig
 from mapper.geometry.contract import View
+from mapper.geometry.viewselect import Candidate, ViewSelectParams, select_sources
+from protocol.messages import Intrinsics
 from protocol.poses import rotation_angle_deg
 
 
@@ -23,6 +30,14 @@ def thumbnail(image: np.ndarray) -> np.ndarray:
     """32x24 grey thumbnail in [0, 1] used for novelty."""
     grey = cv2.cvtColor(image, cv2.COLOR_RGB2GRAY)
     return cv2.resize(grey, (32, 24), interpolation=cv2.INTER_AREA).astype(np.float32) / 255.0
+
+
+def intrinsics_of(view: View, hfov_deg: float = 70.0) -> Intrinsics:
+    """The view's intrinsics, or a guess from a typical field of view for an uncalibrated camera."""
+    if view.intrinsics is not None:
+        return view.intrinsics
+    h, w = view.image.shape[:2]
+    return Intrinsics.from_fov(w, h, hfov_deg)
 
 
 @dataclass
@@ -38,6 +53,16 @@ class KeyframeSelector:
     def __init__(self, cfg: KeyframeConfig) -> None:
         self.cfg = cfg
         self._last: dict[str, _Last] = {}
+        self._depth: dict[str, float] = {}
+
+    def observe_depth(self, source_id: str, depth_m: float) -> None:
+        """Tell the selector the typical scene depth a source sees (median of its last depth map)."""
+        if np.isfinite(depth_m) and depth_m > 0:
+            self._depth[source_id] = float(depth_m)
+
+    def scene_depth(self, source_id: str) -> float:
+        """The source's typical scene depth: last observed, else ``assumed_depth_m``."""
+        return self._depth.get(source_id, self.cfg.assumed_depth_m)
 
     def consider(self, view: View) -> bool:
         """Whether ``view`` is a keyframe (and if so remember it as its source's last)."""
@@ -51,7 +76,8 @@ class KeyframeSelector:
             moved = float(np.linalg.norm(view.T_world_cam[:3, 3] - last.T_world_cam[:3, 3]))
             turned = rotation_angle_deg(view.T_world_cam, last.T_world_cam)
             stale = cfg.refresh_s > 0 and (view.stamp_ns - last.stamp_ns) >= cfg.refresh_s * 1e9
-            new = moved >= cfg.min_translation_m or turned >= cfg.min_rotation_deg or (
+            enough_parallax = moved >= cfg.min_baseline_ratio * self.scene_depth(view.source_id)
+            new = enough_parallax or moved >= cfg.min_translation_m or turned >= cfg.min_rotation_deg or (
                 stale and novelty >= cfg.novelty_threshold
             )
         else:
@@ -61,42 +87,66 @@ class KeyframeSelector:
         return new
 
 
+@dataclass
+class _Stored:
+    view: View
+    depth_m: float | None  # typical scene depth once reconstructed
+
+
 class KeyframeStore:
     """The bounded set of past keyframes windows are drawn from."""
 
     def __init__(self, cfg: KeyframeConfig) -> None:
         self.cfg = cfg
-        self._frames: collections.deque[View] = collections.deque(maxlen=cfg.max_keyframes)
+        self._frames: collections.deque[_Stored] = collections.deque(maxlen=cfg.max_keyframes)
+        self.params = ViewSelectParams(
+            min_triangulation_deg=cfg.source_min_triangulation_deg,
+            min_overlap=cfg.source_min_overlap,
+            max_rotation_deg=cfg.neighbour_max_angle_deg,
+        )
 
     def __len__(self) -> int:
         return len(self._frames)
 
-    def add(self, view: View, T_world_cam: np.ndarray | None = None) -> None:
-        """Keep ``view``, with its registered pose when it had none (so later windows can anchor on it)."""
+    def views(self) -> list[View]:
+        """The stored keyframes, oldest first."""
+        return [s.view for s in self._frames]
+
+    def add(self, view: View, T_world_cam: np.ndarray | None = None, depth_m: float | None = None) -> None:
+        """Keep ``view``, with its registered pose when it had none (so later windows can anchor on it), and
+        its typical depth when known. Storing a view again (same source and seq) replaces it."""
         if view.T_world_cam is None and T_world_cam is not None:
             view = replace(view, T_world_cam=T_world_cam)
-        self._frames.append(view)
+        for i, s in enumerate(self._frames):
+            if s.view.key == view.key:
+                del self._frames[i]
+                break
+        self._frames.append(_Stored(view, depth_m))
 
-    def neighbours(self, view: View) -> list[View]:
-        """Up to ``window_neighbours`` keyframes to reconstruct ``view`` with, best first."""
+    def depth_of(self, view: View, default: float) -> float:
+        """Typical depth recorded for a stored view, else ``default``."""
+        for s in self._frames:
+            if s.view.key == view.key and s.depth_m is not None:
+                return s.depth_m
+        return default
+
+    def neighbours(self, view: View, depth_m: float | None = None) -> list[View]:
+        """Up to ``window_neighbours`` stored keyframes to reconstruct ``view`` with, best stereo partners
+        first. ``depth_m``: the view's typical scene depth (default: ``assumed_depth_m``)."""
         cfg = self.cfg
         if cfg.window_neighbours == 0:
             return []
-        others = [f for f in self._frames if f.key != view.key]
+        others = [s.view for s in self._frames if s.view.key != view.key]
         if view.T_world_cam is None:
             posed = [f for f in reversed(others) if f.T_world_cam is not None]
             return posed[: cfg.window_neighbours]
-        scored: list[tuple[float, int, View]] = []
-        for i, f in enumerate(others):
-            if f.T_world_cam is None:
-                continue
-            dist = float(np.linalg.norm(f.T_world_cam[:3, 3] - view.T_world_cam[:3, 3]))
-            z_a, z_b = f.T_world_cam[:3, 2], view.T_world_cam[:3, 2]
-            angle = float(np.degrees(np.arccos(np.clip(z_a @ z_b, -1.0, 1.0))))
-            if dist > cfg.neighbour_max_distance_m or angle > cfg.neighbour_max_angle_deg:
-                continue
-            if dist < cfg.neighbour_min_baseline_m and angle < 3.0:
-                continue  # no parallax: useless for stereo
-            scored.append((dist + angle / 45.0, -i, f))
-        scored.sort(key=lambda s: (s[0], s[1]))
-        return [f for _, _, f in scored[: cfg.window_neighbours]]
+        T = view.T_world_cam
+        cands = [
+            Candidate(i, f.T_world_cam, intrinsics_of(f))
+            for i, f in enumerate(others)
+            if f.T_world_cam is not None
+            and float(np.linalg.norm(f.T_world_cam[:3, 3] - T[:3, 3])) <= cfg.neighbour_max_distance_m
+        ]
+        depth = depth_m if depth_m is not None else self.depth_of(view, cfg.assumed_depth_m)
+        chosen = select_sources(T, intrinsics_of(view), depth, cands, cfg.window_neighbours, self.params)
+        return [others[s.index] for s in chosen]

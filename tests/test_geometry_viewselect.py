@@ -1,0 +1,91 @@
+"""Source-view selection by parallax (mapper.geometry.viewselect) and the keyframe policy built on it."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from mapper.config import KeyframeConfig
+from mapper.geometry.contract import View
+from mapper.geometry.viewselect import Candidate, overlap_fraction, score_sources, select_sources, triangulation_deg
+from mapper.keyframes import KeyframeSelector, KeyframeStore
+from protocol.messages import Intrinsics
+from protocol.poses import look_at
+
+INTR = Intrinsics.from_fov(320, 240, 70.0)
+TARGET = np.array([0.0, 3.0, 1.0])  # the surface everyone looks at, 3 m in front of the reference
+
+
+def cam(x: float, y: float = 0.0, z: float = 1.0, target: np.ndarray = TARGET) -> np.ndarray:
+    return look_at([x, y, z], target)
+
+
+def test_triangulation_angle_exact() -> None:
+    assert triangulation_deg(2.0, 1.0) == pytest.approx(90.0)
+    assert triangulation_deg(0.0, 1.0) == 0.0
+
+
+def test_overlap_fraction_in_front_and_behind() -> None:
+    T = cam(0.0)
+    ahead = np.array([[0.0, 3.0, 1.0], [0.0, 2.0, 1.0]])
+    behind = np.array([[0.0, -3.0, 1.0]])
+    assert overlap_fraction(ahead, T, INTR) == 1.0
+    assert overlap_fraction(behind, T, INTR) == 0.0
+    assert overlap_fraction(np.zeros((0, 3)), T, INTR) == 0.0
+
+
+def test_picks_parallax_neighbours_from_a_mixed_robot_and_fixed_camera_set() -> None:
+    """A robot's video frames 1 cm apart give no parallax; the robot keyframe 30 cm away and the calibrated
+    fixed camera on the wall that sees the same surface do. A camera looking elsewhere is no source."""
+    ref = cam(0.0)
+    cands = [
+        Candidate(0, cam(0.01), INTR),  # robot video frame, 1 cm: 0.2 deg at 3 m
+        Candidate(1, cam(0.02), INTR),  # 2 cm
+        Candidate(2, cam(0.30), INTR),  # robot keyframe 30 cm away: 5.7 deg
+        Candidate(3, cam(-0.6, 0.3, 1.8), INTR),  # fixed camera high on the wall, same surface: ~19 deg
+        Candidate(4, look_at([0.6, 0.0, 1.0], [3.0, 0.0, 1.0]), INTR),  # looks the other way
+        Candidate(5, cam(3.0, 0.0, 1.0), INTR),  # 3 m to the side: ~53 deg, too wide to match
+    ]
+    chosen = select_sources(ref, INTR, 3.0, cands, k=3)
+    assert {s.index for s in chosen} == {2, 3}
+    scores = {s.index: s for s in score_sources(ref, INTR, 3.0, cands)}
+    assert 0 not in scores and 1 not in scores and 4 not in scores and 5 not in scores
+    assert scores[2].triangulation_deg == pytest.approx(triangulation_deg(0.30, 3.0), rel=1e-9)
+
+
+def test_redundant_sources_are_skipped() -> None:
+    ref = cam(0.0)
+    cands = [Candidate(0, cam(0.30), INTR), Candidate(1, cam(0.305), INTR), Candidate(2, cam(-0.30), INTR)]
+    chosen = select_sources(ref, INTR, 3.0, cands, k=2)
+    # 0 and 1 are one direction (5 mm apart); the second source is the one on the other side.
+    assert sorted(s.index for s in chosen) in ([0, 2], [1, 2])
+
+
+def _view(T: np.ndarray, seq: int, source: str = "robot") -> View:
+    img = np.random.default_rng(seq).integers(0, 255, (240, 320, 3), dtype=np.uint8)
+    return View(img, source, INTR, T, seq=seq, stamp_ns=seq * 33_000_000)
+
+
+def test_video_rate_frames_become_keyframes_by_parallax_not_arrival() -> None:
+    cfg = KeyframeConfig(min_baseline_ratio=0.05, assumed_depth_m=1.0, min_translation_m=10.0)
+    sel = KeyframeSelector(cfg)
+    # ~1 cm per frame: with a 1 m scene depth a keyframe every 5 cm.
+    kf = [k for k in range(21) if sel.consider(_view(cam(0.0101 * k), k))]
+    assert kf == [0, 5, 10, 15, 20]
+    # Once the source's depth is known to be 2 m, keyframes come every 10 cm.
+    sel.observe_depth("robot", 2.0)
+    kf2 = [k for k in range(21, 61) if sel.consider(_view(cam(0.0101 * k), k))]
+    assert kf2 == [30, 40, 50, 60]
+
+
+def test_store_neighbours_come_from_all_sources_by_parallax() -> None:
+    store = KeyframeStore(KeyframeConfig(window_neighbours=2))
+    for k in range(5):  # a robot's frames 1 cm apart, then one 40 cm away
+        store.add(_view(cam(0.01 * k), k))
+    store.add(_view(cam(0.40), 10))
+    store.add(_view(cam(-0.6, 0.3, 1.8), 0, source="cam-01"))
+    got = store.neighbours(_view(cam(0.0), 99), depth_m=3.0)
+    assert {(v.source_id, v.seq) for v in got} == {("robot", 10), ("cam-01", 0)}
+    # Storing the same frame again replaces it (no duplicates in the window).
+    store.add(_view(cam(0.40), 10))
+    assert len(store) == 7
