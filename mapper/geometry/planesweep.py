@@ -11,6 +11,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 import torch
 import torch.nn.functional as F
@@ -78,6 +79,40 @@ def warp_grid(K_ref: F64, K_src: F64, T_src_ref: F64, depths: torch.Tensor, h: i
     return torch.stack([us, vs], dim=-1)
 
 
+def warp_planes(
+    src: torch.Tensor, K_ref: F64, K_src: F64, T_src_ref: F64, depths: torch.Tensor, h: int, w: int
+) -> tuple[torch.Tensor, torch.Tensor]:
+    """The source image warped onto every fronto-parallel reference plane, and where it is seen.
+
+    A plane z = d in the reference frame maps reference pixels to source pixels by the homography
+    ``K_src (R + t n^T / d) K_ref^-1`` (n = (0, 0, 1)), so each plane is one ``cv2.warpPerspective`` call,
+    much cheaper than projecting every pixel of every plane. Returns warped (D, H, W) float32 (bilinear,
+    edge-replicated) and inside (D, H, W) bool (the source pixel exists and lies in front of the source).
+    """
+    src_np = np.ascontiguousarray(src.numpy(), dtype=np.float32)
+    hs, ws = src_np.shape
+    ones = np.ones_like(src_np)
+    R, t = T_src_ref[:3, :3], T_src_ref[:3, 3]
+    K_ref_inv = np.linalg.inv(K_ref)
+    n = np.array([0.0, 0.0, 1.0])
+    corners = np.array([[0, 0, 1], [w - 1, 0, 1], [0, h - 1, 1], [w - 1, h - 1, 1]], np.float64).T
+    rays = K_ref_inv @ corners  # z = 1
+    warped = np.empty((len(depths), h, w), np.float32)
+    inside = np.empty((len(depths), h, w), bool)
+    flags = cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP
+    for i, d in enumerate(depths.tolist()):
+        H = K_src @ (R + np.outer(t, n) / d) @ K_ref_inv
+        warped[i] = cv2.warpPerspective(src_np, H, (w, h), flags=flags, borderMode=cv2.BORDER_REPLICATE)
+        z_corners = (R @ (rays * d))[2] + t[2]
+        if np.all(z_corners > 1e-4):  # z is affine in the pixel on a plane: corners in front => all in front
+            inside[i] = cv2.warpPerspective(ones, H, (w, h), flags=cv2.INTER_NEAREST | cv2.WARP_INVERSE_MAP,
+                                            borderMode=cv2.BORDER_CONSTANT, borderValue=0.0) > 0.5
+        else:  # part of the plane is behind the source camera: test every pixel
+            g = warp_grid(K_ref, K_src, T_src_ref, depths[i: i + 1], h, w)[0].numpy()
+            inside[i] = (g[..., 0] >= 0) & (g[..., 0] <= ws - 1) & (g[..., 1] >= 0) & (g[..., 1] <= hs - 1)
+    return torch.from_numpy(warped), torch.from_numpy(inside)
+
+
 def sweep_cost(
     ref_gray: torch.Tensor,
     src_grays: list[torch.Tensor],
@@ -95,13 +130,7 @@ def sweep_cost(
     best1: torch.Tensor | None = None
     best2: torch.Tensor | None = None
     for src, K_s, T in zip(src_grays, K_srcs, T_src_ref, strict=True):
-        hs, ws = src.shape
-        g = warp_grid(K_ref, K_s, T, depths, h, w)
-        inside = (g[..., 0] >= 0) & (g[..., 0] <= ws - 1) & (g[..., 1] >= 0) & (g[..., 1] <= hs - 1)
-        gn = torch.stack([g[..., 0] * (2.0 / (ws - 1)) - 1.0, g[..., 1] * (2.0 / (hs - 1)) - 1.0], -1)
-        warped = F.grid_sample(
-            src.view(1, 1, hs, ws), gn.view(1, -1, w, 2), mode="bilinear", padding_mode="border", align_corners=True
-        ).view(len(depths), h, w)
+        warped, inside = warp_planes(src, K_ref, K_s, T, depths, h, w)
         c = _census_cost(warped, ref_bits, params.census_radius, params.census_stride)
         # Outside the source image there is no evidence: a pessimistic cost lets other sources decide.
         c = torch.where(inside, c, torch.full_like(c, 0.6))
