@@ -27,14 +27,15 @@ import platform
 import sys
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
 import cv2
 import numpy as np
 
-from mapper.geometry.contract import CONFIDENT, OracleData, View, anchor_pose, compose
+from bench.geomscore import ScenarioResult, score_depth
+from mapper.geometry.contract import OracleData, View, anchor_pose, compose
 from mapper.geometry.register import MapKeyframe, PoseEstimate, register_view
 from mapper.geometry.registry import make_reconstructor
 from protocol.messages import Intrinsics
@@ -45,6 +46,12 @@ LABELFUSION_DIR = REPO_ROOT / ".." / "shared" / "data" / "labelfusion"
 WINDOW = 5
 
 BARS = {
+    "video_absrel": 0.10,
+    "video_delta125": 0.90,
+    "video_confident": 0.50,
+    "video_scale_tol": 0.03,
+    "labelfusion_absrel": 0.05,
+    "s_per_keyframe_video": 0.5,
     "sim_known_absrel": 0.05,
     "sim_known_confident": 0.70,
     "real_absrel": 0.10,
@@ -54,51 +61,6 @@ BARS = {
     "reg_success": 0.90,
     "s_per_keyframe": 2.0,
 }
-
-
-@dataclass
-class DepthScore:
-    absrel: float  # median over confident pixels with ground truth
-    delta125: float
-    confident: float  # confident pixels / pixels with ground truth
-    n_gt: int
-
-
-@dataclass
-class ScenarioResult:
-    name: str
-    frames: list[dict[str, Any]] = field(default_factory=list)
-    seconds: list[float] = field(default_factory=list)
-
-    def summary(self) -> dict[str, Any]:
-        f = [x for x in self.frames if x.get("n_gt", 0) > 0]
-        ab = [x["absrel"] for x in f if np.isfinite(x["absrel"])]
-        return {
-            "scenario": self.name,
-            "n_keyframes": len(f),
-            "median_absrel": float(np.median(ab)) if ab else float("nan"),
-            "median_delta125": float(np.median([x["delta125"] for x in f if np.isfinite(x["delta125"])]))
-            if ab else float("nan"),
-            "median_confident": float(np.median([x["confident"] for x in f])) if f else float("nan"),
-            "mean_confident": float(np.mean([x["confident"] for x in f])) if f else float("nan"),
-            "median_s_per_keyframe": float(np.median(self.seconds)) if self.seconds else float("nan"),
-            "p90_s_per_keyframe": float(np.percentile(self.seconds, 90)) if self.seconds else float("nan"),
-            "median_cpu_s_per_keyframe": float(np.median([x["cpu_seconds"] for x in f])) if f else float("nan"),
-        }
-
-
-def score_depth(depth_m: np.ndarray, conf: np.ndarray, gt_m: np.ndarray, gt_valid: np.ndarray) -> DepthScore:
-    """Score predicted z-depth against ground truth (resized to the prediction, nearest)."""
-    h, w = depth_m.shape
-    gt = cv2.resize(gt_m.astype(np.float32), (w, h), interpolation=cv2.INTER_NEAREST)
-    valid = cv2.resize(gt_valid.astype(np.uint8), (w, h), interpolation=cv2.INTER_NEAREST).astype(bool)
-    n_gt = int(valid.sum())
-    sel = valid & (conf >= CONFIDENT) & (depth_m > 0)
-    if n_gt == 0 or not sel.any():
-        return DepthScore(float("nan"), float("nan"), 0.0, n_gt)
-    d, g = depth_m[sel].astype(np.float64), gt[sel].astype(np.float64)
-    ratio = np.maximum(d / g, g / d)
-    return DepthScore(float(np.median(np.abs(d - g) / g)), float(np.mean(ratio < 1.25)), float(sel.sum() / n_gt), n_gt)
 
 
 def _perturb(T: np.ndarray, rng: np.random.Generator, trans_m: float, rot_deg: float) -> np.ndarray:
@@ -118,13 +80,14 @@ class SimKeyframe:
     T_true: np.ndarray
 
 
-def _drive(nav: Any, x: float, y: float, yaw: float, n: int, rng: np.random.Generator) -> list[tuple]:
-    """A wandering drive: forward steps of ~0.15 m while turning ~8 deg per step (the turn direction flips
-    every 4 steps), staying in free space."""
-    turn = math.radians(8.0) * (1 if rng.random() < 0.5 else -1)
+def _drive(nav: Any, x: float, y: float, yaw: float, n: int, rng: np.random.Generator,
+           step_m: float = 0.15, turn_deg: float = 8.0, flip_every: int = 4) -> list[tuple]:
+    """A wandering drive: forward steps of ``step_m`` while turning ``turn_deg`` per step (the turn direction
+    flips every ``flip_every`` steps), staying in free space."""
+    turn = math.radians(turn_deg) * (1 if rng.random() < 0.5 else -1)
     poses = [(x, y, yaw)]
     for step in range(n - 1):
-        if step and step % 4 == 0:
+        if step and step % flip_every == 0:
             turn = -turn
         x0, y0, yaw0 = poses[-1]
         # Keep ~0.45 m of free space ahead, steering harder when needed; a boxed-in robot backs up
@@ -133,12 +96,12 @@ def _drive(nav: Any, x: float, y: float, yaw: float, n: int, rng: np.random.Gene
             yaw1 = yaw0 + t
             c, s = math.cos(yaw1), math.sin(yaw1)
             if all(nav.is_free(x0 + d * c, y0 + d * s) for d in (0.15, 0.3, 0.45)):
-                poses.append((x0 + 0.15 * c, y0 + 0.15 * s, yaw1))
+                poses.append((x0 + step_m * c, y0 + step_m * s, yaw1))
                 break
         else:
             c, s = math.cos(yaw0), math.sin(yaw0)
-            if nav.is_free(x0 - 0.15 * c, y0 - 0.15 * s):
-                poses.append((x0 - 0.15 * c, y0 - 0.15 * s, yaw0 + turn))
+            if nav.is_free(x0 - step_m * c, y0 - step_m * s):
+                poses.append((x0 - step_m * c, y0 - step_m * s, yaw0 + turn))
             else:
                 poses.append((x0, y0, yaw0 + turn))
     return poses
@@ -155,7 +118,8 @@ def _overlap(renderer: Any, intr: Intrinsics, T_a: np.ndarray, pts_world: np.nda
 
 
 def sim_sequences(
-    family: str, seed: int, n_clusters: int, per_cluster: int, odom_noise: tuple[float, float] | None
+    family: str, seed: int, n_clusters: int, per_cluster: int, odom_noise: tuple[float, float] | None,
+    step_m: float = 0.15, turn_deg: float = 8.0, flip_every: int = 4,
 ) -> tuple[list[SimKeyframe], Any, Any]:
     """Robot keyframes that look at what the scene's first fixed camera sees (so a map exists to register
     it against), plus the fixed camera and the renderer."""
@@ -198,7 +162,7 @@ def sim_sequences(
     keyframes: list[SimKeyframe] = []
     seq = 0
     for vp in chosen:
-        for x, y, yaw in _drive(nav, vp.x, vp.y, vp.yaw_rad, per_cluster, rng):
+        for x, y, yaw in _drive(nav, vp.x, vp.y, vp.yaw_rad, per_cluster, rng, step_m, turn_deg, flip_every):
             T = camera_pose_from_base(x, y, yaw, 1.0, -15.0)
             out = renderer.render(intr, T)
             prior = T if odom_noise is None else _perturb(T, rng, *odom_noise)
@@ -342,7 +306,7 @@ def markdown(report: dict[str, Any]) -> str:
              "| scenario | keyframes | median AbsRel | delta<1.25 | confident (median / mean) "
              "| s/keyframe (median / p90) | CPU s/keyframe |",
              "|---|---|---|---|---|---|---|"]
-    for block in ("sim", "real"):
+    for block in ("sim", "real", "video"):
         if report.get(block):
             for s in report[block]["depth"]:
                 lines.append(
@@ -351,6 +315,20 @@ def markdown(report: dict[str, Any]) -> str:
                     f"{_fmt(s['median_s_per_keyframe'], 2)} / {_fmt(s['p90_s_per_keyframe'], 2)} | "
                     f"{_fmt(s['median_cpu_s_per_keyframe'], 2)} |"
                 )
+    if report.get("video"):
+        lines += ["", "## Video-rate input: keyframes and sources chosen by parallax", "",
+                  "Scale = median estimated / recorded depth; time = pose refinement + dense depth per keyframe; "
+                  "pose error of the target against the recorded (true) pose before / after refinement.", "",
+                  "| scenario | frames | keyframes (no depth) | scale | s poses / dense | rot err deg before / after "
+                  "| trans err cm before / after |", "|---|---|---|---|---|---|---|"]
+        for s in report["video"]["depth"]:
+            lines.append(
+                f"| {s['scenario']} | {s.get('frames', '-')} | {s.get('keyframes', '-')} "
+                f"({s.get('keyframes_without_depth', '-')}) | {_fmt(s['median_scale'])} | "
+                f"{_fmt(s['median_t_poses_s'], 2)} / {_fmt(s['median_t_dense_s'], 2)} | "
+                f"{_fmt(s['median_pose_rot_deg_before'], 2)} / {_fmt(s['median_pose_rot_deg_after'], 2)} | "
+                f"{_fmt(s['median_pose_trans_cm_before'], 2)} / {_fmt(s['median_pose_trans_cm_after'], 2)} |"
+            )
     if report.get("sim"):
         reg = report["sim"]["registration"]
         lines += ["", "## Uncalibrated fixed camera registered against the robot-built map", "",
@@ -391,6 +369,30 @@ def check_bars(report: dict[str, Any]) -> list[dict[str, Any]]:
         add("real frames: confident fraction", f">= {BARS['real_confident']}", s["median_confident"],
             s["median_confident"] >= BARS["real_confident"])
         times += [x["seconds"] for sc in report["real"]["depth_frames"].values() for x in sc]
+    if report.get("real"):
+        s = report["real"]["depth"][0]
+        add("label-fusion: median AbsRel", f"<= {BARS['labelfusion_absrel']}", s["median_absrel"],
+            s["median_absrel"] <= BARS["labelfusion_absrel"])
+    video_times: list[float] = []
+    if report.get("video"):
+        for s in report["video"]["depth"]:
+            if "consecutive" not in s["scenario"] or "previous" in s["scenario"]:
+                continue
+            n = s["scenario"]
+            add(f"{n}: median AbsRel", f"<= {BARS['video_absrel']}", s["median_absrel"],
+                s["median_absrel"] <= BARS["video_absrel"])
+            add(f"{n}: delta<1.25", f">= {BARS['video_delta125']}", s["median_delta125"],
+                s["median_delta125"] >= BARS["video_delta125"])
+            add(f"{n}: coverage", f">= {BARS['video_confident']}", s["median_confident"],
+                s["median_confident"] >= BARS["video_confident"])
+            add(f"{n}: scale ratio", f"1 +- {BARS['video_scale_tol']}", s["median_scale"],
+                abs(s["median_scale"] - 1.0) <= BARS["video_scale_tol"])
+        video_times = [x["seconds"] for name, sc in report["video"]["depth_frames"].items()
+                       if "previous" not in name for x in sc]
+    if video_times:
+        med = float(np.median(video_times))
+        add("seconds per keyframe, video-rate input (median)", f"<= {BARS['s_per_keyframe_video']}", med,
+            med <= BARS["s_per_keyframe_video"])
     if times:
         med = float(np.median(times))
         add("seconds per 640x480 keyframe (median)", f"<= {BARS['s_per_keyframe']}", med, med <= BARS["s_per_keyframe"])
@@ -398,7 +400,8 @@ def check_bars(report: dict[str, Any]) -> list[dict[str, Any]]:
 
 
 def run(out_dir: Path | None, quick: bool, families: Sequence[str], seeds: Sequence[int], backend: str,
-        real: bool = True, sim: bool = True, opts: dict[str, Any] | None = None) -> dict[str, Any]:
+        real: bool = True, sim: bool = True, opts: dict[str, Any] | None = None,
+        video: bool = True, video_sim: bool = True) -> dict[str, Any]:
     t0 = time.perf_counter()
     report: dict[str, Any] = {
         "backend": backend, "quick": quick, "families": list(families), "seeds": list(seeds),
@@ -410,6 +413,12 @@ def run(out_dir: Path | None, quick: bool, families: Sequence[str], seeds: Seque
     report["options"] = opts
     report["sim"] = bench_sim(families, seeds, quick, backend, opts) if sim else None
     report["real"] = bench_real(backend, quick, opts) if real else None
+    if video:
+        from bench.video import bench_video
+
+        report["video"] = bench_video(backend, quick, opts, seeds if video_sim else [], make_reconstructor)
+    else:
+        report["video"] = None
     report["bars"] = check_bars(report)
     report["wall_s"] = time.perf_counter() - t0
     if out_dir is not None:
@@ -442,6 +451,9 @@ def main(argv: Sequence[str] | None = None) -> int:
                    help="backend option (JSON value), e.g. --opt sweep_width=224; repeatable")
     p.add_argument("--no-real", action="store_true", help="skip the real label-fusion frames")
     p.add_argument("--no-sim", action="store_true", help="skip the simulated scenes")
+    p.add_argument("--no-video", action="store_true",
+                   help="skip the video-rate scenarios (real sequences in ../shared/data and the sim at 30 fps)")
+    p.add_argument("--only-video", action="store_true", help="run only the video-rate scenarios")
     a = p.parse_args(list(argv) if argv is not None else None)
     seeds = a.seeds or ([1] if a.quick else [1, 2, 3])
     opts: dict[str, Any] = {}
@@ -453,7 +465,11 @@ def main(argv: Sequence[str] | None = None) -> int:
             opts[key] = json.loads(value)
         except json.JSONDecodeError:
             opts[key] = value
-    report = run(a.out, a.quick, a.families, seeds, a.backend, real=not a.no_real, sim=not a.no_sim, opts=opts)
+    if a.only_video:
+        a.no_real = True
+    report = run(a.out, a.quick, a.families, seeds, a.backend, real=not a.no_real,
+                 sim=not (a.no_sim or a.only_video), opts=opts, video=not a.no_video,
+                 video_sim=not a.no_sim)
     print(markdown(report))
     return 0
 

@@ -26,7 +26,7 @@ import numpy as np
 import torch
 from pydantic import BaseModel, ConfigDict, Field
 
-from mapper.geometry import bundle, features, planesweep
+from mapper.geometry import bundle, features, planesweep, viewselect
 from mapper.geometry.contract import FactoredReconstruction, View, factored_from_metric
 from protocol.messages import Intrinsics
 from protocol.poses import invert, rotation_angle_deg
@@ -45,6 +45,9 @@ class MvsConfig(BaseModel):
     output_width: int = Field(default=320, ge=32, le=4096, description="width of the returned depth maps, px")
     n_planes: int = Field(default=64, ge=8, le=256, description="depth planes, uniform in inverse depth")
     n_sources: int = Field(default=4, ge=1, le=8, description="neighbour views swept per target")
+    source_min_triangulation_deg: float = Field(
+        default=1.0, ge=0.0, description="a source view needs this triangulation angle at the target's median depth"
+    )
     census_radius: int = Field(default=3, ge=1, le=5, description="census window radius at sweep resolution")
     census_stride: int = Field(default=2, ge=1, le=3, description="use every n-th pixel of the census window")
     sgm_p1: float = Field(default=0.1, ge=0, description="SGM penalty for a one-plane step")
@@ -399,39 +402,29 @@ class MvsReconstructor:
         return T, inl
 
     # ---- dense ----------------------------------------------------------------------------------------
+    def _typical_depth(self, r: int, prep: list[_Prepared], poses: list[F64 | None], pts: np.ndarray) -> float:
+        """Median depth of the sparse points the view sees (2 m when it sees too few)."""
+        T_r = poses[r]
+        assert T_r is not None
+        if len(pts):
+            uv, z = bundle.reproject(prep[r].K, T_r, pts)
+            w, h = prep[r].intr.width, prep[r].intr.height
+            vis = (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < w) & (uv[:, 1] >= 0) & (uv[:, 1] < h)
+            if vis.sum() >= 5:
+                return float(np.median(z[vis]))
+        return 2.0
+
     def _select_sources(self, r: int, prep: list[_Prepared], poses: list[F64 | None], pts: np.ndarray) -> list[int]:
         T_r = poses[r]
         assert T_r is not None
-        K = prep[r].K
-        w, h = prep[r].intr.width, prep[r].intr.height
-        if len(pts):
-            uv, z = bundle.reproject(K, T_r, pts)
-            vis = (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < w) & (uv[:, 1] >= 0) & (uv[:, 1] < h)
-            med = float(np.median(z[vis])) if vis.sum() >= 5 else 2.0
-        else:
-            med = 2.0
-        # Sample the reference view at its median depth to measure overlap with each candidate.
-        gu, gv = np.meshgrid(np.linspace(0, w - 1, 12), np.linspace(0, h - 1, 9))
-        rays = np.stack([(gu - K[0, 2]) / K[0, 0], (gv - K[1, 2]) / K[1, 1], np.ones_like(gu)], -1).reshape(-1, 3)
-        Xw = (rays * med) @ T_r[:3, :3].T + T_r[:3, 3]
-        scored = []
-        for s in range(len(prep)):
-            T_s = poses[s]
-            if s == r or T_s is None:
-                continue
-            uv, z = bundle.reproject(prep[s].K, T_s, Xw)
-            ws, hs = prep[s].intr.width, prep[s].intr.height
-            overlap = float(np.mean((z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < ws) & (uv[:, 1] >= 0) & (uv[:, 1] < hs)))
-            base = float(np.linalg.norm(T_s[:3, 3] - T_r[:3, 3]))
-            tri_deg = np.degrees(2 * np.arctan2(base / 2, med))
-            ang = rotation_angle_deg(T_r, T_s)
-            if overlap < 0.3 or tri_deg < 0.5 or ang > 60:
-                continue
-            # Prefer triangulation angles of ~4-20 deg, large overlap, small viewing-angle change.
-            q_tri = min(1.0, tri_deg / 4.0) * float(np.exp(-max(0.0, tri_deg - 20.0) / 10.0))
-            scored.append((overlap * q_tri * float(np.exp(-ang / 45.0)), s))
-        scored.sort(reverse=True)
-        return [s for _, s in scored[: self.config.n_sources]]
+        cands = [
+            viewselect.Candidate(s, cast(F64, poses[s]), prep[s].intr)
+            for s in range(len(prep)) if s != r and poses[s] is not None
+        ]
+        params = viewselect.ViewSelectParams(min_triangulation_deg=self.config.source_min_triangulation_deg)
+        med = self._typical_depth(r, prep, poses, pts)
+        chosen = viewselect.select_sources(T_r, prep[r].intr, med, cands, self.config.n_sources, params)
+        return [c.index for c in chosen]
 
     def _depth_range(
         self, r: int, prep: list[_Prepared], poses: list[F64 | None], pts: np.ndarray
