@@ -7,6 +7,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from mapper.geometry import bundle
+from protocol.poses import look_at
 
 K = np.array([[500.0, 0.0, 320.0], [0.0, 500.0, 240.0], [0.0, 0.0, 1.0]])
 
@@ -267,3 +268,15 @@ class TestTracksAndTriangulation:
         # Two cameras side by side see the same pixel: parallel rays meet at infinity, reported as NaN.
         Ps = [bundle.projection_matrix(K, _pose(np.eye(3), np.array([x, 0.0, 0.0]))) for x in (0.0, 0.1)]
         assert np.isnan(bundle.triangulate(Ps, np.array([[320.0, 240.0], [320.0, 240.0]]))).all()
+
+
+def test_triangulate_many_matches_triangulate_per_point() -> None:
+    rng = np.random.default_rng(3)
+    K = np.array([[300.0, 0, 160], [0, 300.0, 120], [0, 0, 1]])
+    Ts = [look_at([0.1 * i, 0.0, 0.0], [0.0, 3.0, 0.0]) for i in range(3)]
+    Ps = [bundle.projection_matrix(K, T) for T in Ts]
+    X = rng.uniform([-1, 2, -1], [1, 4, 1], (7, 3))
+    uv = np.stack([bundle.reproject(K, T, X)[0] for T in Ts], axis=1) + rng.normal(0, 0.5, (7, 3, 2))
+    many = bundle.triangulate_many(np.broadcast_to(np.stack(Ps), (7, 3, 3, 4)), uv)
+    one = np.stack([bundle.triangulate(Ps, uv[i]) for i in range(7)])
+    np.testing.assert_allclose(many, one, atol=1e-9)

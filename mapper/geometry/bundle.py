@@ -118,6 +118,19 @@ def triangulate(Ps: list[F64], uvs: F64) -> F64:
     return X[:3] / X[3] if abs(X[3]) > 1e-12 else np.full(3, np.nan)
 
 
+def triangulate_many(Ps: F64, uvs: F64) -> F64:
+    """Linear (DLT) triangulation of T points each seen in the same number L of views: Ps (T, L, 3, 4),
+    uvs (T, L, 2) -> (T, 3); NaN where the solution is at infinity. Same answer as ``triangulate`` per point."""
+    A = np.concatenate([uvs[..., 0:1] * Ps[:, :, 2] - Ps[:, :, 0], uvs[..., 1:2] * Ps[:, :, 2] - Ps[:, :, 1]], axis=1)
+    _, _, vt = np.linalg.svd(A)
+    X = vt[:, -1]
+    w = X[:, 3:4]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        out = X[:, :3] / w
+    out[np.abs(w[:, 0]) <= 1e-12] = np.nan
+    return np.asarray(out, np.float64)
+
+
 def reproject(K: F64, T_world_cam: F64, X_world: F64) -> tuple[F64, F64]:
     """Pixels (N, 2) and camera z (N,) of world points (N, 3)."""
     T_cw = np.linalg.inv(T_world_cam)
@@ -233,6 +246,7 @@ def bundle_adjust(
     min_parallax_deg: float = 1.0,
     min_inliers: int = 30,
     max_scale_change: float = 0.05,
+    rel_huber: float | None = None,
 ) -> BundleResult:
     """Refine camera poses and points against the pose priors (see the module docstring).
 
@@ -307,6 +321,11 @@ def bundle_adjust(
             rel = poses[a].between(poses[b])
             step_m = float(np.linalg.norm(rel.translation()))
             noise = _pose_noise(rel_rot_rad, sigma_rel_trans_m + rel_trans_frac * step_m)
+            if rel_huber is not None:
+                # Robust odometry: tight where the priors agree with the images (video-grade tracking), but a
+                # prior that the images contradict by many sigmas (independent per-frame errors) costs
+                # linearly and the tracks win.
+                noise = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(rel_huber), noise)
             graph.add(gtsam.BetweenFactorPose3(X(int(a)), X(int(b)), rel, noise))
     pt_ids = np.flatnonzero(in_graph_pt)
     for j in pt_ids.tolist():

@@ -59,11 +59,39 @@ class MvsConfig(BaseModel):
         default=(0.3, 8.0), description="depth range when too few sparse points see a view"
     )
     max_features: int = Field(default=2000, ge=50, description="SIFT keypoints per image")
+    feature_width: int = Field(
+        default=0, ge=0, description="SIFT runs on the image downscaled to this width when wider (0: full size)"
+    )
     ratio: float = Field(default=0.8, gt=0, lt=1, description="Lowe ratio test threshold")
     max_pair_angle_deg: float = Field(default=80.0, description="skip matching prior views further apart")
     refine_poses: bool = Field(default=True, description="bundle-adjust the pose priors before the sweep")
     sigma_rot_deg: float = Field(default=2.0, gt=0, description="pose prior std-dev, rotation (deg)")
     sigma_trans_m: float = Field(default=0.05, gt=0, description="pose prior std-dev, camera centre (m)")
+    sigma_rel_rot_deg: float = Field(
+        default=0.05, gt=0,
+        description="std-dev of the priors' relative rotation between two views of one source (odometry between-"
+        "factor, gyro / tracking grade). Rotation error between frames is what turns into depth error at small "
+        "baselines; with ``rel_huber`` priors that the images contradict are let go",
+    )
+    sigma_rel_trans_m: float = Field(
+        default=0.005, gt=0, description="std-dev floor of the priors' relative translation between two views (m)"
+    )
+    rel_trans_frac: float = Field(
+        default=0.05, ge=0, description="relative-translation std-dev grows by this fraction of the distance moved"
+    )
+    rel_huber: float | None = Field(
+        default=3.0, gt=0,
+        description="Huber threshold (in sigmas) on the between-factors; None: Gaussian (priors always trusted)",
+    )
+    min_parallax_deg: float = Field(
+        default=1.0, ge=0,
+        description="median track triangulation angle under which the images cannot correct the priors (kept)",
+    )
+    max_scale_change: float = Field(
+        default=0.05, ge=0,
+        description="an adjustment that asks for a larger scale change than this is refused (priors kept); within "
+        "it the result is rescaled to the priors' scale exactly: images carry no metric scale",
+    )
     prior_match_px: float = Field(
         default=40.0, gt=0, description="matches farther than this from the prior's epipolar segment are dropped"
     )
@@ -181,13 +209,24 @@ class MvsReconstructor:
         """SIFT features of a view, cached by (source_id, seq)."""
         f = self._feats.get(v.key)
         if f is None:
-            f = features.extract_features(v.image, self.config.max_features)
+            img, scale = v.image, 1.0
+            fw = self.config.feature_width
+            if fw and img.shape[1] > fw:
+                scale = img.shape[1] / fw
+                img = cv2.resize(img, (fw, round(img.shape[0] / scale)), interpolation=cv2.INTER_AREA)
+            f = features.extract_features(img, self.config.max_features)
+            if scale != 1.0:  # keypoints back in full-image pixels (pixel centres scale about -0.5)
+                f = features.Features((f.uv + 0.5) * scale - 0.5, f.desc)
             self._feats.put(v.key, f)
         return f  # type: ignore[return-value]
 
     def _verified_matches(self, a: _Prepared, b: _Prepared) -> np.ndarray:
         key = (a.view.key, b.view.key)
         m = self._matches.get(key)
+        if m is None:
+            swapped = self._matches.get((b.view.key, a.view.key))
+            if swapped is not None:  # matches are symmetric: reuse the other order's
+                return swapped[:, ::-1].copy()  # type: ignore[index]
         if m is None:
             m = features.match_features(a.feats, b.feats, self.config.ratio)
             if len(m) and a.T_prior is not None and b.T_prior is not None:
@@ -264,15 +303,21 @@ class MvsReconstructor:
             return np.zeros((0, 3)), []
         tracks = sorted(tracks, key=len, reverse=True)[: self.config.max_tracks]
         Ps = [bundle.projection_matrix(p.K, T) if T is not None else None for p, T in zip(prep, poses, strict=True)]
+        posed_tracks = [tr[[Ps[int(v)] is not None for v in tr[:, 0]]] for tr in tracks]
+        posed_tracks = [tr for tr in posed_tracks if len(tr) >= 2]
+        # Batched DLT: tracks of the same length share one stacked SVD.
         cand, cand_obs = [], []
-        for tr in tracks:
-            tr = np.array([o for o in tr if Ps[o[0]] is not None])
-            if len(tr) < 2:
-                continue
-            X = bundle.triangulate([Ps[v] for v, _ in tr], np.stack([prep[v].feats.uv[k] for v, k in tr]))
-            if np.all(np.isfinite(X)):
-                cand.append(X)
-                cand_obs.append(tr)
+        by_len: dict[int, list[np.ndarray]] = {}
+        for tr in posed_tracks:
+            by_len.setdefault(len(tr), []).append(tr)
+        for group in by_len.values():
+            Pg = np.stack([np.stack([Ps[int(v)] for v in tr[:, 0]]) for tr in group])  # (T, L, 3, 4)
+            uv = np.stack([np.stack([prep[int(v)].feats.uv[int(k)] for v, k in tr]) for tr in group])  # (T, L, 2)
+            Xg = bundle.triangulate_many(Pg, uv)
+            for X, tr in zip(Xg, group, strict=True):
+                if np.all(np.isfinite(X)):
+                    cand.append(X)
+                    cand_obs.append(tr)
         if not cand:
             return np.zeros((0, 3)), []
         # Keep points in front of every observing camera and within 25 px of every observation (the priors
@@ -322,6 +367,7 @@ class MvsReconstructor:
                     op.append(p)
                     ouv.append(prep[v].feats.uv[k])
                     orig.append(o)
+        sources = sorted({prep[i].view.source_id for i in idx})
         prob = bundle.BundleProblem(
             Ks=[prep[i].K for i in idx],
             T_world_cam=[poses[i] for i in idx],  # type: ignore[misc]
@@ -331,8 +377,14 @@ class MvsReconstructor:
             obs_uv=np.array(ouv, np.float64).reshape(-1, 2),
             fixed=[prep[i].view.pose_trusted for i in idx],
             has_prior=[has_prior[i] for i in idx],
+            prior_group=[sources.index(prep[i].view.source_id) for i in idx],
         )
-        res = bundle.bundle_adjust(prob, self.config.sigma_rot_deg, self.config.sigma_trans_m)
+        c = self.config
+        res = bundle.bundle_adjust(
+            prob, c.sigma_rot_deg, c.sigma_trans_m, sigma_rel_rot_deg=c.sigma_rel_rot_deg,
+            sigma_rel_trans_m=c.sigma_rel_trans_m, rel_trans_frac=c.rel_trans_frac, min_parallax_deg=c.min_parallax_deg,
+            max_scale_change=c.max_scale_change, rel_huber=c.rel_huber,
+        )
         # A sane adjustment moves priors by a few sigma at most and fits the tracks; otherwise (repetitive
         # texture, wrong matches) keep the priors rather than poison the dense step.
         moved = [
@@ -341,13 +393,17 @@ class MvsReconstructor:
             for k, i in enumerate(idx) if has_prior[i]
         ]
         worst = max((max(a, b) for a, b in moved), default=0.0)
-        accepted = res.rms_px_after <= self.config.max_ba_rms_px and worst <= self.config.max_ba_sigmas
+        accepted = (
+            res.status == "ok" and res.rms_px_after <= self.config.max_ba_rms_px and worst <= self.config.max_ba_sigmas
+        )
         if accepted:
             for k, i in enumerate(idx):
                 poses[i] = res.T_world_cam[k]
         info.setdefault("ba", []).append(
             {"rms_px_before": res.rms_px_before, "rms_px_after": res.rms_px_after, "nfev": res.n_iterations,
-             "n_obs": len(oc), "n_points": len(pts), "max_move_sigmas": worst, "accepted": accepted}
+             "n_obs": len(oc), "n_points": len(pts), "max_move_sigmas": worst, "accepted": accepted,
+             "status": res.status if res.status != "ok" or accepted else "moved_too_far",
+             "scale_correction": res.scale_correction, "median_parallax_deg": res.median_parallax_deg}
         )
         if not accepted:
             # Keep only the points that the priors themselves explain.

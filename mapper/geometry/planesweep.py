@@ -17,6 +17,8 @@ import torch
 import torch.nn.functional as F
 from numpy.typing import NDArray
 
+from mapper.geometry import kernels
+
 F64 = NDArray[np.float64]
 
 
@@ -176,10 +178,16 @@ def sgm_aggregate(cost: torch.Tensor, ref_gray: torch.Tensor, p1: float, p2: flo
     gx = torch.zeros_like(ref_gray)
     gx[:, 1:] = (ref_gray[:, 1:] - ref_gray[:, :-1]).abs()
     gy[1:, :] = (ref_gray[1:, :] - ref_gray[:-1, :]).abs()
-    p1_t = torch.tensor(p1, dtype=cost.dtype)
     # Intensities are in [0, 1]; an edge of ~0.1 halves P2 so depth may jump there.
     p2x = p2 / (1.0 + gx / 0.1)
     p2y = p2 / (1.0 + gy / 0.1)
+    if kernels.AVAILABLE and cost.dtype == torch.float32:
+        return torch.from_numpy(kernels.sgm4(cost.numpy(), p1, p2x.numpy(), p2y.numpy()))
+    return _sgm_aggregate_torch(cost, p1, p2x, p2y)
+
+
+def _sgm_aggregate_torch(cost: torch.Tensor, p1: float, p2x: torch.Tensor, p2y: torch.Tensor) -> torch.Tensor:
+    p1_t = torch.tensor(p1, dtype=cost.dtype)
     total = _aggregate_path(cost, 2, False, p1_t, p2x)
     total += _aggregate_path(cost, 2, True, p1_t, torch.cat([p2x[:, 1:], p2x[:, -1:]], 1))
     total += _aggregate_path(cost, 1, False, p1_t, p2y)
