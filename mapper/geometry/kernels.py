@@ -18,7 +18,7 @@ try:
 
     AVAILABLE = True
 except ImportError:  # optional: planesweep falls back to torch
-    numba = None
+    numba = None  # type: ignore[assignment]
     AVAILABLE = False
 
 F32 = NDArray[np.float32]

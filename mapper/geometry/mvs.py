@@ -213,7 +213,8 @@ class MvsReconstructor:
             fw = self.config.feature_width
             if fw and img.shape[1] > fw:
                 scale = img.shape[1] / fw
-                img = cv2.resize(img, (fw, round(img.shape[0] / scale)), interpolation=cv2.INTER_AREA)
+                img = np.asarray(cv2.resize(img, (fw, round(img.shape[0] / scale)), interpolation=cv2.INTER_AREA),
+                                 dtype=np.uint8)
             f = features.extract_features(img, self.config.max_features)
             if scale != 1.0:  # keypoints back in full-image pixels (pixel centres scale about -0.5)
                 f = features.Features((f.uv + 0.5) * scale - 0.5, f.desc)
@@ -311,7 +312,7 @@ class MvsReconstructor:
         for tr in posed_tracks:
             by_len.setdefault(len(tr), []).append(tr)
         for group in by_len.values():
-            Pg = np.stack([np.stack([Ps[int(v)] for v in tr[:, 0]]) for tr in group])  # (T, L, 3, 4)
+            Pg = np.stack([np.stack([cast(F64, Ps[int(v)]) for v in tr[:, 0]]) for tr in group])  # (T, L, 3, 4)
             uv = np.stack([np.stack([prep[int(v)].feats.uv[int(k)] for v, k in tr]) for tr in group])  # (T, L, 2)
             Xg = bundle.triangulate_many(Pg, uv)
             for X, tr in zip(Xg, group, strict=True):
