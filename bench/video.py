@@ -16,7 +16,7 @@ from __future__ import annotations
 import math
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -42,18 +42,20 @@ class SequenceSpec:
     intrinsics_file: str
     depth: Callable[[np.ndarray], np.ndarray]  # raw uint16 -> metres
     valid_m: tuple[float, float]  # recorded depth scored only inside this range
+    rel_rot_deg: float  # relative rotation accuracy of the recorded poses (View.prior_rel_rot_deg)
 
 
 SEQUENCES: dict[str, SequenceSpec] = {
     # TUM RGB-D fr1/xyz, 30 Hz, ~1.2 cm between frames, motion-capture poses (CC BY 4.0).
     "tum-fr1-xyz": SequenceSpec("tum-fr1-xyz", "camera-intrinsics.txt", lambda r: r.astype(np.float32) / 5000.0,
-                                (0.1, 10.0)),
+                                (0.1, 10.0), 0.05),
     # HoloLens corridor, ~5.7 cm between frames, device-tracked poses (MIT).
     "hololens-dvmvs": SequenceSpec("hololens-dvmvs", "camera-intrinsics.txt",
-                                   lambda r: r.astype(np.float32) / 1000.0, (0.1, 10.0)),
-    # label-fusion shelf, 6-32 cm between frames, noisy recorded poses; the depth encoding wraps at 0.82 m (MIT).
+                                   lambda r: r.astype(np.float32) / 1000.0, (0.1, 10.0), 0.05),
+    # label-fusion shelf, 6-32 cm between frames, recorded poses off by ~2 deg per frame (its README); the depth
+    # encoding wraps at 0.82 m (MIT).
     "labelfusion": SequenceSpec("labelfusion", "camera-intrinsics.color.txt",
-                                lambda r: (r >> 3).astype(np.float32) / 10000.0, (0.3, 0.82)),
+                                lambda r: (r >> 3).astype(np.float32) / 10000.0, (0.3, 0.82), 2.0),
 }
 
 
@@ -81,7 +83,8 @@ def load_sequence(name: str, root: Path = DATA_ROOT) -> tuple[list[Frame], dict[
         h, w = bgr.shape[:2]
         intr = Intrinsics(width=w, height=h, fx=K[0, 0], fy=K[1, 1], cx=K[0, 2], cy=K[1, 2])
         depth = spec.depth(raw)
-        view = View(cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB), name, intr, chk.T, seq=int(stem[6:]))
+        view = View(cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB), name, intr, chk.T, seq=int(stem[6:]),
+                    prior_rel_rot_deg=spec.rel_rot_deg)
         frames.append(Frame(view, depth, (depth > spec.valid_m[0]) & (depth < spec.valid_m[1]), chk.T))
     return frames, stats
 
@@ -170,7 +173,7 @@ def sim_video_frames(family: str, seed: int, n: int) -> list[Frame]:
     from bench.geometry import sim_sequences
 
     kfs, _, _ = sim_sequences(family, seed, 1, n, None, step_m=0.02, turn_deg=0.6, flip_every=30)
-    return [Frame(k.view, k.gt_depth, k.gt_depth > 0, k.T_true) for k in kfs]
+    return [Frame(replace(k.view, prior_rel_rot_deg=0.05), k.gt_depth, k.gt_depth > 0, k.T_true) for k in kfs]
 
 
 def bench_video(backend: str, quick: bool, opts: dict[str, Any], sim_seeds: Sequence[int],

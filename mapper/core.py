@@ -22,6 +22,7 @@ import cv2
 import numpy as np
 
 from mapper.config import MapperCoreConfig
+from mapper.consistency import downsample, verify_depth
 from mapper.fusion import LiftStats, ObjectMap, UpdateResult, lift_detections, outside_fraction
 from mapper.geometry.contract import Reconstructor, View, anchor_pose, compose
 from mapper.graph_store import GraphStore
@@ -178,7 +179,18 @@ class MapperCore:
         depth_m = typical_depth(vg.depth_m, vg.confidence)
         if depth_m is not None:
             self.selector.observe_depth(view.source_id, depth_m)
-        self.keyframes.add(view, T_world_cam, depth_m)
+        dc = self.config.depth_check
+        K_out = geo.intrinsics[target].K()
+        if dc.enabled and self.config.geometry.backend != "oracle" and depth_m is not None:
+            # True depth needs no cross-check; estimated depth must agree with other keyframes before fusion.
+            others = self.keyframes.depth_maps_overlapping(view, T_world_cam, depth_m, dc.max_views)
+            conf, st = verify_depth(vg.depth_m, vg.confidence, K_out, T_world_cam, others, dc.min_views,
+                                    dc.rel_tol, dc.reproj_px)
+            self._count("depth_pixels_checked", st.checked)
+            self._count("depth_pixels_rejected_inconsistent", st.rejected)
+            vg = ViewGeometry(points_world=vg.points_world, depth_m=vg.depth_m, confidence=conf)
+        self.keyframes.add(view, T_world_cam, depth_m,
+                           downsample(vg.depth_m, vg.confidence, K_out, T_world_cam, dc.map_width, 0.5))
         outside = outside_fraction(vg.points_world, vg.confidence, vg.depth_m, self.config.fusion)
         if outside > self.config.fusion.max_outside_fraction:
             # Depth that puts much of the view under the floor is wrong everywhere (scale or matching failure):

@@ -20,8 +20,9 @@ import cv2
 import numpy as np
 
 from mapper.config import KeyframeConfig
+from mapper.consistency import DepthMap
 from mapper.geometry.contract import View
-from mapper.geometry.viewselect import Candidate, ViewSelectParams, select_sources
+from mapper.geometry.viewselect import Candidate, ViewSelectParams, overlap_fraction, sample_rays, select_sources
 from protocol.messages import Intrinsics
 from protocol.poses import rotation_angle_deg
 
@@ -53,16 +54,18 @@ class KeyframeSelector:
     def __init__(self, cfg: KeyframeConfig) -> None:
         self.cfg = cfg
         self._last: dict[str, _Last] = {}
-        self._depth: dict[str, float] = {}
+        self._depth: dict[str, collections.deque[float]] = {}
 
     def observe_depth(self, source_id: str, depth_m: float) -> None:
         """Tell the selector the typical scene depth a source sees (median of its last depth map)."""
         if np.isfinite(depth_m) and depth_m > 0:
-            self._depth[source_id] = float(depth_m)
+            self._depth.setdefault(source_id, collections.deque(maxlen=5)).append(float(depth_m))
 
     def scene_depth(self, source_id: str) -> float:
-        """The source's typical scene depth: last observed, else ``assumed_depth_m``."""
-        return self._depth.get(source_id, self.cfg.assumed_depth_m)
+        """The source's typical scene depth: median of its last 5 observed, else ``assumed_depth_m`` (one view
+        close to a wall must not make every later baseline look huge)."""
+        d = self._depth.get(source_id)
+        return float(np.median(d)) if d else self.cfg.assumed_depth_m
 
     def consider(self, view: View) -> bool:
         """Whether ``view`` is a keyframe (and if so remember it as its source's last)."""
@@ -91,6 +94,8 @@ class KeyframeSelector:
 class _Stored:
     view: View
     depth_m: float | None  # typical scene depth once reconstructed
+    depth_map: DepthMap | None = None  # its confident depth, small, for consistency checks
+    T_refined: np.ndarray | None = None  # the pose its reconstruction ended with
 
 
 class KeyframeStore:
@@ -112,16 +117,17 @@ class KeyframeStore:
         """The stored keyframes, oldest first."""
         return [s.view for s in self._frames]
 
-    def add(self, view: View, T_world_cam: np.ndarray | None = None, depth_m: float | None = None) -> None:
-        """Keep ``view``, with its registered pose when it had none (so later windows can anchor on it), and
-        its typical depth when known. Storing a view again (same source and seq) replaces it."""
+    def add(self, view: View, T_world_cam: np.ndarray | None = None, depth_m: float | None = None,
+            depth_map: DepthMap | None = None) -> None:
+        """Keep ``view``, with its registered pose when it had none (so later windows can anchor on it), its
+        typical depth and its depth map when known. Storing a view again (same source and seq) replaces it."""
         if view.T_world_cam is None and T_world_cam is not None:
             view = replace(view, T_world_cam=T_world_cam)
         for i, s in enumerate(self._frames):
             if s.view.key == view.key:
                 del self._frames[i]
                 break
-        self._frames.append(_Stored(view, depth_m))
+        self._frames.append(_Stored(view, depth_m, depth_map, T_world_cam))
 
     def depth_of(self, view: View, default: float) -> float:
         """Typical depth recorded for a stored view, else ``default``."""
@@ -129,6 +135,20 @@ class KeyframeStore:
             if s.view.key == view.key and s.depth_m is not None:
                 return s.depth_m
         return default
+
+    def depth_maps_overlapping(self, view: View, T_world_cam: np.ndarray, depth_m: float, k: int) -> list[DepthMap]:
+        """Depth maps of up to ``k`` other stored keyframes that see most of what ``view`` sees at ``depth_m``."""
+        rays = sample_rays(intrinsics_of(view))
+        X = (rays * depth_m) @ T_world_cam[:3, :3].T + T_world_cam[:3, 3]
+        scored = []
+        for s in self._frames:
+            if s.view.key == view.key or s.depth_map is None:
+                continue
+            ov = overlap_fraction(X, s.depth_map.T_world_cam, intrinsics_of(s.view))
+            if ov > 0.1:
+                scored.append((ov, s.depth_map))
+        scored.sort(key=lambda t: -t[0])
+        return [m for _, m in scored[:k]]
 
     def neighbours(self, view: View, depth_m: float | None = None) -> list[View]:
         """Up to ``window_neighbours`` stored keyframes to reconstruct ``view`` with, best stereo partners
@@ -149,4 +169,15 @@ class KeyframeStore:
         ]
         depth = depth_m if depth_m is not None else self.depth_of(view, cfg.assumed_depth_m)
         chosen = select_sources(T, intrinsics_of(view), depth, cands, cfg.window_neighbours, self.params)
-        return [others[s.index] for s in chosen]
+        return [self._as_source(others[s.index]) for s in chosen]
+
+    def _as_source(self, view: View) -> View:
+        """A stored keyframe as a source: held at the pose its own reconstruction ended with, so every new
+        keyframe is placed in one consistent frame (refining each window from raw priors alone would give
+        every keyframe its own version of the scene, and one object several places in the map)."""
+        if not self.cfg.sources_at_refined_pose:
+            return view
+        for s in self._frames:
+            if s.view.key == view.key and s.T_refined is not None and s.depth_map is not None:
+                return replace(view, T_world_cam=s.T_refined, pose_trusted=True)
+        return view

@@ -160,6 +160,9 @@ class BundleProblem:
     """Per camera: its pose is a prior (odometry, recorded). Empty: all. Without a prior a camera is only
     a starting guess (e.g. a PnP registration) and is free."""
     prior_group: list[int] = field(default_factory=list)
+    # Per between-factor rotation std-dev (deg), keyed by (camera a, camera b) of consecutive chain members;
+    # pairs not listed use ``sigma_rel_rot_deg``.
+    rel_rot_sigma_deg: dict[tuple[int, int], float] = field(default_factory=dict)
     """Per camera: odometry source. Between-factors link consecutive cameras of one group only (two
     robots, or a robot and a hand-held phone, share no odometry). Empty: one group."""
 
@@ -320,7 +323,9 @@ def bundle_adjust(
         for a, b in zip(members[:-1], members[1:], strict=True):
             rel = poses[a].between(poses[b])
             step_m = float(np.linalg.norm(rel.translation()))
-            noise = _pose_noise(rel_rot_rad, sigma_rel_trans_m + rel_trans_frac * step_m)
+            pair_rot = prob.rel_rot_sigma_deg.get((int(a), int(b)))
+            noise = _pose_noise(rel_rot_rad if pair_rot is None else np.radians(pair_rot),
+                                sigma_rel_trans_m + rel_trans_frac * step_m)
             if rel_huber is not None:
                 # Robust odometry: tight where the priors agree with the images (video-grade tracking), but a
                 # prior that the images contradict by many sigmas (independent per-frame errors) costs

@@ -49,7 +49,10 @@ class View:
 
     image: (H, W, 3) uint8 RGB. intrinsics: None for an uncalibrated camera. T_world_cam: a pose prior
     (odometry) or a calibration, None when unknown; ``pose_trusted`` says it is a surveyed calibration
-    that reconstruction must not move. oracle: ORACLE truth (simulated sources only).
+    that reconstruction must not move. prior_rel_rot_deg: how accurate the prior's rotation is *relative to
+    the same source's other priors* (std-dev, degrees), when the source knows it: ~0.05 for visual-inertial
+    tracking, motion capture or a gyro, ~1 for priors with independent per-frame errors; None lets the
+    reconstructor judge it from the images. oracle: ORACLE truth (simulated sources only).
     """
 
     image: NDArray[np.uint8]
@@ -60,6 +63,7 @@ class View:
     stamp_ns: int = 0
     seq: int = 0
     oracle: OracleData | None = None
+    prior_rel_rot_deg: float | None = None
 
     def __post_init__(self) -> None:
         img = np.asarray(self.image)

@@ -78,17 +78,30 @@ def normalise(uv: F64, K: F64) -> F64:
 
 def epipolar_inliers(uv_a: F64, uv_b: F64, K_a: F64, K_b: F64, thresh_px: float = 2.0) -> NDArray[np.bool_]:
     """Inliers of an essential-matrix RANSAC between two calibrated views (all False if it fails)."""
+    return essential_geometry(uv_a, uv_b, K_a, K_b, thresh_px)[0]
+
+
+def essential_geometry(
+    uv_a: F64, uv_b: F64, K_a: F64, K_b: F64, thresh_px: float = 2.0
+) -> tuple[NDArray[np.bool_], F64 | None]:
+    """Essential-matrix RANSAC between two calibrated views: inlier mask and the relative rotation
+    ``R_b_a`` (camera-a directions into camera b) the images alone give, None when it fails.
+
+    The rotation is well determined by the images even where the translation direction is not (small
+    baselines), which makes it a check on a pose prior's relative rotation."""
     n = uv_a.shape[0]
     if n < 8:
-        return np.zeros(n, bool)
+        return np.zeros(n, bool), None
     f = 0.5 * (K_a[0, 0] + K_b[0, 0])
-    E, mask = cv2.findEssentialMat(
-        normalise(uv_a, K_a), normalise(uv_b, K_b), np.eye(3), method=cv2.RANSAC, prob=0.999,
-        threshold=thresh_px / f,
-    )
-    if E is None or mask is None:
-        return np.zeros(n, bool)
-    return mask.reshape(-1).astype(bool)
+    na, nb = normalise(uv_a, K_a), normalise(uv_b, K_b)
+    E, mask = cv2.findEssentialMat(na, nb, np.eye(3), method=cv2.RANSAC, prob=0.999, threshold=thresh_px / f)
+    if E is None or mask is None or E.shape != (3, 3):
+        return np.zeros(n, bool), None
+    inl = mask.reshape(-1).astype(bool)
+    if inl.sum() < 15:
+        return inl, None
+    _, R, _, _ = cv2.recoverPose(E, na[inl], nb[inl], np.eye(3))
+    return inl, np.asarray(R, np.float64)
 
 
 class LruCache:

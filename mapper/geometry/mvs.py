@@ -193,6 +193,7 @@ class MvsReconstructor:
         self.config = MvsConfig(**opts)
         self._feats = features.LruCache(self.config.cache_size)
         self._matches = features.LruCache(self.config.cache_size * 8)
+        self._pair_rot = features.LruCache(self.config.cache_size * 8)  # (key a, key b) -> R_b_a from the images
         self._depth = features.LruCache(self.config.cache_size)  # key -> (depth at sweep res, K sweep)
         self._reg_feats = features.LruCache(self.config.cache_size)  # registration features of map keyframes
 
@@ -244,8 +245,10 @@ class MvsReconstructor:
                 )
                 m = m[ok]
             if len(m):
-                ok = features.epipolar_inliers(a.feats.uv[m[:, 0]], b.feats.uv[m[:, 1]], a.K, b.K, 2.0)
+                ok, R_b_a = features.essential_geometry(a.feats.uv[m[:, 0]], b.feats.uv[m[:, 1]], a.K, b.K, 2.0)
                 m = m[ok]
+                if R_b_a is not None:
+                    self._pair_rot.put(key, R_b_a)
             self._matches.put(key, m)
         return m  # type: ignore[return-value]
 
@@ -369,6 +372,7 @@ class MvsReconstructor:
                     ouv.append(prep[v].feats.uv[k])
                     orig.append(o)
         sources = sorted({prep[i].view.source_id for i in idx})
+        group = [sources.index(prep[i].view.source_id) for i in idx]
         prob = bundle.BundleProblem(
             Ks=[prep[i].K for i in idx],
             T_world_cam=[poses[i] for i in idx],  # type: ignore[misc]
@@ -378,7 +382,8 @@ class MvsReconstructor:
             obs_uv=np.array(ouv, np.float64).reshape(-1, 2),
             fixed=[prep[i].view.pose_trusted for i in idx],
             has_prior=[has_prior[i] for i in idx],
-            prior_group=[sources.index(prep[i].view.source_id) for i in idx],
+            prior_group=group,
+            rel_rot_sigma_deg=self._relative_rotation_sigmas(prep, idx, group, has_prior),
         )
         c = self.config
         res = bundle.bundle_adjust(
@@ -424,6 +429,37 @@ class MvsReconstructor:
                 per_point.setdefault(p, []).append(o)
         keep = [p for p, lst in per_point.items() if len(lst) >= 2]
         return res.points_world[keep].reshape(-1, 3), [np.array(per_point[p]) for p in keep]
+
+    def _relative_rotation_sigmas(
+        self, prep: list[_Prepared], idx: list[int], group: list[int], has_prior: list[bool]
+    ) -> dict[tuple[int, int], float]:
+        """Std-dev of each odometry between-factor's rotation: what the views declare (``View.prior_rel_rot_deg``),
+        else ``sigma_rel_rot_deg`` where the images agree with the priors' relative rotation and as loose as
+        they disagree where they do not. Tracking-grade priors (video, VIO,
+        mocap) then hold the rotation that small baselines cannot, while priors with independent per-frame
+        errors cannot pin a wrong relative rotation on the tracks."""
+        c = self.config
+        chain = [k for k, i in enumerate(idx) if has_prior[i] and not prep[i].view.pose_trusted]
+        out: dict[tuple[int, int], float] = {}
+        for ka, kb in zip(chain[:-1], chain[1:], strict=False):
+            if group[ka] != group[kb]:
+                continue
+            a, b = prep[idx[ka]], prep[idx[kb]]
+            declared = [v.prior_rel_rot_deg for v in (a.view, b.view)]
+            if declared[0] is not None and declared[1] is not None:  # the source knows its accuracy
+                out[(ka, kb)] = float(max(declared[0], declared[1]))
+                continue
+            R_img = self._pair_rot.get((a.view.key, b.view.key))
+            if R_img is None:
+                R_ab = self._pair_rot.get((b.view.key, a.view.key))
+                R_img = None if R_ab is None else np.asarray(R_ab).T
+            if R_img is None or a.T_prior is None or b.T_prior is None:
+                out[(ka, kb)] = c.sigma_rot_deg  # no image evidence: do not hold the pair tighter than alone
+                continue
+            R_prior = (invert(b.T_prior) @ a.T_prior)[:3, :3]
+            disagree = rotation_angle_deg(np.asarray(R_img), R_prior)
+            out[(ka, kb)] = float(max(c.sigma_rel_rot_deg, disagree))
+        return out
 
     def _register_against_tracks(
         self,
