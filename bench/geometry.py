@@ -319,11 +319,12 @@ def markdown(report: dict[str, Any]) -> str:
         lines += ["", "## Video-rate input: keyframes and sources chosen by parallax", "",
                   "Scale = median estimated / recorded depth; time = pose refinement + dense depth per keyframe; "
                   "pose error of the target against the recorded (true) pose before / after refinement.", "",
-                  "| scenario | frames | keyframes (no depth) | scale | s poses / dense | rot err deg before / after "
-                  "| trans err cm before / after |", "|---|---|---|---|---|---|---|"]
+                  "| scenario | frames (poses projected) | keyframes (no depth) | scale | s poses / dense "
+                  "| rot err deg before / after | trans err cm before / after |", "|---|---|---|---|---|---|---|"]
         for s in report["video"]["depth"]:
             lines.append(
-                f"| {s['scenario']} | {s.get('frames', '-')} | {s.get('keyframes', '-')} "
+                f"| {s['scenario']} | {s.get('frames', '-')} ({s.get('poses_projected', 0)}) | "
+                f"{s.get('keyframes', '-')} "
                 f"({s.get('keyframes_without_depth', '-')}) | {_fmt(s['median_scale'])} | "
                 f"{_fmt(s['median_t_poses_s'], 2)} / {_fmt(s['median_t_dense_s'], 2)} | "
                 f"{_fmt(s['median_pose_rot_deg_before'], 2)} / {_fmt(s['median_pose_rot_deg_after'], 2)} | "
