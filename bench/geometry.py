@@ -233,6 +233,8 @@ def bench_sim(
                 fixed_depth.frames.append({"label": f"{family}/{seed}", "k": 0, "absrel": s.absrel,
                                            "delta125": s.delta125, "confident": s.confident, "n_gt": s.n_gt,
                                            "seconds": dt, "cpu_seconds": float(r.info.get("cpu_total_s", np.nan))})
+            print(f"[bench geometry] sim {family}/{seed}: known poses done, registration {reg_trials[-1]['success']}",
+                  file=sys.stderr, flush=True)
             kfs_o, _, _ = sim_sequences(family, seed, n_clusters, per_cluster, (0.01, 0.5))
             rec_o = make_reconstructor(backend, **opts)
             run_incremental(rec_o, [k.view for k in kfs_o], [(k.gt_depth, k.gt_depth > 0) for k in kfs_o], odom,

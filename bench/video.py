@@ -14,6 +14,7 @@ and camera-intrinsics.txt. Recorded poses are the priors; recorded depth is the 
 from __future__ import annotations
 
 import math
+import sys
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import dataclass, replace
@@ -176,6 +177,12 @@ def sim_video_frames(family: str, seed: int, n: int) -> list[Frame]:
     return [Frame(replace(k.view, prior_rel_rot_deg=0.05), k.gt_depth, k.gt_depth > 0, k.T_true) for k in kfs]
 
 
+def _progress(res: ScenarioResult) -> None:
+    s = res.summary()
+    print(f"[bench geometry] {res.name}: {s['n_keyframes']} keyframes, AbsRel {s['median_absrel']:.3f}, "
+          f"scale {s['median_scale']:.3f}, {s['median_s_per_keyframe']:.2f} s/keyframe", file=sys.stderr, flush=True)
+
+
 def bench_video(backend: str, quick: bool, opts: dict[str, Any], sim_seeds: Sequence[int],
                 make: Callable[..., Any]) -> dict[str, Any]:
     """All video-rate scenarios: each real sequence present (consecutive, every 3rd frame, and the previous
@@ -204,11 +211,13 @@ def bench_video(backend: str, quick: bool, opts: dict[str, Any], sim_seeds: Sequ
             counts.update(stats)
             extra[res.name] = counts
             scenarios.append(res)
+            _progress(res)
     for seed in sim_seeds:
         frames = sim_video_frames("furnished_room", seed, 24 if quick else 48)
         res = ScenarioResult(f"sim furnished_room/{seed} at video rate, true poses as priors")
         extra[res.name] = run_keyframed(make(backend, **opts), frames, res, f"sim/{seed}")
         scenarios.append(res)
+        _progress(res)
     return {
         "depth": [dict(s.summary(), **extra.get(s.name, {})) for s in scenarios],
         "depth_frames": {s.name: s.frames for s in scenarios},
