@@ -22,3 +22,15 @@ def test_compiled_sgm_equals_torch_sgm(monkeypatch: pytest.MonkeyPatch) -> None:
     flat = torch.rand(1, 4, 5, generator=g)
     np.testing.assert_allclose(planesweep.sgm_aggregate(flat, gray[:4, :5], 0.1, 0.6).numpy(), 4 * flat.numpy(),
                                atol=1e-6)
+
+
+def test_census_cost_equals_the_plain_definition() -> None:
+    g = torch.Generator().manual_seed(1)
+    ref = torch.rand(11, 14, generator=g)
+    warped = torch.rand(5, 11, 14, generator=g)
+    radius, stride = 3, 2
+    bits = planesweep.census_bits(ref, radius, stride)
+    got = planesweep._census_cost(warped, bits, radius, stride).numpy()
+    # Definition: for each plane, census bits of the warped image (edge-replicated) vs the reference's bits.
+    want = np.stack([(planesweep.census_bits(p, radius, stride) != bits).float().mean(0).numpy() for p in warped])
+    np.testing.assert_allclose(got, want, atol=1e-6)

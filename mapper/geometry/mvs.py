@@ -55,6 +55,10 @@ class MvsConfig(BaseModel):
     best_k_sources: int = Field(default=2, ge=1, le=2, description="average the k cheapest sources per pixel")
     depth_min_m: float = Field(default=0.2, gt=0, description="lower clamp of the fitted depth range")
     depth_max_m: float = Field(default=20.0, gt=0, description="upper clamp of the fitted depth range")
+    range_margin: tuple[float, float] = Field(
+        default=(0.7, 1.5),
+        description="the sweep range is the 2nd-98th percentile of the sparse depths seen, times these factors",
+    )
     default_range_m: tuple[float, float] = Field(
         default=(0.3, 8.0), description="depth range when too few sparse points see a view"
     )
@@ -108,6 +112,9 @@ class MvsConfig(BaseModel):
     consistency_px: float = Field(default=2.5, gt=0, description="reprojection tolerance (sweep pixels)")
     consistency_search_px: int = Field(
         default=0, ge=0, le=3, description="neighbour pixels within this radius of the projection may agree"
+    )
+    confidence_smooth_px: int = Field(
+        default=0, ge=0, le=3, description="box-filter radius (sweep pixels) applied to the agreement map"
     )
     consistency_views: int = Field(default=2, ge=1, description="agreeing neighbours for full confidence")
     fill_neighbours: bool = Field(
@@ -531,7 +538,7 @@ class MvsReconstructor:
             vis = (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < w) & (uv[:, 1] >= 0) & (uv[:, 1] < h)
             if vis.sum() >= 10:
                 lo, hi = np.percentile(z[vis], [2, 98])
-                lo, hi = 0.7 * lo, 1.5 * hi
+                lo, hi = c.range_margin[0] * lo, c.range_margin[1] * hi
                 return float(max(c.depth_min_m, lo)), float(min(c.depth_max_m, max(hi, lo * 1.5)))
         return c.default_range_m
 
@@ -648,6 +655,11 @@ class MvsReconstructor:
             )
             need = max(1, min(c.consistency_views, len(nbs)))
             conf = np.clip(cnt / need, 0.0, 1.0).astype(np.float32)
+            if c.confidence_smooth_px > 0:
+                # Agreement is decided per pixel and comes out speckled on real images: a pixel whose neighbours
+                # mostly agree is trusted, an isolated agreeing pixel is not.
+                k = 2 * c.confidence_smooth_px + 1
+                conf = np.asarray(cv2.blur(conf, (k, k)), np.float32)
             tex = local_std(grays[(i, *shapes[i])], c.census_radius).numpy()
             # Where the image is flat the cost has no minimum of its own: SGM fills it from the edges, and
             # neighbours may agree on the same guess, so consistency alone is not enough there.
