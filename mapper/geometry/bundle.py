@@ -16,10 +16,12 @@ camera axes are OpenCV's) and one ``Point3`` per track point (key ``L(j)``):
   at video rate consecutive cameras are 1-3 cm apart while the absolute prior sigma is ~5 cm, so an
   absolute prior alone lets the cameras slide together and the scene shrinks (seen as ~0.6x depth on
   real frames). The translation sigma grows with the step length (``rel_trans_frac``). The rotation
-  sigma defaults to the absolute one, because priors without odometry (independent per-frame errors)
-  must not be held together; pass an odometry-grade ``sigma_rel_rot_deg`` (~0.02-0.05 deg for a gyro)
-  for video: at 1 cm steps and 1-2 m depth a 0.04 deg yaw trades against a uniform shift of inverse
-  depth, i.e. ~8 % of point depth, which the pixels barely see.
+  sigma is per pair when the problem gives one (``BundleProblem.rel_rot_sigma_deg``: ``mvs`` sets it from
+  the source's declared accuracy or from how far the images' own relative rotation is from the priors'),
+  else ``sigma_rel_rot_deg`` (default: the absolute one, because priors with independent per-frame
+  errors must not be held together). Tracking-grade priors want ~0.05 deg: at 1 cm steps and 1-2 m
+  depth a 0.04 deg yaw trades against a uniform shift of inverse depth, i.e. ~8 % of point depth, which
+  the pixels barely see. ``rel_huber`` makes these factors robust (linear cost beyond that many sigmas).
 * Cameras marked ``fixed`` (surveyed calibrations) enter as ``NonlinearEqualityPose3`` and come back
   bit-identical.
 
@@ -256,7 +258,8 @@ def bundle_adjust(
     sigma_rot_deg / sigma_trans_m: absolute prior per free camera with ``has_prior``. huber_px: Huber
     threshold of the reprojection error; sigma_px: its standard deviation (weight of the images against
     the priors). sigma_rel_rot_deg (None: sigma_rot_deg), sigma_rel_trans_m + rel_trans_frac * step
-    length: between-factors on consecutive prior-having cameras. min_parallax_deg, min_inliers,
+    length: between-factors on consecutive prior-having cameras (``prob.rel_rot_sigma_deg`` overrides the
+    rotation sigma per pair; ``rel_huber``: robust kernel on them, in sigmas). min_parallax_deg, min_inliers,
     max_scale_change: the degeneracy checks. Returns the refined solution, or the priors with a status saying why.
     """
     n_cam = len(prob.Ks)

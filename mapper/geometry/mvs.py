@@ -3,10 +3,14 @@
 Pipeline per call (a window of views, dense depth for ``targets``):
 
 1. Poses first. Odometry / recorded poses are priors, not truth: SIFT tracks across the window are
-   triangulated with the priors and a bundle adjustment refines every pose with its prior as a soft
-   constraint (which also keeps the metric scale). Surveyed calibrations (``pose_trusted``) stay fixed.
-   Views without any pose are registered by PnP + RANSAC against the triangulated tracks.
-2. Dense depth per target by plane sweep over its best neighbours (baseline, angle, overlap), census
+   triangulated with the priors and refined on a GTSAM factor graph (``bundle``): robust reprojection
+   factors, absolute priors, odometry between-factors whose rotation sigma comes from the source's
+   declared accuracy (``View.prior_rel_rot_deg``) or from how well the images' essential-matrix rotation
+   agrees with the priors, and a rescale to the priors' metric scale (images have none). Degenerate
+   windows (little parallax, few inliers, a large scale change) keep the priors and say why in
+   ``info["ba"]``. Surveyed calibrations (``pose_trusted``) stay fixed. Views without any pose are
+   registered by PnP + RANSAC against the triangulated tracks.
+2. Dense depth per target by plane sweep over its best sources (``viewselect``: triangulation angle, overlap), census
    cost, 4-path SGM aggregation, sub-plane refinement, over a depth range fitted to the sparse points,
    at ~224 px width (160 px on real frames measured as good).
 3. Confidence = multi-view geometric consistency with neighbour depth maps (from this call or cached
