@@ -130,7 +130,8 @@ def quick_config(out: Path) -> EvalConfig:
 
 # --- frames ---------------------------------------------------------------------------------------
 def _mapper_views(scene: Any, poses_true: Sequence[np.ndarray], priors: Sequence[np.ndarray | None],
-                  intr: Any, source_id: str, trusted: bool, prior_rel_rot_deg: float | None = None) -> list[Any]:
+                  intr: Any, source_id: str, trusted: bool, prior_rel_rot_deg: float | None = None,
+                  prior_rel_trans_m: float | None = None) -> list[Any]:
     """Render each pose and wrap it as a mapper View with its ORACLE data (used only by oracle backends)."""
     from mapper.geometry.contract import OracleData, View
     from sim.render import Renderer
@@ -144,7 +145,7 @@ def _mapper_views(scene: Any, poses_true: Sequence[np.ndarray], priors: Sequence
                             instance_id=out.instance_id.astype(np.int32), labels=labels)
         views.append(View(image=out.rgb, source_id=source_id, intrinsics=intr, T_world_cam=prior,
                           pose_trusted=trusted, stamp_ns=(k + 1) * 1_000_000_000, seq=k, oracle=oracle,
-                          prior_rel_rot_deg=prior_rel_rot_deg))
+                          prior_rel_rot_deg=prior_rel_rot_deg, prior_rel_trans_m=prior_rel_trans_m))
     return views
 
 
@@ -266,9 +267,10 @@ def run_static(cfg: StaticConfig, torch_threads: int, log: Callable[[str], None]
         for geometry in cfg.geometries:
             t0 = time.perf_counter()
             use_priors = [np.asarray(p) for p in priors]
-            # The priors' yaw errors are independent per frame: two frames' relative rotation is off by sqrt(2) x.
+            # These priors' errors are drawn independently per frame (not odometry drift): they carry no
+            # relative information beyond the absolute prior, and the frames say so.
             views = _mapper_views(scene, poses, use_priors, intr, "robot0", trusted=False,
-                                  prior_rel_rot_deg=math.sqrt(2.0) * max(f.prior_noise_deg, 0.05))
+                                  prior_rel_rot_deg=math.inf, prior_rel_trans_m=math.inf)
             snap, counters = map_views(views, geometry, cfg.perception, torch_threads)
             row = {"seed": seed, "geometry": geometry, **score(snap.nodes, scene), "edges": len(snap.edges),
                    "frames": len(views), "seconds": round(time.perf_counter() - t0, 1),

@@ -22,7 +22,14 @@ import numpy as np
 from mapper.config import KeyframeConfig
 from mapper.consistency import DepthMap
 from mapper.geometry.contract import View
-from mapper.geometry.viewselect import Candidate, ViewSelectParams, overlap_fraction, sample_rays, select_sources
+from mapper.geometry.viewselect import (
+    Candidate,
+    ViewSelectParams,
+    overlap_fraction,
+    sample_rays,
+    select_sources,
+    triangulation_deg,
+)
 from protocol.messages import Intrinsics
 from protocol.poses import rotation_angle_deg
 
@@ -106,6 +113,8 @@ class KeyframeStore:
         self._frames: collections.deque[_Stored] = collections.deque(maxlen=cfg.max_keyframes)
         self.params = ViewSelectParams(
             min_triangulation_deg=cfg.source_min_triangulation_deg,
+            best_triangulation_deg=cfg.source_best_triangulation_deg,
+            rotation_scale_deg=cfg.source_rotation_scale_deg,
             min_overlap=cfg.source_min_overlap,
             max_rotation_deg=cfg.neighbour_max_angle_deg,
         )
@@ -168,8 +177,22 @@ class KeyframeStore:
             and float(np.linalg.norm(f.T_world_cam[:3, 3] - T[:3, 3])) <= cfg.neighbour_max_distance_m
         ]
         depth = depth_m if depth_m is not None else self.depth_of(view, cfg.assumed_depth_m)
-        chosen = select_sources(T, intrinsics_of(view), depth, cands, cfg.window_neighbours, self.params)
-        return [self._as_source(others[s.index]) for s in chosen]
+        chosen = [s.index for s in select_sources(T, intrinsics_of(view), depth, cands, cfg.window_neighbours,
+                                                    self.params)]
+        if len(chosen) < cfg.window_neighbours:
+            # Too few ideal partners: fill with the nearest views that still have parallax and look the same way
+            # (more views make the pose refinement and the consistency check sturdier).
+            near = []
+            for c in cands:
+                base = float(np.linalg.norm(c.T_world_cam[:3, 3] - T[:3, 3]))
+                axis = float(np.degrees(np.arccos(np.clip(c.T_world_cam[:3, 2] @ T[:3, 2], -1.0, 1.0))))
+                if c.index in chosen or axis > cfg.neighbour_max_angle_deg + 10.0:
+                    continue
+                if triangulation_deg(base, depth) < cfg.source_min_triangulation_deg and axis < 3.0:
+                    continue
+                near.append((base + axis / 45.0, c.index))
+            chosen += [i for _, i in sorted(near)[: cfg.window_neighbours - len(chosen)]]
+        return [self._as_source(others[i]) for i in chosen]
 
     def _as_source(self, view: View) -> View:
         """A stored keyframe as a source: held at the pose its own reconstruction ended with, so every new

@@ -165,6 +165,8 @@ class BundleProblem:
     # Per between-factor rotation std-dev (deg), keyed by (camera a, camera b) of consecutive chain members;
     # pairs not listed use ``sigma_rel_rot_deg``.
     rel_rot_sigma_deg: dict[tuple[int, int], float] = field(default_factory=dict)
+    # The same for the translation std-dev floor (m); pairs not listed use ``sigma_rel_trans_m``.
+    rel_trans_sigma_m: dict[tuple[int, int], float] = field(default_factory=dict)
     """Per camera: odometry source. Between-factors link consecutive cameras of one group only (two
     robots, or a robot and a hand-held phone, share no odometry). Empty: one group."""
 
@@ -327,8 +329,11 @@ def bundle_adjust(
             rel = poses[a].between(poses[b])
             step_m = float(np.linalg.norm(rel.translation()))
             pair_rot = prob.rel_rot_sigma_deg.get((int(a), int(b)))
+            pair_trans = prob.rel_trans_sigma_m.get((int(a), int(b)), sigma_rel_trans_m)
+            if not (np.isfinite(pair_trans) and (pair_rot is None or np.isfinite(pair_rot))):
+                continue  # independent per-frame errors: the absolute priors already say all there is
             noise = _pose_noise(rel_rot_rad if pair_rot is None else np.radians(pair_rot),
-                                sigma_rel_trans_m + rel_trans_frac * step_m)
+                                pair_trans + rel_trans_frac * step_m)
             if rel_huber is not None:
                 # Robust odometry: tight where the priors agree with the images (video-grade tracking), but a
                 # prior that the images contradict by many sigmas (independent per-frame errors) costs

@@ -52,7 +52,9 @@ class View:
     that reconstruction must not move. prior_rel_rot_deg: how accurate the prior's rotation is *relative to
     the same source's other priors* (std-dev, degrees), when the source knows it: ~0.05 for visual-inertial
     tracking, motion capture or a gyro, ~1 for priors with independent per-frame errors; None lets the
-    reconstructor judge it from the images. oracle: ORACLE truth (simulated sources only).
+    reconstructor judge it from the images; ``math.inf`` says the prior's errors are independent per frame
+    (no relative information beyond the absolute prior). prior_rel_trans_m: the same for the relative
+    translation (std-dev, metres; None: the reconstructor's default). oracle: ORACLE truth (simulated sources only).
     """
 
     image: NDArray[np.uint8]
@@ -64,6 +66,7 @@ class View:
     seq: int = 0
     oracle: OracleData | None = None
     prior_rel_rot_deg: float | None = None
+    prior_rel_trans_m: float | None = None
 
     def __post_init__(self) -> None:
         img = np.asarray(self.image)

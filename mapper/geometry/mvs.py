@@ -395,6 +395,7 @@ class MvsReconstructor:
             has_prior=[has_prior[i] for i in idx],
             prior_group=group,
             rel_rot_sigma_deg=self._relative_rotation_sigmas(prep, idx, group, has_prior),
+            rel_trans_sigma_m=self._declared_translation_sigmas(prep, idx, group, has_prior),
         )
         c = self.config
         res = bundle.bundle_adjust(
@@ -441,6 +442,25 @@ class MvsReconstructor:
         keep = [p for p, lst in per_point.items() if len(lst) >= 2]
         return res.points_world[keep].reshape(-1, 3), [np.array(per_point[p]) for p in keep]
 
+    @staticmethod
+    def _chain_pairs(
+        prep: list[_Prepared], idx: list[int], group: list[int], has_prior: list[bool]
+    ) -> list[tuple[int, int]]:
+        """Consecutive (camera a, camera b) of the bundle's odometry chain (prior-having, not fixed, one source)."""
+        chain = [k for k, i in enumerate(idx) if has_prior[i] and not prep[i].view.pose_trusted]
+        return [(a, b) for a, b in zip(chain[:-1], chain[1:], strict=False) if group[a] == group[b]]
+
+    def _declared_translation_sigmas(
+        self, prep: list[_Prepared], idx: list[int], group: list[int], has_prior: list[bool]
+    ) -> dict[tuple[int, int], float]:
+        """Translation std-dev floor of each between-factor where both views declare one (else the default)."""
+        out = {}
+        for ka, kb in self._chain_pairs(prep, idx, group, has_prior):
+            da, db = prep[idx[ka]].view.prior_rel_trans_m, prep[idx[kb]].view.prior_rel_trans_m
+            if da is not None and db is not None:
+                out[(ka, kb)] = float(max(da, db))
+        return out
+
     def _relative_rotation_sigmas(
         self, prep: list[_Prepared], idx: list[int], group: list[int], has_prior: list[bool]
     ) -> dict[tuple[int, int], float]:
@@ -450,11 +470,8 @@ class MvsReconstructor:
         mocap) then hold the rotation that small baselines cannot, while priors with independent per-frame
         errors cannot pin a wrong relative rotation on the tracks."""
         c = self.config
-        chain = [k for k, i in enumerate(idx) if has_prior[i] and not prep[i].view.pose_trusted]
         out: dict[tuple[int, int], float] = {}
-        for ka, kb in zip(chain[:-1], chain[1:], strict=False):
-            if group[ka] != group[kb]:
-                continue
+        for ka, kb in self._chain_pairs(prep, idx, group, has_prior):
             a, b = prep[idx[ka]], prep[idx[kb]]
             declared = [v.prior_rel_rot_deg for v in (a.view, b.view)]
             if declared[0] is not None and declared[1] is not None:  # the source knows its accuracy
