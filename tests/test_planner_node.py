@@ -61,6 +61,14 @@ def test_arrival_gets_a_new_goal(router: str, procs: list[Proc], strategy: str) 
         session.put(keys.robot_viewpoints("r1"), encode(vset))
         session.put(keys.map_points, encode(pm))
         session.put(keys.graph_snapshot, encode(snap))
+
+        def has_snapshot() -> bool:
+            # Zenoh does not order delivery across keys: wait until the planner holds the graph before the robot
+            # arrives, or it may plan (correctly) on the empty graph it had.
+            with lock:
+                return any(st.counters.get("graph_nodes") == 2 for st in statuses)
+
+        wait_for(has_snapshot, timeout=30, what="planner status with the snapshot's nodes")
         session.put(keys.robot_state("r1"), b"\x00garbage")  # must be counted, not crash the planner
         t_state = time.monotonic()
         session.put(
