@@ -89,3 +89,14 @@ def test_store_neighbours_come_from_all_sources_by_parallax() -> None:
     # Storing the same frame again replaces it (no duplicates in the window).
     store.add(_view(cam(0.40), 10))
     assert len(store) == 7
+
+
+def test_store_fills_with_the_nearest_views_that_have_parallax() -> None:
+    # An overlap demand no candidate meets: the ideal selection is empty and the fill takes over.
+    store = KeyframeStore(KeyframeConfig(window_neighbours=2, source_min_overlap=0.99))
+    store.add(_view(cam(0.01), 1))  # 1 cm: no parallax, never a source
+    store.add(_view(cam(0.30), 2))
+    store.add(_view(cam(0.60), 3))
+    store.add(_view(cam(1.50), 4))
+    got = store.neighbours(_view(cam(0.0), 99), depth_m=3.0)
+    assert [v.seq for v in got] == [2, 3]
