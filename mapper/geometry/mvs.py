@@ -59,10 +59,6 @@ class MvsConfig(BaseModel):
     best_k_sources: int = Field(default=2, ge=1, le=2, description="average the k cheapest sources per pixel")
     depth_min_m: float = Field(default=0.2, gt=0, description="lower clamp of the fitted depth range")
     depth_max_m: float = Field(default=20.0, gt=0, description="upper clamp of the fitted depth range")
-    range_margin: tuple[float, float] = Field(
-        default=(0.7, 1.5),
-        description="the sweep range is the 2nd-98th percentile of the sparse depths seen, times these factors",
-    )
     default_range_m: tuple[float, float] = Field(
         default=(0.3, 8.0), description="depth range when too few sparse points see a view"
     )
@@ -116,9 +112,6 @@ class MvsConfig(BaseModel):
     consistency_px: float = Field(default=2.5, gt=0, description="reprojection tolerance (sweep pixels)")
     consistency_search_px: int = Field(
         default=0, ge=0, le=3, description="neighbour pixels within this radius of the projection may agree"
-    )
-    confidence_smooth_px: int = Field(
-        default=0, ge=0, le=3, description="box-filter radius (sweep pixels) applied to the agreement map"
     )
     consistency_views: int = Field(default=2, ge=1, description="agreeing neighbours for full confidence")
     fill_neighbours: bool = Field(
@@ -204,7 +197,7 @@ class MvsReconstructor:
         self.config = MvsConfig(**opts)
         self._feats = features.LruCache(self.config.cache_size)
         self._matches = features.LruCache(self.config.cache_size * 8)
-        self._pair_rot = features.LruCache(self.config.cache_size * 8)  # (key a, key b) -> R_b_a from the images
+        self._pair_rot = features.LruCache(self.config.cache_size * 16)  # (key a, key b) -> R_b_a, both orders
         self._depth = features.LruCache(self.config.cache_size)  # key -> (depth at sweep res, K sweep)
         self._reg_feats = features.LruCache(self.config.cache_size)  # registration features of map keyframes
 
@@ -258,8 +251,9 @@ class MvsReconstructor:
             if len(m):
                 ok, R_b_a = features.essential_geometry(a.feats.uv[m[:, 0]], b.feats.uv[m[:, 1]], a.K, b.K, 2.0)
                 m = m[ok]
-                if R_b_a is not None:
+                if R_b_a is not None:  # both orders, so a lookup never needs to know which was matched
                     self._pair_rot.put(key, R_b_a)
+                    self._pair_rot.put((b.view.key, a.view.key), R_b_a.T)
             self._matches.put(key, m)
         return m  # type: ignore[return-value]
 
@@ -478,9 +472,6 @@ class MvsReconstructor:
                 out[(ka, kb)] = float(max(declared[0], declared[1]))
                 continue
             R_img = self._pair_rot.get((a.view.key, b.view.key))
-            if R_img is None:
-                R_ab = self._pair_rot.get((b.view.key, a.view.key))
-                R_img = None if R_ab is None else np.asarray(R_ab).T
             if R_img is None or a.T_prior is None or b.T_prior is None:
                 out[(ka, kb)] = c.sigma_rot_deg  # no image evidence: do not hold the pair tighter than alone
                 continue
@@ -523,19 +514,18 @@ class MvsReconstructor:
         return T, inl
 
     # ---- dense ----------------------------------------------------------------------------------------
-    def _typical_depth(self, r: int, prep: list[_Prepared], poses: list[F64 | None], pts: np.ndarray) -> float:
-        """Median depth of the sparse points the view sees (2 m when it sees too few)."""
+    def _seen_depths(self, r: int, prep: list[_Prepared], poses: list[F64 | None], pts: np.ndarray) -> np.ndarray:
+        """Camera z of the sparse points that land inside view ``r``."""
         T_r = poses[r]
         assert T_r is not None
-        if len(pts):
-            uv, z = bundle.reproject(prep[r].K, T_r, pts)
-            w, h = prep[r].intr.width, prep[r].intr.height
-            vis = (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < w) & (uv[:, 1] >= 0) & (uv[:, 1] < h)
-            if vis.sum() >= 5:
-                return float(np.median(z[vis]))
-        return 2.0
+        if not len(pts):
+            return np.zeros(0)
+        uv, z = bundle.reproject(prep[r].K, T_r, pts)
+        w, h = prep[r].intr.width, prep[r].intr.height
+        return z[(z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < w) & (uv[:, 1] >= 0) & (uv[:, 1] < h)]
 
-    def _select_sources(self, r: int, prep: list[_Prepared], poses: list[F64 | None], pts: np.ndarray) -> list[int]:
+    def _select_sources(self, r: int, prep: list[_Prepared], poses: list[F64 | None], seen: np.ndarray) -> list[int]:
+        """Best sources for view ``r`` among the window's posed views; ``seen``: depths of the sparse points it sees."""
         T_r = poses[r]
         assert T_r is not None
         cands = [
@@ -543,24 +533,17 @@ class MvsReconstructor:
             for s in range(len(prep)) if s != r and poses[s] is not None
         ]
         params = viewselect.ViewSelectParams(min_triangulation_deg=self.config.source_min_triangulation_deg)
-        med = self._typical_depth(r, prep, poses, pts)
+        med = float(np.median(seen)) if len(seen) >= 5 else 2.0  # typical depth of what the view sees
         chosen = viewselect.select_sources(T_r, prep[r].intr, med, cands, self.config.n_sources, params)
         return [c.index for c in chosen]
 
-    def _depth_range(
-        self, r: int, prep: list[_Prepared], poses: list[F64 | None], pts: np.ndarray
-    ) -> tuple[float, float]:
+    def _depth_range(self, seen: np.ndarray) -> tuple[float, float]:
+        """Sweep range fitted to the depths of the sparse points a view sees (``default_range_m`` if too few)."""
         c = self.config
-        if len(pts) >= 10:
-            T_r = poses[r]
-            assert T_r is not None
-            uv, z = bundle.reproject(prep[r].K, T_r, pts)
-            w, h = prep[r].intr.width, prep[r].intr.height
-            vis = (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < w) & (uv[:, 1] >= 0) & (uv[:, 1] < h)
-            if vis.sum() >= 10:
-                lo, hi = np.percentile(z[vis], [2, 98])
-                lo, hi = c.range_margin[0] * lo, c.range_margin[1] * hi
-                return float(max(c.depth_min_m, lo)), float(min(c.depth_max_m, max(hi, lo * 1.5)))
+        if len(seen) >= 10:
+            lo, hi = np.percentile(seen, [2, 98])
+            lo, hi = 0.7 * lo, 1.5 * hi
+            return float(max(c.depth_min_m, lo)), float(min(c.depth_max_m, max(hi, lo * 1.5)))
         return c.default_range_m
 
     def _sweep(
@@ -568,7 +551,8 @@ class MvsReconstructor:
         grays: dict[tuple[int, int, int], torch.Tensor], sw: int, sh: int,
     ) -> tuple[np.ndarray, np.ndarray, list[int]]:
         c = self.config
-        srcs = self._select_sources(r, prep, poses, pts)
+        seen = self._seen_depths(r, prep, poses, pts)
+        srcs = self._select_sources(r, prep, poses, seen)
         if not srcs:
             return np.zeros((sh, sw), np.float32), np.zeros((sh, sw), np.float32), []
         for s in [r, *srcs]:
@@ -577,7 +561,7 @@ class MvsReconstructor:
         K_r = prep[r].intr.scaled(sw, sh).K()
         T_r = poses[r]
         assert T_r is not None
-        lo, hi = self._depth_range(r, prep, poses, pts)
+        lo, hi = self._depth_range(seen)
         params = planesweep.SweepParams(
             c.n_planes, c.census_radius, c.census_stride, c.sgm_p1, c.sgm_p2, c.best_k_sources
         )
@@ -676,11 +660,6 @@ class MvsReconstructor:
             )
             need = max(1, min(c.consistency_views, len(nbs)))
             conf = np.clip(cnt / need, 0.0, 1.0).astype(np.float32)
-            if c.confidence_smooth_px > 0:
-                # Agreement is decided per pixel and comes out speckled on real images: a pixel whose neighbours
-                # mostly agree is trusted, an isolated agreeing pixel is not.
-                k = 2 * c.confidence_smooth_px + 1
-                conf = np.asarray(cv2.blur(conf, (k, k)), np.float32)
             tex = local_std(grays[(i, *shapes[i])], c.census_radius).numpy()
             # Where the image is flat the cost has no minimum of its own: SGM fills it from the edges, and
             # neighbours may agree on the same guess, so consistency alone is not enough there.

@@ -228,7 +228,7 @@ def winner_depth(agg: torch.Tensor, inv_depths: torch.Tensor) -> tuple[torch.Ten
     depth = 1.0 / inv.clamp(min=1e-6)
     # Best cost at least 2 planes away from the winner: mask the winner and its two neighbours.
     masked = agg.clone()
-    big = torch.full_like(idx, 0, dtype=agg.dtype).fill_(1e9).unsqueeze(0)
+    big = torch.full_like(idx, 1e9, dtype=agg.dtype).unsqueeze(0)
     for off in (-1, 0, 1):
         masked.scatter_(0, (idx + off).clamp(0, d_n - 1).unsqueeze(0), big)
     second = masked.min(dim=0).values
