@@ -68,18 +68,6 @@ class KeyframeConfig(BaseModel):
         default=1.5, ge=0.0,
         description="a source needs at least this triangulation angle at the target's typical depth (parallax)",
     )
-    sources_at_refined_pose: bool = Field(
-        default=False,
-        description="hold source keyframes at their refined poses (one consistent frame) instead of re-refining "
-        "their raw priors in every window; off by default: on the static sim eval it chained pose errors (median "
-        "rotation error 0.7 -> 1.4 deg) for no F1 gain",
-    )
-    source_best_triangulation_deg: float = Field(
-        default=5.0, gt=0.0, description="triangulation angle from which a source's angle counts as fully good"
-    )
-    source_rotation_scale_deg: float = Field(
-        default=45.0, gt=0.0, description="a source's score falls by 1/e per this much viewing-direction change"
-    )
     source_min_overlap: float = Field(
         default=0.3, ge=0.0, le=1.0, description="fraction of the target's view a source must also see"
     )

@@ -189,8 +189,9 @@ class MapperCore:
             self._count("depth_pixels_checked", st.checked)
             self._count("depth_pixels_rejected_inconsistent", st.rejected)
             vg = ViewGeometry(points_world=vg.points_world, depth_m=vg.depth_m, confidence=conf)
-        self.keyframes.add(view, T_world_cam, depth_m,
-                           downsample(vg.depth_m, vg.confidence, K_out, T_world_cam, dc.map_width, 0.5))
+        # Only the depth check reads the stored maps: do not pay for them when it is off.
+        depth_map = downsample(vg.depth_m, vg.confidence, K_out, T_world_cam, dc.map_width, 0.5) if dc.enabled else None
+        self.keyframes.add(view, T_world_cam, depth_m, depth_map)
         outside = outside_fraction(vg.points_world, vg.confidence, vg.depth_m, self.config.fusion)
         if outside > self.config.fusion.max_outside_fraction:
             # Depth that puts much of the view under the floor is wrong everywhere (scale or matching failure):

@@ -102,7 +102,6 @@ class _Stored:
     view: View
     depth_m: float | None  # typical scene depth once reconstructed
     depth_map: DepthMap | None = None  # its confident depth, small, for consistency checks
-    T_refined: np.ndarray | None = None  # the pose its reconstruction ended with
 
 
 class KeyframeStore:
@@ -113,8 +112,6 @@ class KeyframeStore:
         self._frames: collections.deque[_Stored] = collections.deque(maxlen=cfg.max_keyframes)
         self.params = ViewSelectParams(
             min_triangulation_deg=cfg.source_min_triangulation_deg,
-            best_triangulation_deg=cfg.source_best_triangulation_deg,
-            rotation_scale_deg=cfg.source_rotation_scale_deg,
             min_overlap=cfg.source_min_overlap,
             max_rotation_deg=cfg.neighbour_max_angle_deg,
         )
@@ -136,7 +133,7 @@ class KeyframeStore:
             if s.view.key == view.key:
                 del self._frames[i]
                 break
-        self._frames.append(_Stored(view, depth_m, depth_map, T_world_cam))
+        self._frames.append(_Stored(view, depth_m, depth_map))
 
     def depth_of(self, view: View, default: float) -> float:
         """Typical depth recorded for a stored view, else ``default``."""
@@ -193,15 +190,4 @@ class KeyframeStore:
                     continue
                 near.append((base + axis / 45.0, c.index))
             chosen += [i for _, i in sorted(near)[: cfg.window_neighbours - len(chosen)]]
-        return [self._as_source(others[i]) for i in chosen]
-
-    def _as_source(self, view: View) -> View:
-        """A stored keyframe as a source: held at the pose its own reconstruction ended with, so every new
-        keyframe is placed in one consistent frame (refining each window from raw priors alone would give
-        every keyframe its own version of the scene, and one object several places in the map)."""
-        if not self.cfg.sources_at_refined_pose:
-            return view
-        for s in self._frames:
-            if s.view.key == view.key and s.T_refined is not None and s.depth_map is not None:
-                return replace(view, T_world_cam=s.T_refined, pose_trusted=True)
-        return view
+        return [others[i] for i in chosen]

@@ -35,7 +35,6 @@ class ViewSelectParams:
     max_triangulation_deg: float = 30.0
     min_overlap: float = 0.3
     max_rotation_deg: float = 60.0
-    rotation_scale_deg: float = 45.0  # score falls by 1/e per this much viewing-direction change
 
 
 @dataclass(frozen=True)
@@ -92,7 +91,7 @@ def score_sources(
     """Usable source views for a reference, best first (candidates without usable parallax are left out).
 
     ``depth_m`` is the reference's typical scene depth (median of its sparse points or of its last depth map).
-    Score = overlap x angle quality x exp(-rotation / ``rotation_scale_deg``); angle quality rises linearly to 1 at
+    Score = overlap x angle quality x exp(-rotation / 45 deg); angle quality rises linearly to 1 at
     ``best_triangulation_deg`` and falls off past 20 deg.
     """
     rays = sample_rays(intr_ref)
@@ -108,8 +107,7 @@ def score_sources(
         if ov < params.min_overlap:
             continue
         q_tri = min(1.0, tri / params.best_triangulation_deg) * float(np.exp(-max(0.0, tri - 20.0) / 10.0))
-        out.append(SourceScore(c.index, ov * q_tri * float(np.exp(-rot / params.rotation_scale_deg)), tri, base, ov,
-                               rot))
+        out.append(SourceScore(c.index, ov * q_tri * float(np.exp(-rot / 45.0)), tri, base, ov, rot))
     out.sort(key=lambda s: (-s.score, s.index))
     return out
 
