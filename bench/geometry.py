@@ -27,11 +27,10 @@ import platform
 import sys
 import time
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Any
 
-import cv2
 import numpy as np
 
 from bench.geomscore import ScenarioResult, score_depth
@@ -265,20 +264,14 @@ def _reg_trial(est: PoseEstimate, T_true: np.ndarray, label: str, seconds: float
 
 # ---- real frames ---------------------------------------------------------------------------------------
 def load_labelfusion(root: Path = LABELFUSION_DIR) -> list[tuple[View, np.ndarray]]:
-    """The label-fusion frames: views with recorded poses (priors) and recorded depth in metres."""
-    frames = root / "frames"
-    K = np.loadtxt(root / "camera-intrinsics.color.txt")[:3, :3]
-    out = []
-    for p in sorted(frames.glob("frame-*.color.png")):
-        stem = p.name[: -len(".color.png")]
-        bgr = cv2.imread(str(p))
-        raw = cv2.imread(str(frames / f"{stem}.depth.png"), cv2.IMREAD_UNCHANGED)
-        T = np.loadtxt(frames / f"{stem}.pose.txt")
-        h, w = bgr.shape[:2]
-        intr = Intrinsics(width=w, height=h, fx=K[0, 0], fy=K[1, 1], cx=K[0, 2], cy=K[1, 2])
-        depth = (raw >> 3).astype(np.float32) / 10000.0
-        out.append((View(cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB), "labelfusion", intr, T, seq=int(stem[6:])), depth))
-    return out
+    """The label-fusion frames: views with recorded poses (priors) and recorded depth in metres.
+
+    Read by ``bench.video.load_sequence``; the views here declare no relative pose accuracy, so the
+    reconstructor judges it from the images (as this scenario always has)."""
+    from bench.video import load_sequence
+
+    frames, _ = load_sequence("labelfusion", root.parent)
+    return [(replace(f.view, prior_rel_rot_deg=None), f.depth_m) for f in frames]
 
 
 def bench_real(backend: str, quick: bool, opts: dict[str, Any]) -> dict[str, Any] | None:
