@@ -191,3 +191,29 @@ def test_mvs_on_rendered_sim_views(sim_room: tuple) -> None:
     absrel = np.abs(g.depth_m[1][sel] - gt[sel]) / gt[sel]
     assert np.median(absrel) < 0.05
     assert np.mean(absrel < 0.25) > 0.9
+
+
+def test_pair_whose_image_rotation_contradicts_the_priors_is_dropped() -> None:
+    """Wrong matches on repetitive texture can agree on an essential matrix; its rotation then differs from the
+    priors' relative rotation by far more than any prior error, and the pair contributes no tracks."""
+    from mapper.geometry.mvs import MvsReconstructor, _Prepared
+
+    rec = MvsReconstructor(max_pair_rotation_deg=10.0)
+    intr = Intrinsics.from_fov(64, 48, 70.0)
+    img = np.zeros((48, 64, 3), np.uint8)
+    no_feats = features.Features(np.zeros((0, 2)), np.zeros((0, 128), np.float32))
+    T_a = make_pose(np.eye(3), [0.0, 0.0, 0.0])
+    T_b = make_pose(Rotation.from_euler("y", 5.0, degrees=True).as_matrix(), [0.3, 0.0, 0.0])
+
+    def prep(T: np.ndarray | None, seq: int) -> _Prepared:
+        return _Prepared(View(image=img, source_id="r", seq=seq, intrinsics=intr, T_world_cam=T), intr.K(), intr, T,
+                         no_feats)
+
+    a, b = prep(T_a, 0), prep(T_b, 1)
+    R_prior = (np.linalg.inv(T_b) @ T_a)[:3, :3]
+    assert not rec._contradicts_priors(a, b, R_prior)
+    off_by = Rotation.from_euler("x", 8.0, degrees=True).as_matrix()
+    assert not rec._contradicts_priors(a, b, off_by @ R_prior)  # within what prior errors explain
+    wrong = Rotation.from_euler("x", 25.0, degrees=True).as_matrix()
+    assert rec._contradicts_priors(a, b, wrong @ R_prior)
+    assert not rec._contradicts_priors(prep(None, 2), b, wrong @ R_prior)  # nothing to contradict

@@ -25,6 +25,12 @@ camera axes are OpenCV's) and one ``Point3`` per track point (key ``L(j)``):
 * Cameras marked ``fixed`` (surveyed calibrations) enter as ``NonlinearEqualityPose3`` and come back
   bit-identical.
 
+It is solved twice from the priors (Levenberg-Marquardt): first with a Cauchy loss on the reprojections,
+which all but ignores wrong matches (on repetitive texture they agree with each other and with the
+epipolar lines, and pulled a single Huber solution by degrees on the sim scan walks, even from exact
+priors); observations still off by more than ``outlier_px`` there are dropped, and the rest is solved
+again with the Huber loss.
+
 Scale safety by construction: after optimisation the scale ``s`` of the refined camera centres relative
 to the prior centres is measured (least squares, prior = refined / s, over the cameras with a prior or
 fixed, about their centroid or about the fixed camera's centre) and the solution is rescaled by
@@ -178,7 +184,8 @@ class BundleResult:
     points_world: F64
     """(P, 3) refined points; the input points when ``status`` is not "ok"."""
     inlier_obs: NDArray[np.bool_]
-    """Per observation: in front of its camera and reprojected within 3 * huber_px (returned solution)."""
+    """Per observation: kept by the robust pass, in front of its camera and reprojected within 3 * huber_px
+    (returned solution)."""
     rms_px_before: float
     """RMS reprojection error of the priors and input points (observations in front of their camera)."""
     rms_px_after: float
@@ -239,13 +246,51 @@ def _pose_noise(rot_rad: float, trans_m: float) -> gtsam.noiseModel.Base:
     return gtsam.noiseModel.Diagonal.Sigmas(np.array([rot_rad] * 3 + [trans_m] * 3))
 
 
+def _pose_factors(
+    T_prior: list[F64], fixed: NDArray[np.bool_], has_prior: NDArray[np.bool_], group: I64, prob: BundleProblem,
+    sigma_rot_deg: float, sigma_trans_m: float, sigma_rel_rot_deg: float | None, sigma_rel_trans_m: float,
+    rel_trans_frac: float, rel_huber: float | None,
+) -> gtsam.NonlinearFactorGraph:
+    """The factors on the cameras alone: equalities for fixed ones, absolute priors, odometry between-factors."""
+    graph = gtsam.NonlinearFactorGraph()
+    poses = [gtsam.Pose3(T) for T in T_prior]
+    for i in np.flatnonzero(fixed).tolist():
+        graph.add(gtsam.NonlinearEqualityPose3(X(i), poses[i]))
+    prior_noise = _pose_noise(np.radians(sigma_rot_deg), sigma_trans_m)
+    chain = np.flatnonzero(has_prior & ~fixed)
+    for i in chain.tolist():
+        graph.add(gtsam.PriorFactorPose3(X(i), poses[i], prior_noise))
+    # Rotation carries no scale, so by default the relative rotation is trusted no more than the absolute
+    # one: priors with independent rotation errors (no odometry) must not be held together more tightly.
+    rel_rot_rad = np.radians(sigma_rot_deg if sigma_rel_rot_deg is None else sigma_rel_rot_deg)
+    for g in np.unique(group[chain]):
+        members = chain[group[chain] == g]
+        for a, b in zip(members[:-1], members[1:], strict=True):
+            rel = poses[a].between(poses[b])
+            step_m = float(np.linalg.norm(rel.translation()))
+            pair_rot = prob.rel_rot_sigma_deg.get((int(a), int(b)))
+            pair_trans = prob.rel_trans_sigma_m.get((int(a), int(b)), sigma_rel_trans_m)
+            if not (np.isfinite(pair_trans) and (pair_rot is None or np.isfinite(pair_rot))):
+                continue  # independent per-frame errors: the absolute priors already say all there is
+            noise = _pose_noise(rel_rot_rad if pair_rot is None else np.radians(pair_rot),
+                                pair_trans + rel_trans_frac * step_m)
+            if rel_huber is not None:
+                # Robust odometry: tight where the priors agree with the images (video-grade tracking), but a
+                # prior that the images contradict by many sigmas (independent per-frame errors) costs
+                # linearly and the tracks win.
+                noise = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(rel_huber), noise)
+            graph.add(gtsam.BetweenFactorPose3(X(int(a)), X(int(b)), rel, noise))
+    return graph
+
+
 def bundle_adjust(
     prob: BundleProblem,
     sigma_rot_deg: float = 1.0,
     sigma_trans_m: float = 0.03,
     huber_px: float = 2.0,
-    max_iterations: int = 20,
+    max_iterations: int = 50,
     *,
+    outlier_px: float = 2.0,
     sigma_px: float = 1.0,
     sigma_rel_rot_deg: float | None = None,
     sigma_rel_trans_m: float = 0.005,
@@ -258,8 +303,9 @@ def bundle_adjust(
     """Refine camera poses and points against the pose priors (see the module docstring).
 
     sigma_rot_deg / sigma_trans_m: absolute prior per free camera with ``has_prior``. huber_px: Huber
-    threshold of the reprojection error; sigma_px: its standard deviation (weight of the images against
-    the priors). sigma_rel_rot_deg (None: sigma_rot_deg), sigma_rel_trans_m + rel_trans_frac * step
+    threshold of the reprojection error (and the Cauchy scale of the first pass); outlier_px: observations
+    off by more after the first pass are dropped; sigma_px: the reprojection standard deviation (weight of
+    the images against the priors). max_iterations: per pass. sigma_rel_rot_deg (None: sigma_rot_deg), sigma_rel_trans_m + rel_trans_frac * step
     length: between-factors on consecutive prior-having cameras (``prob.rel_rot_sigma_deg`` overrides the
     rotation sigma per pair; ``rel_huber``: robust kernel on them, in sigmas). min_parallax_deg, min_inliers,
     max_scale_change: the degeneracy checks. Returns the refined solution, or the priors with a status saying why.
@@ -309,62 +355,58 @@ def bundle_adjust(
     if parallax < min_parallax_deg:
         return keep_priors("low_parallax")
 
-    graph = gtsam.NonlinearFactorGraph()
-    values = gtsam.Values()
-    poses = [gtsam.Pose3(T) for T in T_prior]
-    for i in range(n_cam):
-        values.insert(X(i), poses[i])
-        if fixed[i]:
-            graph.add(gtsam.NonlinearEqualityPose3(X(i), poses[i]))
-    prior_noise = _pose_noise(np.radians(sigma_rot_deg), sigma_trans_m)
-    chain = np.flatnonzero(has_prior & ~fixed)
-    for i in chain.tolist():
-        graph.add(gtsam.PriorFactorPose3(X(i), poses[i], prior_noise))
-    # Rotation carries no scale, so by default the relative rotation is trusted no more than the absolute
-    # one: priors with independent rotation errors (no odometry) must not be held together more tightly.
-    rel_rot_rad = np.radians(sigma_rot_deg if sigma_rel_rot_deg is None else sigma_rel_rot_deg)
-    for g in np.unique(group[chain]):
-        members = chain[group[chain] == g]
-        for a, b in zip(members[:-1], members[1:], strict=True):
-            rel = poses[a].between(poses[b])
-            step_m = float(np.linalg.norm(rel.translation()))
-            pair_rot = prob.rel_rot_sigma_deg.get((int(a), int(b)))
-            pair_trans = prob.rel_trans_sigma_m.get((int(a), int(b)), sigma_rel_trans_m)
-            if not (np.isfinite(pair_trans) and (pair_rot is None or np.isfinite(pair_rot))):
-                continue  # independent per-frame errors: the absolute priors already say all there is
-            noise = _pose_noise(rel_rot_rad if pair_rot is None else np.radians(pair_rot),
-                                pair_trans + rel_trans_frac * step_m)
-            if rel_huber is not None:
-                # Robust odometry: tight where the priors agree with the images (video-grade tracking), but a
-                # prior that the images contradict by many sigmas (independent per-frame errors) costs
-                # linearly and the tracks win.
-                noise = gtsam.noiseModel.Robust.Create(gtsam.noiseModel.mEstimator.Huber.Create(rel_huber), noise)
-            graph.add(gtsam.BetweenFactorPose3(X(int(a)), X(int(b)), rel, noise))
-    pt_ids = np.flatnonzero(in_graph_pt)
-    for j in pt_ids.tolist():
-        values.insert(L(j), pts0[j])
-    cals = [gtsam.Cal3_S2(K[0, 0], K[1, 1], K[0, 1], K[0, 2], K[1, 2]) for K in prob.Ks]
-    pix_noise = gtsam.noiseModel.Robust.Create(
-        gtsam.noiseModel.mEstimator.Huber.Create(huber_px / sigma_px), gtsam.noiseModel.Isotropic.Sigma(2, sigma_px)
+    pose_graph = _pose_factors(
+        T_prior, fixed, has_prior, group, prob, sigma_rot_deg, sigma_trans_m, sigma_rel_rot_deg, sigma_rel_trans_m,
+        rel_trans_frac, rel_huber,
     )
-    x_keys = [X(i) for i in range(n_cam)]
-    sel = np.flatnonzero(in_graph_obs)
-    for c, j, uv in zip(oc[sel].tolist(), op[sel].tolist(), ouv[sel], strict=True):
-        graph.add(gtsam.GenericProjectionFactorCal3_S2(uv, pix_noise, x_keys[c], L(j), cals[c]))
+    cals = [gtsam.Cal3_S2(K[0, 0], K[1, 1], K[0, 1], K[0, 2], K[1, 2]) for K in prob.Ks]
 
-    params = gtsam.LevenbergMarquardtParams()
-    params.setMaxIterations(max_iterations)
-    optimizer = gtsam.LevenbergMarquardtOptimizer(graph, values, params)
+    def solve(use_obs: NDArray[np.bool_], kernel: gtsam.noiseModel.mEstimator.Base) -> tuple[gtsam.Values, int]:
+        """One Levenberg-Marquardt run from the priors over the observations ``use_obs`` (a point needs two)."""
+        counts = np.bincount(op[use_obs], minlength=len(pts0))
+        obs_sel = np.flatnonzero(use_obs & (counts[op] >= 2))
+        graph = gtsam.NonlinearFactorGraph(pose_graph)
+        values = gtsam.Values()
+        for i in range(n_cam):
+            values.insert(X(i), gtsam.Pose3(T_prior[i]))
+        for j in np.unique(op[obs_sel]).tolist():
+            values.insert(L(j), pts0[j])
+        pix_noise = gtsam.noiseModel.Robust.Create(kernel, gtsam.noiseModel.Isotropic.Sigma(2, sigma_px))
+        for c, j, uv in zip(oc[obs_sel].tolist(), op[obs_sel].tolist(), ouv[obs_sel], strict=True):
+            graph.add(gtsam.GenericProjectionFactorCal3_S2(uv, pix_noise, X(c), L(j), cals[c]))
+        params = gtsam.LevenbergMarquardtParams()
+        params.setMaxIterations(max_iterations)
+        optimizer = gtsam.LevenbergMarquardtOptimizer(graph, values, params)
+        return optimizer.optimize(), optimizer.iterations()
+
+    # Two passes, as SfM systems do: a redescending (Cauchy) loss finds the solution that most tracks agree on
+    # even when wrong matches of repetitive texture survived the match filters (they pull a Huber solution
+    # by degrees); observations still off by more than ``outlier_px`` there are dropped, and the inliers are
+    # solved again from the priors with the Huber loss.
     try:
-        out = optimizer.optimize()
+        first, n_it = solve(in_graph_obs, gtsam.noiseModel.mEstimator.Cauchy.Create(huber_px / sigma_px))
+        T_first = [T_prior[i] if fixed[i] else first.atPose3(X(i)).matrix() for i in range(n_cam)]
+        pts_first = pts0.copy()
+        for j in np.unique(op[in_graph_obs]).tolist():
+            if first.exists(L(j)):
+                pts_first[j] = first.atPoint3(L(j))
+        err1, z1 = _obs_errors(prob.Ks, T_first, pts_first, oc, op, ouv)
+        keep_obs = in_graph_obs & (err1 <= outlier_px) & (z1 > 0)
+        if keep_obs.sum() < min_inliers:
+            return keep_priors("few_inliers", n_iterations=n_it)
+        out, n_it2 = solve(keep_obs, gtsam.noiseModel.mEstimator.Huber.Create(huber_px / sigma_px))
+        n_it += n_it2
     except RuntimeError:
-        return keep_priors("solver_failed", n_iterations=optimizer.iterations())
-    n_it = optimizer.iterations()
+        return keep_priors("solver_failed")
+    kept_counts = np.bincount(op[keep_obs], minlength=len(pts0))
+    pt_ids = np.flatnonzero(in_graph_pt & (kept_counts >= 2))
 
     T_ref = [T_prior[i].copy() if fixed[i] else out.atPose3(X(i)).matrix() for i in range(n_cam)]
     pts = pts0.copy()
     if len(pt_ids):
         pts[pt_ids] = gtsam.utilities.extractPoint3(out)  # sorted by key, i.e. by point index
+    in_graph_pt = np.zeros(len(pts0), bool)
+    in_graph_pt[pt_ids] = True  # the rescale below moves only the points the solution holds
     C_ref = np.stack([T[:3, 3] for T in T_ref])
 
     # Scale about a fixed camera when there is one (it must not move), else about the centroid of the
@@ -392,7 +434,7 @@ def bundle_adjust(
         T_ref[i] = T_prior[i].copy()  # exact, not merely to rounding
 
     err, z = _obs_errors(prob.Ks, T_ref, pts, oc, op, ouv)
-    inl = (err < 3.0 * huber_px) & (z > 0)
+    inl = keep_obs & (err < 3.0 * huber_px) & (z > 0)
     if inl.sum() < min_inliers:
         return keep_priors("few_inliers", 1.0 / s, n_it)
     if abs(1.0 - s) > max_scale_change:

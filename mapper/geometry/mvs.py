@@ -68,6 +68,11 @@ class MvsConfig(BaseModel):
     )
     ratio: float = Field(default=0.8, gt=0, lt=1, description="Lowe ratio test threshold")
     max_pair_angle_deg: float = Field(default=80.0, description="skip matching prior views further apart")
+    max_pair_rotation_deg: float = Field(
+        default=10.0, gt=0,
+        description="a pair whose essential-matrix rotation differs from the priors' relative rotation by more is "
+        "dropped (wrong matches on repetitive texture); allows for the priors' error and the essential matrix's own",
+    )
     refine_poses: bool = Field(default=True, description="bundle-adjust the pose priors before the sweep")
     sigma_rot_deg: float = Field(default=2.0, gt=0, description="pose prior std-dev, rotation (deg)")
     sigma_trans_m: float = Field(default=0.05, gt=0, description="pose prior std-dev, camera centre (m)")
@@ -251,11 +256,23 @@ class MvsReconstructor:
             if len(m):
                 ok, R_b_a = features.essential_geometry(a.feats.uv[m[:, 0]], b.feats.uv[m[:, 1]], a.K, b.K, 2.0)
                 m = m[ok]
-                if R_b_a is not None:  # both orders, so a lookup never needs to know which was matched
+                if R_b_a is None or self._contradicts_priors(a, b, R_b_a):
+                    # Too few inliers to verify, or a relative rotation no prior error explains: on repetitive
+                    # texture (tiles, planks, wallpaper) the few matches of a wide-baseline pair are mostly
+                    # wrong yet lie on epipolar lines, and their tracks pull the adjustment by degrees.
+                    m = m[:0]
+                else:  # both orders, so a lookup never needs to know which was matched
                     self._pair_rot.put(key, R_b_a)
                     self._pair_rot.put((b.view.key, a.view.key), R_b_a.T)
             self._matches.put(key, m)
         return m  # type: ignore[return-value]
+
+    def _contradicts_priors(self, a: _Prepared, b: _Prepared, R_b_a: F64) -> bool:
+        """Whether the images' relative rotation is further from the priors' than ``max_pair_rotation_deg``."""
+        if a.T_prior is None or b.T_prior is None:
+            return False
+        R_prior = (invert(b.T_prior) @ a.T_prior)[:3, :3]
+        return rotation_angle_deg(np.asarray(R_b_a), R_prior) > self.config.max_pair_rotation_deg
 
     # ---- poses ----------------------------------------------------------------------------------------
     def _prepare(self, views: Sequence[View]) -> list[_Prepared]:
