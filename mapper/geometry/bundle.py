@@ -305,10 +305,11 @@ def bundle_adjust(
     sigma_rot_deg / sigma_trans_m: absolute prior per free camera with ``has_prior``. huber_px: Huber
     threshold of the reprojection error (and the Cauchy scale of the first pass); outlier_px: observations
     off by more after the first pass are dropped; sigma_px: the reprojection standard deviation (weight of
-    the images against the priors). max_iterations: per pass. sigma_rel_rot_deg (None: sigma_rot_deg), sigma_rel_trans_m + rel_trans_frac * step
-    length: between-factors on consecutive prior-having cameras (``prob.rel_rot_sigma_deg`` overrides the
-    rotation sigma per pair; ``rel_huber``: robust kernel on them, in sigmas). min_parallax_deg, min_inliers,
-    max_scale_change: the degeneracy checks. Returns the refined solution, or the priors with a status saying why.
+    the images against the priors); max_iterations: per pass. sigma_rel_rot_deg (None: sigma_rot_deg),
+    sigma_rel_trans_m + rel_trans_frac * step length: between-factors on consecutive prior-having cameras
+    (``prob.rel_rot_sigma_deg`` overrides the rotation sigma per pair; ``rel_huber``: robust kernel on them,
+    in sigmas). min_parallax_deg, min_inliers, max_scale_change: the degeneracy checks. Returns the refined
+    solution, or the priors with a status saying why.
     """
     n_cam = len(prob.Ks)
     fixed = np.array(prob.fixed or [False] * n_cam, bool)
