@@ -362,15 +362,19 @@ def bundle_adjust(
     )
     cals = [gtsam.Cal3_S2(K[0, 0], K[1, 1], K[0, 1], K[0, 2], K[1, 2]) for K in prob.Ks]
 
-    def solve(use_obs: NDArray[np.bool_], kernel: gtsam.noiseModel.mEstimator.Base) -> tuple[gtsam.Values, int]:
-        """One Levenberg-Marquardt run from the priors over the observations ``use_obs`` (a point needs two)."""
+    def solve(use_obs: NDArray[np.bool_], kernel: gtsam.noiseModel.mEstimator.Base
+              ) -> tuple[list[F64], F64, NDArray[np.bool_], int]:
+        """One Levenberg-Marquardt run from the priors over the observations ``use_obs`` (a point needs two).
+        Returns the poses, the points (the input ones where not solved), which points were solved, iterations."""
         counts = np.bincount(op[use_obs], minlength=len(pts0))
         obs_sel = np.flatnonzero(use_obs & (counts[op] >= 2))
+        held = np.zeros(len(pts0), bool)
+        held[op[obs_sel]] = True
         graph = gtsam.NonlinearFactorGraph(pose_graph)
         values = gtsam.Values()
         for i in range(n_cam):
             values.insert(X(i), gtsam.Pose3(T_prior[i]))
-        for j in np.unique(op[obs_sel]).tolist():
+        for j in np.flatnonzero(held).tolist():
             values.insert(L(j), pts0[j])
         pix_noise = gtsam.noiseModel.Robust.Create(kernel, gtsam.noiseModel.Isotropic.Sigma(2, sigma_px))
         for c, j, uv in zip(oc[obs_sel].tolist(), op[obs_sel].tolist(), ouv[obs_sel], strict=True):
@@ -378,36 +382,28 @@ def bundle_adjust(
         params = gtsam.LevenbergMarquardtParams()
         params.setMaxIterations(max_iterations)
         optimizer = gtsam.LevenbergMarquardtOptimizer(graph, values, params)
-        return optimizer.optimize(), optimizer.iterations()
+        out = optimizer.optimize()
+        T = [T_prior[i].copy() if fixed[i] else out.atPose3(X(i)).matrix() for i in range(n_cam)]
+        pts = pts0.copy()
+        if held.any():
+            pts[held] = gtsam.utilities.extractPoint3(out)  # sorted by key, i.e. by point index
+        return T, pts, held, optimizer.iterations()
 
     # Two passes, as SfM systems do: a redescending (Cauchy) loss finds the solution that most tracks agree on
     # even when wrong matches of repetitive texture survived the match filters (they pull a Huber solution
     # by degrees); observations still off by more than ``outlier_px`` there are dropped, and the inliers are
     # solved again from the priors with the Huber loss.
+    m_est = gtsam.noiseModel.mEstimator
     try:
-        first, n_it = solve(in_graph_obs, gtsam.noiseModel.mEstimator.Cauchy.Create(huber_px / sigma_px))
-        T_first = [T_prior[i] if fixed[i] else first.atPose3(X(i)).matrix() for i in range(n_cam)]
-        pts_first = pts0.copy()
-        for j in np.unique(op[in_graph_obs]).tolist():
-            if first.exists(L(j)):
-                pts_first[j] = first.atPoint3(L(j))
+        T_first, pts_first, _, n_it = solve(in_graph_obs, m_est.Cauchy.Create(huber_px / sigma_px))
         err1, z1 = _obs_errors(prob.Ks, T_first, pts_first, oc, op, ouv)
         keep_obs = in_graph_obs & (err1 <= outlier_px) & (z1 > 0)
         if keep_obs.sum() < min_inliers:
             return keep_priors("few_inliers", n_iterations=n_it)
-        out, n_it2 = solve(keep_obs, gtsam.noiseModel.mEstimator.Huber.Create(huber_px / sigma_px))
+        T_ref, pts, solved_pt, n_it2 = solve(keep_obs, m_est.Huber.Create(huber_px / sigma_px))
         n_it += n_it2
     except RuntimeError:
         return keep_priors("solver_failed")
-    kept_counts = np.bincount(op[keep_obs], minlength=len(pts0))
-    pt_ids = np.flatnonzero(in_graph_pt & (kept_counts >= 2))
-
-    T_ref = [T_prior[i].copy() if fixed[i] else out.atPose3(X(i)).matrix() for i in range(n_cam)]
-    pts = pts0.copy()
-    if len(pt_ids):
-        pts[pt_ids] = gtsam.utilities.extractPoint3(out)  # sorted by key, i.e. by point index
-    in_graph_pt = np.zeros(len(pts0), bool)
-    in_graph_pt[pt_ids] = True  # the rescale below moves only the points the solution holds
     C_ref = np.stack([T[:3, 3] for T in T_ref])
 
     # Scale about a fixed camera when there is one (it must not move), else about the centroid of the
@@ -430,7 +426,7 @@ def bundle_adjust(
         return keep_priors("scale_change", n_iterations=n_it)
     for T in T_ref:
         T[:3, 3] = c_pri + (T[:3, 3] - c_ref) / s
-    pts = np.where(in_graph_pt[:, None], c_pri + (pts - c_ref) / s, pts)
+    pts = np.where(solved_pt[:, None], c_pri + (pts - c_ref) / s, pts)
     for i in fixed_ids.tolist():
         T_ref[i] = T_prior[i].copy()  # exact, not merely to rounding
 

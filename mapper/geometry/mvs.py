@@ -267,12 +267,17 @@ class MvsReconstructor:
             self._matches.put(key, m)
         return m  # type: ignore[return-value]
 
+    @staticmethod
+    def _prior_disagreement_deg(a: _Prepared, b: _Prepared, R_b_a: F64) -> float | None:
+        """Angle between the images' relative rotation ``R_b_a`` and the priors' (None without both priors)."""
+        if a.T_prior is None or b.T_prior is None:
+            return None
+        return rotation_angle_deg(np.asarray(R_b_a), (invert(b.T_prior) @ a.T_prior)[:3, :3])
+
     def _contradicts_priors(self, a: _Prepared, b: _Prepared, R_b_a: F64) -> bool:
         """Whether the images' relative rotation is further from the priors' than ``max_pair_rotation_deg``."""
-        if a.T_prior is None or b.T_prior is None:
-            return False
-        R_prior = (invert(b.T_prior) @ a.T_prior)[:3, :3]
-        return rotation_angle_deg(np.asarray(R_b_a), R_prior) > self.config.max_pair_rotation_deg
+        disagree = self._prior_disagreement_deg(a, b, R_b_a)
+        return disagree is not None and disagree > self.config.max_pair_rotation_deg
 
     # ---- poses ----------------------------------------------------------------------------------------
     def _prepare(self, views: Sequence[View]) -> list[_Prepared]:
@@ -489,11 +494,10 @@ class MvsReconstructor:
                 out[(ka, kb)] = float(max(declared[0], declared[1]))
                 continue
             R_img = self._pair_rot.get((a.view.key, b.view.key))
-            if R_img is None or a.T_prior is None or b.T_prior is None:
+            disagree = None if R_img is None else self._prior_disagreement_deg(a, b, cast(F64, R_img))
+            if disagree is None:
                 out[(ka, kb)] = c.sigma_rot_deg  # no image evidence: do not hold the pair tighter than alone
                 continue
-            R_prior = (invert(b.T_prior) @ a.T_prior)[:3, :3]
-            disagree = rotation_angle_deg(np.asarray(R_img), R_prior)
             out[(ka, kb)] = float(max(c.sigma_rel_rot_deg, disagree))
         return out
 
