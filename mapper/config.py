@@ -89,6 +89,37 @@ class DepthCheckConfig(BaseModel):
     map_width: int = Field(default=160, ge=16, description="width of the stored keyframe depth maps, pixels")
 
 
+class SingleViewConfig(BaseModel):
+    """Single-view geometry for posed views that have no stereo partner yet (``mapper.geometry.singleview``):
+    objects placed from where their masks touch the floor or a placed object, under an upright-box assumption."""
+
+    model_config = ConfigDict(extra="forbid")
+    enabled: bool = Field(
+        default=True,
+        description="place objects of a calibrated view with no stereo partner (a lone fixed camera) from the floor "
+        "plane; the view is still retried with multi-view stereo once partners exist",
+    )
+    untrusted_poses: bool = Field(
+        default=False,
+        description="also for views whose pose is only a prior (odometry); off: a wrong prior moves every object",
+    )
+    floor_z_m: float = Field(default=0.0, description="height of the floor in the world frame, metres")
+    max_range_m: float = Field(default=12.0, gt=0.0, description="floor contacts farther from the camera are ignored")
+    max_extent_m: float = Field(
+        default=3.5, gt=0.0, description="a footprint longer than this is taken as a wrong placement and dropped"
+    )
+    confidence: float = Field(
+        default=0.4, ge=0.0, le=1.0,
+        description="depth confidence of placed objects (stereo depth is 0.5-1): coarse, refined by other views",
+    )
+
+    def params(self) -> Any:
+        from mapper.geometry.singleview import SingleViewParams
+
+        return SingleViewParams(floor_z_m=self.floor_z_m, max_range_m=self.max_range_m,
+                                max_extent_m=self.max_extent_m, confidence=self.confidence)
+
+
 class PointMapConfig(BaseModel):
     """The global voxel map published for planners."""
 
@@ -111,6 +142,9 @@ class MapperCoreConfig(BaseModel):
     point_map: PointMapConfig = Field(default_factory=PointMapConfig, description="global point map")
     depth_check: DepthCheckConfig = Field(
         default_factory=DepthCheckConfig, description="multi-view depth consistency before fusion"
+    )
+    single_view: SingleViewConfig = Field(
+        default_factory=SingleViewConfig, description="single-view floor geometry for views without stereo partners"
     )
     node_embeddings: bool = Field(default=True, description="publish each node's descriptor")
     torch_threads: int = Field(default=2, ge=1, le=64, description="torch CPU threads")

@@ -12,6 +12,7 @@ called from other threads (they take the graph lock, which ``ingest`` holds only
 from __future__ import annotations
 
 import collections
+import dataclasses
 import logging
 import threading
 import time
@@ -25,9 +26,10 @@ from mapper.config import MapperCoreConfig
 from mapper.consistency import downsample, verify_depth
 from mapper.fusion import LiftStats, ObjectMap, UpdateResult, lift_detections, outside_fraction
 from mapper.geometry.contract import Reconstructor, View, anchor_pose, compose
+from mapper.geometry.singleview import depth_to_world, layout_depth, place_objects
 from mapper.graph_store import GraphStore
-from mapper.keyframes import KeyframeSelector, KeyframeStore
-from mapper.perception.base import Embedder, Segmenter, ViewGeometry
+from mapper.keyframes import KeyframeSelector, KeyframeStore, intrinsics_of
+from mapper.perception.base import Embedder, Mask2D, Segmenter, ViewGeometry
 from mapper.pointmap import VoxelMap
 from mapper.relations import compute_edges, refine_with_points
 from protocol.messages import GraphDelta, GraphNode, GraphSnapshot, PointMap
@@ -163,6 +165,9 @@ class MapperCore:
             self._count("keyframes_deferred")
             self.keyframes.add(view)
             self._deferred.append(view)
+            sv = self.config.single_view
+            if sv.enabled and view.T_world_cam is not None and (view.pose_trusted or sv.untrusted_poses):
+                return self._single_view(view)
             return None
         recon = self.reconstructor.reconstruct(views, targets=[target])
         try:
@@ -192,6 +197,29 @@ class MapperCore:
         # Only the depth check reads the stored maps: do not pay for them when it is off.
         depth_map = downsample(vg.depth_m, vg.confidence, K_out, T_world_cam, dc.map_width, 0.5) if dc.enabled else None
         self.keyframes.add(view, T_world_cam, depth_m, depth_map)
+        return self._fuse(view, vg, T_world_cam, times)
+
+    def _single_view(self, view: View) -> UpdateResult | None:
+        """Objects of a posed view with no stereo partner, placed from the floor plane (coarse, low confidence;
+        the view stays deferred for multi-view stereo). Segmentation runs first: placement needs the masks."""
+        assert view.T_world_cam is not None
+        t = time.perf_counter()
+        masks = self.segmenter.segment(view, None)
+        if not masks:
+            return UpdateResult()
+        K = intrinsics_of(view).K()
+        shown = [m.mask for m in masks]
+        boxes = place_objects(shown, K, view.T_world_cam, self.config.single_view.params())
+        self._count("keyframes_single_view")
+        self._count("single_view_masks", len(masks))
+        self._count("single_view_placed", sum(b is not None for b in boxes))
+        depth, conf = layout_depth(shown, boxes, K, view.T_world_cam, self.config.single_view.confidence)
+        vg = ViewGeometry(points_world=depth_to_world(depth, K, view.T_world_cam), depth_m=depth, confidence=conf)
+        return self._fuse(view, vg, view.T_world_cam, {"geometry": time.perf_counter() - t}, masks, single_view=True)
+
+    def _fuse(self, view: View, vg: ViewGeometry, T_world_cam: np.ndarray, times: dict[str, float],
+              masks: list[Mask2D] | None = None, single_view: bool = False) -> UpdateResult:
+        """2D perception (unless ``masks`` are given), lifting and fusion of one keyframe's geometry."""
         outside = outside_fraction(vg.points_world, vg.confidence, vg.depth_m, self.config.fusion)
         if outside > self.config.fusion.max_outside_fraction:
             # Depth that puts much of the view under the floor is wrong everywhere (scale or matching failure):
@@ -201,7 +229,8 @@ class MapperCore:
                       view.source_id, view.seq, 100 * outside)
             return UpdateResult()
         t = time.perf_counter()
-        masks = self.segmenter.segment(view, vg)
+        if masks is None:
+            masks = self.segmenter.segment(view, vg)
         dets = self.embedder.embed(view, masks)
         times["perception"] = time.perf_counter() - t
         t = time.perf_counter()
@@ -210,7 +239,14 @@ class MapperCore:
         self._count("detections_dropped_no_depth", lift.dropped_no_depth)
         self._count("detections_dropped_small", lift.dropped_small_mask)
         self._count("detections_dropped_noise", lift.dropped_noise)
+        if single_view:
+            objs = [dataclasses.replace(o, ray_origin=T_world_cam[:3, 3].copy()) for o in objs]
         res = self.objects.integrate(objs, view.source_id, view.stamp_ns or time.time_ns())
+        if single_view:
+            # Other cameras' placements of the same objects fix their depth; cameras that never move make few
+            # keyframes, so duplicates are merged now, not every ``merge_every_updates`` keyframes.
+            self.objects.triangulate_coarse(res)
+            self.objects.maintain(res)
         self._count("nodes_created", res.created)
         self._count("nodes_merged", res.merged_duplicates)
         self._count("nodes_pruned", res.pruned)

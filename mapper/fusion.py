@@ -72,6 +72,14 @@ class FusionConfig(BaseModel):
         default=0.5, ge=0.0, le=1.0, description="duplicates: overlap (either direction) needed to merge"
     )
     merge_similarity: float = Field(default=0.8, ge=-1.0, le=1.0, description="duplicates: descriptor cosine")
+    coarse_max_gap_m: float = Field(
+        default=0.25, ge=0.0,
+        description="coarse (single-view) nodes of one object seen from different cameras are merged at the "
+        "point their viewing rays meet when the rays pass this close to it",
+    )
+    coarse_max_shift_m: float = Field(
+        default=1.0, ge=0.0, description="... and that point is at most this far from each single-view estimate"
+    )
     merge_box_overlap: float = Field(
         default=0.5, ge=0.0, le=1.0,
         description="duplicates: box intersection / smaller box volume that also merges similar nodes "
@@ -211,6 +219,7 @@ class Object3D:
     confidence: float
     descriptor: np.ndarray
     alternatives: tuple[tuple[str, float], ...] = ()
+    ray_origin: np.ndarray | None = None  # camera centre when the depth is a coarse single-view estimate
 
 
 @dataclass
@@ -315,6 +324,9 @@ class NodeState:
     last_seen_ns: int
     created_update: int
     box_trim: float = 0.0
+    # Coarse (single-view) observations only: one (camera centre, unit direction to the placed object) per
+    # observation. Empty once any multi-view observation joins the node.
+    rays: list[tuple[np.ndarray, np.ndarray]] = field(default_factory=list)
     _tree: Any = field(default=None, repr=False)
     _box: OrientedBox | None = field(default=None, repr=False)
     _full_box: OrientedBox | None = field(default=None, repr=False)
@@ -392,6 +404,53 @@ def box_overlap(a: OrientedBox, b: OrientedBox) -> float:
         return 0.0
     inter = footprint_intersection_area(footprint(a, 1e-3), footprint(b, 1e-3)) * dz
     return float(inter / min(float(np.prod(ea)), float(np.prod(eb))))
+
+
+def _rays_of(obj: Object3D) -> list[tuple[np.ndarray, np.ndarray]]:
+    if obj.ray_origin is None or len(obj.points) == 0:
+        return []
+    o = np.asarray(obj.ray_origin, np.float64)
+    d = obj.points.mean(0).astype(np.float64) - o
+    n = float(np.linalg.norm(d))
+    return [(o, d / n)] if n > 1e-9 else []
+
+
+def _extent(points: np.ndarray) -> float:
+    return float(np.max(points.max(axis=0) - points.min(axis=0))) if len(points) else 0.0
+
+
+def _unambiguous_best(pairs: Sequence[tuple[float, str, str, np.ndarray]],
+                      ratio: float = 0.5) -> tuple[float, str, str, np.ndarray] | None:
+    """The closest pair (gap, a, b, point) whose two nodes have no rival partner nearly as close (a rival's gap
+    above ``gap / ratio``): among many similar objects (books on a shelf) crossing rays prove nothing."""
+    for cand in sorted(pairs, key=lambda q: (q[0], q[1], q[2])):
+        gap, a, b, _ = cand
+        rivals = [q[0] for q in pairs if q is not cand and ({q[1], q[2]} & {a, b})]
+        if all(r * ratio > gap for r in rivals):
+            return cand
+    return None
+
+
+def _share_camera(a: Sequence[tuple[np.ndarray, np.ndarray]], b: Sequence[tuple[np.ndarray, np.ndarray]]) -> bool:
+    return any(float(np.linalg.norm(oa - ob)) < 1e-6 for oa, _ in a for ob, _ in b)
+
+
+def ray_meeting_point(rays: Sequence[tuple[np.ndarray, np.ndarray]]) -> tuple[np.ndarray, float]:
+    """Least-squares point closest to rays (origin, unit direction) and its largest distance to any of them
+    (inf when the rays are parallel or the point lies behind a camera)."""
+    A = np.zeros((3, 3))
+    rhs = np.zeros(3)
+    for o, d in rays:
+        P = np.eye(3) - np.outer(d, d)
+        A += P
+        rhs += P @ o
+    if np.linalg.cond(A) > 1e8:
+        return np.full(3, np.nan), math.inf
+    p = np.linalg.solve(A, rhs)
+    if any(float((p - o) @ d) <= 0 for o, d in rays):
+        return p, math.inf
+    gap = max(float(np.linalg.norm((np.eye(3) - np.outer(d, d)) @ (p - o))) for o, d in rays)
+    return p, gap
 
 
 def similarity(a: np.ndarray, b: np.ndarray) -> float:
@@ -472,6 +531,7 @@ class ObjectMap:
             last_seen_ns=stamp_ns,
             created_update=self.updates,
             box_trim=self.cfg.box_trim_fraction,
+            rays=_rays_of(obj),
         )
         self.nodes[node_id] = node
         return node
@@ -487,6 +547,7 @@ class ObjectMap:
         node.sources.add(source_id)
         node.first_seen_ns = min(node.first_seen_ns, stamp_ns)
         node.last_seen_ns = max(node.last_seen_ns, stamp_ns)
+        node.rays = node.rays + _rays_of(obj) if (node.rays and obj.ray_origin is not None) else []
         node.touch()
 
     def integrate(self, objects: Sequence[Object3D], source_id: str, stamp_ns: int) -> UpdateResult:
@@ -523,8 +584,50 @@ class ObjectMap:
         keep.first_seen_ns = min(keep.first_seen_ns, gone.first_seen_ns)
         keep.last_seen_ns = max(keep.last_seen_ns, gone.last_seen_ns)
         keep.created_update = min(keep.created_update, gone.created_update)
+        keep.rays = keep.rays + gone.rays if (keep.rays and gone.rays) else []
         keep.touch()
         del self.nodes[gone.node_id]
+
+    def triangulate_coarse(self, res: UpdateResult | None = None) -> UpdateResult:
+        """Merge coarse (single-view) nodes of one object seen by different cameras at the point where their
+        viewing rays meet, and move each coarse node seen from several cameras to that point.
+
+        A single-view estimate is good along the image and poor in depth; two cameras' rays through the same
+        object fix the depth. Pairs need similar descriptors, rays that pass within ``coarse_max_gap_m`` (and
+        half the smaller node's size) of their least-squares meeting point, a point within
+        ``coarse_max_shift_m`` of both estimates, and no rival pair for either node nearly as close; the
+        closest such pair merges first, one merge at a time, until none is left. Two nodes that one camera
+        has seen both of are never merged: it told them apart already."""
+        res = res if res is not None else UpdateResult()
+        cfg = self.cfg
+        while True:
+            coarse = [n for n in (self.nodes[k] for k in sorted(self.nodes)) if n.rays]
+            pairs: list[tuple[float, str, str, np.ndarray]] = []
+            for i, a in enumerate(coarse):
+                for b in coarse[i + 1:]:
+                    if _share_camera(a.rays, b.rays) or similarity(a.descriptor, b.descriptor) < cfg.merge_similarity:
+                        continue  # one camera that saw both told them apart already
+                    p, gap = ray_meeting_point(a.rays + b.rays)
+                    size = min(_extent(a.points), _extent(b.points))
+                    if gap > min(cfg.coarse_max_gap_m, max(0.05, 0.5 * size)) or max(
+                        float(np.linalg.norm(p - a.points.mean(0))), float(np.linalg.norm(p - b.points.mean(0)))
+                    ) > cfg.coarse_max_shift_m:
+                        continue
+                    pairs.append((gap, a.node_id, b.node_id, p))
+            best = _unambiguous_best(pairs)
+            if best is None:
+                break
+            _, a_id, b_id, p = best
+            a, b = self.nodes[a_id], self.nodes[b_id]
+            for n in (a, b):
+                n.points = (n.points - n.points.mean(0) + p).astype(np.float32)
+            keep, gone = (a, b) if (a.observations, b.node_id) >= (b.observations, a.node_id) else (b, a)
+            self.merge_nodes(keep, gone)
+            res.merged_duplicates += 1
+            res.removed.add(gone.node_id)
+            res.changed.add(keep.node_id)
+        res.changed -= res.removed
+        return res
 
     def maintain(self, res: UpdateResult | None = None) -> UpdateResult:
         """Merge duplicate nodes, then drop nodes seen too rarely."""
@@ -541,10 +644,14 @@ class ObjectMap:
                 if np.any(alo > bhi + cfg.radius_m) or np.any(blo > ahi + cfg.radius_m):
                     continue
                 sim = similarity(a.descriptor, b.descriptor)
-                if sim < cfg.merge_similarity:
-                    continue
+                if sim < cfg.merge_similarity or (a.rays and b.rays):
+                    continue  # two coarse (single-view) nodes are one object only if their rays say so
                 ov = max(overlap_fraction(a.points, b, cfg.radius_m), overlap_fraction(b.points, a, cfg.radius_m))
-                if ov >= cfg.merge_overlap or box_overlap(a.full_box, b.full_box) >= cfg.merge_box_overlap:
+                # A coarse (single-view) node's box is a guess: containment in it proves nothing.
+                boxes_count = not (a.rays or b.rays)
+                if ov >= cfg.merge_overlap or (
+                    boxes_count and box_overlap(a.full_box, b.full_box) >= cfg.merge_box_overlap
+                ):
                     pairs.append((ov + sim, a_id, b_id))
         for _, a_id, b_id in sorted(pairs, key=lambda p: (-p[0], p[1], p[2])):
             if a_id not in self.nodes or b_id not in self.nodes:

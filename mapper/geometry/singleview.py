@@ -1,0 +1,390 @@
+"""Single-view geometry from a known pose and the floor plane (pure numpy + OpenCV, no weights).
+
+A calibrated camera (surveyed height and tilt) knows where the floor is: the ray through a pixel on the
+floor meets the plane ``z = floor_z_m``. Objects stand on the floor or on other objects, so each instance
+mask can be placed in 3D from the pixels where it touches its support, under an upright-box assumption
+(single-view metrology in the spirit of Hoiem et al.'s "photo pop-up"):
+
+1. **Contact columns.** For every image column of a mask, its lowest pixel. When the pixels just below
+   are background, the object touches the floor there (its ray meets the floor plane); when they belong to
+   another, already placed mask, the object rests on (or in) that object (its ray meets that object's box).
+   Columns that reach the image border are truncated and say nothing. Floor columns are kept only on the
+   mask's lower convex envelope: a convex footprint projects to a convex outline, so columns that end
+   higher (between a chair's legs, under a table top) see the floor *behind* the object.
+2. **Footprint.** The rectangle the contact points lie along (L-shape fitting): the two visible bottom
+   edges of a box seen across a corner give the whole rectangle. A footprint seen edge-on (one visible side) is given an
+   assumed depth away from the camera.
+3. **Height.** The upright box whose top projects to the mask's top row.
+4. **Depth.** Each mask pixel's ray is cast into its box (the camera-facing faces); rays that miss it get
+   the box centre's depth.
+
+Objects are placed support-first (floor objects, then what rests on them, up to ``max_support_levels``).
+A mask that touches neither the floor nor a placed object (a picture on a wall, an object cut by the image
+border) gets no depth: it is left to multi-view geometry. The estimate is coarse (centimetres to decimetres)
+and says so: its confidence is ``confidence``, below stereo depth, so other views refine it.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+F64 = NDArray[np.float64]
+F32 = NDArray[np.float32]
+
+
+@dataclass(frozen=True)
+class SingleViewParams:
+    """Thresholds of single-view placement (metres, pixels, degrees)."""
+
+    floor_z_m: float = 0.0
+    max_range_m: float = 12.0  # floor contacts farther than this from the camera are not trusted
+    min_contact_columns: int = 3  # fewer usable contact columns: the mask is not placed
+    envelope_tol_px: float = 2.0  # floor columns this far above the lower convex envelope are dropped
+    max_slope_px: float = 3.0  # columns where the lowest row changes faster (rows per column) are silhouette sides
+    end_trim_px: int = 2  # columns this close to a steep one are dropped too (where a silhouette side begins)
+    min_run: int = 2  # floor columns must come in runs of this many adjacent columns (no isolated hull corners)
+    max_extent_m: float = 3.5  # a footprint longer than this is a wrong placement (contacts seen through a gap)
+    below_px: int = 2  # how many pixels under a mask's lowest pixel decide what supports it
+    border_px: int = 1  # columns whose lowest pixel is this close to the bottom border are truncated
+    edge_on_ratio: float = 0.25  # footprint short/long side below which it is seen edge-on: depth fit to the mask
+    min_extent_m: float = 0.05
+    max_height_m: float = 3.0
+    max_support_levels: int = 3
+    confidence: float = 0.4  # below stereo depth (~0.5-1): a coarse estimate that other views refine
+
+
+@dataclass(frozen=True)
+class PlacedBox:
+    """An upright box: centre (3,), extents (3,) along its yawed x, y and world z, yaw about z (radians).
+
+    ``support`` is -1 for the floor, else the index of the supporting mask; ``contacts`` how many contact
+    columns placed it."""
+
+    center: F64
+    extent: F64
+    yaw_rad: float
+    support: int
+    contacts: int
+
+    def rotation(self) -> F64:
+        c, s = np.cos(self.yaw_rad), np.sin(self.yaw_rad)
+        return np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]])
+
+    def corners(self) -> F64:
+        """(8, 3) world corners."""
+        signs = np.array([[sx, sy, sz] for sx in (-1, 1) for sy in (-1, 1) for sz in (-1, 1)], float)
+        return (signs * (0.5 * self.extent)) @ self.rotation().T + self.center
+
+
+def pixel_rays(K: F64, us: np.ndarray, vs: np.ndarray) -> F64:
+    """Camera-frame rays (N, 3) with z = 1 through pixel centres (u, v)."""
+    return np.stack([(us - K[0, 2]) / K[0, 0], (vs - K[1, 2]) / K[1, 1], np.ones(len(us))], axis=-1)
+
+
+def ray_box_depth(origin: F64, dirs_world: F64, box: PlacedBox) -> F64:
+    """Ray parameter of the first hit of each ray (N, 3; camera rays with z = 1, so the parameter is the
+    camera z-depth) with the box; NaN where a ray misses it (slab method in the box frame)."""
+    R = box.rotation()
+    o = (origin - box.center) @ R
+    d = dirs_world @ R
+    half = 0.5 * box.extent
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t1 = (-half - o) / d
+        t2 = (half - o) / d
+    lo = np.nanmax(np.minimum(t1, t2), axis=1)
+    hi = np.nanmin(np.maximum(t1, t2), axis=1)
+    hit = (hi >= lo) & (hi > 0)
+    return np.where(hit, np.maximum(lo, 0.0), np.nan)
+
+
+def _lower_envelope(us: F64, vs: F64) -> F64:
+    """The lower convex envelope (largest v, image rows grow downwards) of points (u, v), evaluated at ``us``:
+    the upper hull in a v-up frame, by Andrew's monotone chain."""
+    order = np.lexsort((-vs, us))
+    hull: list[tuple[float, float]] = []
+    for u, v in zip(us[order], vs[order], strict=True):
+        if hull and hull[-1][0] == u:
+            continue  # the largest v of a column comes first
+        while len(hull) >= 2:
+            (u1, v1), (u2, v2) = hull[-2], hull[-1]
+            # keep the chain concave (v as a function of u bulges downwards in the image)
+            if (u2 - u1) * (v - v1) - (v2 - v1) * (u - u1) >= 0:
+                hull.pop()
+            else:
+                break
+        hull.append((float(u), float(v)))
+    hu = np.array([h[0] for h in hull])
+    hv = np.array([h[1] for h in hull])
+    return np.interp(us, hu, hv)
+
+
+def _slope(us: F64, vs: F64) -> F64:
+    """Rows per column of the lowest-pixel outline at each column (the steeper side where it bends): a
+    vertical silhouette edge (the side of a bookshelf against a wall) is steep, a floor edge is not."""
+    order = np.argsort(us)
+    u, v = us[order], vs[order]
+    du, dv = np.diff(u), np.abs(np.diff(v))
+    step = np.where(du == 1, dv, 0.0)  # gaps between runs of columns say nothing
+    out = np.empty_like(v)
+    out[order] = np.maximum(np.r_[0.0, step], np.r_[step, 0.0])
+    return out
+
+
+def _erode_runs(us: F64, keep: np.ndarray, k: int) -> np.ndarray:
+    """``keep`` without the ``k`` columns at each end of every run of adjacent kept columns (a mask's first
+    and last columns count as run ends)."""
+    if k <= 0:
+        return keep
+    order = np.argsort(us)
+    u, kk = us[order], keep[order].copy()
+    out = kk.copy()
+    for shift in range(1, k + 1):
+        left = np.r_[np.zeros(shift, bool), kk[:-shift] & (u[shift:] - u[:-shift] == shift)]
+        right = np.r_[kk[shift:] & (u[shift:] - u[:-shift] == shift), np.zeros(shift, bool)]
+        out &= left & right
+    res = np.zeros_like(keep)
+    res[order] = out
+    return res
+
+
+def _run_lengths(us: F64, keep: np.ndarray) -> np.ndarray:
+    """For each column, the length of the run of adjacent kept columns it belongs to (0 when not kept)."""
+    order = np.argsort(us)
+    u, k = us[order], keep[order]
+    run_id = np.cumsum(np.r_[True, (np.diff(u) != 1) | ~k[1:] | ~k[:-1]])
+    lengths = np.bincount(run_id, weights=k.astype(float))[run_id]
+    out = np.zeros(len(us))
+    out[order] = np.where(k, lengths, 0.0)
+    return out
+
+
+def _footprint(points_xy: F64, cam_xy: F64, p: SingleViewParams) -> tuple[F64, F64, float, F64 | None]:
+    """Centre (2,), extent (2,) and yaw of the minimum-area rectangle of contact points, and for a footprint
+    seen edge-on (one visible bottom edge) the unit xy direction away from the camera its depth extends to
+    (its extent along it is then only a minimum), else None."""
+    yaw = _l_shape_yaw(points_xy)
+    rot = np.array([[np.cos(yaw), -np.sin(yaw)], [np.sin(yaw), np.cos(yaw)]])
+    local = points_xy @ rot
+    lo, hi = local.min(axis=0), local.max(axis=0)
+    ext = np.maximum(hi - lo, p.min_extent_m)
+    centre = rot @ (0.5 * (lo + hi))
+    short, long_ = int(np.argmin(ext)), int(np.argmax(ext))
+    if ext[short] >= p.edge_on_ratio * ext[long_]:
+        return centre, ext, yaw, None
+    axis = np.array([np.cos(yaw), np.sin(yaw)]) if short == 0 else np.array([-np.sin(yaw), np.cos(yaw)])
+    if float(axis @ (centre - cam_xy)) < 0:
+        axis = -axis
+    return centre, ext, yaw, axis
+
+
+def _l_shape_yaw(points_xy: F64, d0: float = 0.01) -> float:
+    """Yaw of the rectangle whose edges the points lie along (L-shape fitting with the closeness criterion of
+    Zhang et al., 2017): the minimum-area rectangle is ambiguous for an L, whose hull is a triangle."""
+    angles = np.radians(np.arange(0.0, 90.0, 1.0))
+    e1 = np.stack([np.cos(angles), np.sin(angles)], axis=1)
+    e2 = np.stack([-np.sin(angles), np.cos(angles)], axis=1)
+    c1, c2 = points_xy @ e1.T, points_xy @ e2.T  # (N, A)
+    d1 = np.minimum(c1.max(0) - c1, c1 - c1.min(0))
+    d2 = np.minimum(c2.max(0) - c2, c2 - c2.min(0))
+    score = (1.0 / np.maximum(np.minimum(d1, d2), d0)).sum(axis=0)
+    return float(angles[int(np.argmax(score))])
+
+
+def _deepen(box_xy: tuple[F64, F64, float], axis: F64, depth: float) -> tuple[F64, F64, float]:
+    """The footprint with its extent along ``axis`` set to ``depth``, its near edge kept in place."""
+    centre, ext, yaw = box_xy
+    i = int(np.argmax(np.abs([np.cos(yaw) * axis[0] + np.sin(yaw) * axis[1],
+                              -np.sin(yaw) * axis[0] + np.cos(yaw) * axis[1]])))
+    ext = ext.copy()
+    centre = centre + axis * 0.5 * (depth - ext[i])
+    ext[i] = depth
+    return centre, ext, yaw
+
+
+def _silhouette_score(box: PlacedBox, mask: np.ndarray, others: np.ndarray, K: F64, T_cam_world: F64) -> float:
+    """IoU of the box's projected silhouette with the mask, where box pixels on other masks (which may hide
+    the object) count neither way."""
+    pc = box.corners() @ T_cam_world[:3, :3].T + T_cam_world[:3, 3]
+    if np.any(pc[:, 2] <= 1e-3):
+        return 0.0
+    uv = pc[:, :2] / pc[:, 2:3] * np.diag(K)[:2] + K[:2, 2]
+    h, w = mask.shape
+    if not np.all(np.isfinite(uv)) or np.any(np.abs(uv) > 4 * max(h, w)):
+        return 0.0
+    sil = np.zeros((h, w), np.uint8)
+    cv2.fillConvexPoly(sil, cv2.convexHull(np.round(uv).astype(np.int32)), 1)
+    b = sil.astype(bool)
+    inter = int(np.count_nonzero(b & mask))
+    union = int(np.count_nonzero((b | mask) & ~(b & others & ~mask)))
+    return inter / union if union else 0.0
+
+
+def _project_top_row(box_xy: tuple[F64, F64, float], base_z: float, height: float, K: F64, T_cam_world: F64) -> float:
+    centre, ext, yaw = box_xy
+    box = PlacedBox(np.array([*centre, base_z + 0.5 * height]), np.array([*ext, height]), yaw, -1, 0)
+    top = box.corners()[1::2]  # the four corners with +z
+    pc = top @ T_cam_world[:3, :3].T + T_cam_world[:3, 3]
+    pc = pc[pc[:, 2] > 1e-6]
+    if len(pc) == 0:
+        return -np.inf
+    return float(np.min(pc[:, 1] / pc[:, 2] * K[1, 1] + K[1, 2]))
+
+
+def _height(box_xy: tuple[F64, F64, float], base_z: float, top_v: float, K: F64, T_cam_world: F64,
+            p: SingleViewParams) -> float:
+    """Height whose top projects to row ``top_v`` (bisection: the top rises in the image as it grows)."""
+    lo, hi = p.min_extent_m, p.max_height_m
+    if _project_top_row(box_xy, base_z, hi, K, T_cam_world) > top_v:
+        return hi
+    for _ in range(30):
+        mid = 0.5 * (lo + hi)
+        if _project_top_row(box_xy, base_z, mid, K, T_cam_world) > top_v:
+            lo = mid
+        else:
+            hi = mid
+    return 0.5 * (lo + hi)
+
+
+def place_objects(masks: Sequence[np.ndarray], K: F64, T_world_cam: F64,
+                  params: SingleViewParams = SingleViewParams()) -> list[PlacedBox | None]:
+    """One upright box per mask (None where it cannot be placed), masks (H, W) bool at the resolution of
+    ``K``; see the module docstring."""
+    p = params
+    n = len(masks)
+    if n == 0:
+        return []
+    h, w = masks[0].shape
+    owner = np.full((h, w), -1, np.int32)
+    for i, m in enumerate(masks):
+        owner[m & (owner < 0)] = i
+    R, t = T_world_cam[:3, :3], T_world_cam[:3, 3]
+    T_cam_world = np.eye(4)
+    T_cam_world[:3, :3], T_cam_world[:3, 3] = R.T, -R.T @ t
+    boxes: list[PlacedBox | None] = [None] * n
+    # Per mask: contact columns and what lies just below each.
+    contacts: list[tuple[F64, F64, np.ndarray] | None] = []
+    for m in masks:
+        cols = np.flatnonzero(m.any(axis=0))
+        if len(cols) == 0:
+            contacts.append(None)
+            continue
+        low = (h - 1) - np.argmax(m[::-1, cols], axis=0)
+        keep = low < h - 1 - p.border_px
+        cols, low = cols[keep], low[keep]
+        below = np.full(len(cols), -2, np.int64)  # -2: undecided, -1: background
+        for k in range(1, p.below_px + 1):
+            rows = np.minimum(low + k, h - 1)
+            o = owner[rows, cols]
+            below = np.where((below == -2) & (o >= 0) & ~m[rows, cols], o, below)
+        below = np.where(below == -2, -1, below)
+        contacts.append((cols.astype(float), low.astype(float), below))
+    for level in range(p.max_support_levels + 1):
+        placed_any = False
+        for i, c in enumerate(contacts):
+            if boxes[i] is not None or c is None:
+                continue
+            us, vs, below = c
+            pts, support = _contact_points(us, vs, below, boxes, level, K, R, t, p)
+            if pts is None or len(pts) < p.min_contact_columns:
+                continue
+            base_z = float(np.median(pts[:, 2]))
+            centre, ext, yaw, axis = _footprint(pts[:, :2], t[:2], p)
+            if float(np.max(ext)) > p.max_extent_m:
+                continue
+            top_v = float(np.flatnonzero(masks[i].any(axis=1))[0]) - 0.5  # the top edge of the top pixel
+            fits = [(centre, ext, yaw)]
+            if axis is not None:
+                # One visible bottom edge: its depth is whatever makes the box's silhouette match the mask.
+                deepest = min(max(2.0 * float(np.max(ext)), 1.0), p.max_extent_m)
+                depths = np.linspace(max(float(np.min(ext)), p.min_extent_m), deepest, 12)
+                fits = [_deepen((centre, ext, yaw), axis, float(d)) for d in depths]
+            best: tuple[float, PlacedBox] | None = None
+            others = (owner >= 0) & (owner != i)
+            for box_xy in fits:
+                height = _height(box_xy, base_z, top_v, K, T_cam_world, p)
+                cand = PlacedBox(np.array([*box_xy[0], base_z + 0.5 * height]), np.array([*box_xy[1], height]),
+                                 box_xy[2], support, len(pts))
+                score = _silhouette_score(cand, masks[i], others, K, T_cam_world) if len(fits) > 1 else 1.0
+                if best is None or score > best[0]:
+                    best = (score, cand)
+            assert best is not None
+            boxes[i] = best[1]
+            placed_any = True
+        if not placed_any and level > 0:
+            break
+    return boxes
+
+
+def _contact_points(us: F64, vs: F64, below: np.ndarray, boxes: Sequence[PlacedBox | None], level: int,
+                    K: F64, R: F64, t: F64, p: SingleViewParams) -> tuple[F64 | None, int]:
+    """World contact points of one mask: on the floor at level 0, else where the rays just under it enter the
+    placed box below it: its top (a vase on a table) or its front (a book in a shelf; also an object hidden
+    behind a nearer one, which is then placed too close: one view cannot tell the two apart)."""
+    if level == 0:
+        floor = below == -1
+        if int(floor.sum()) < p.min_contact_columns:
+            return None, -1
+        us, vs = us[floor], vs[floor]
+        env = _lower_envelope(us, vs)
+        gentle = _erode_runs(us, _slope(us, vs) <= p.max_slope_px, p.end_trim_px)
+        on_env = (vs >= env - p.envelope_tol_px) & gentle
+        on_env &= _run_lengths(us, on_env) >= p.min_run
+        us, vs = us[on_env], vs[on_env]
+        d = pixel_rays(K, us, vs + 0.5) @ R.T  # the bottom edge of the lowest pixel
+        with np.errstate(divide="ignore", invalid="ignore"):
+            s = (p.floor_z_m - t[2]) / d[:, 2]
+        ok = np.isfinite(s) & (s > 0) & (s * np.linalg.norm(d, axis=1) <= p.max_range_m)
+        return (t + s[ok, None] * d[ok]) if ok.any() else None, -1
+    # Rest on the placed object most of the supported columns touch.
+    sup = below[below >= 0]
+    sup = sup[[boxes[int(j)] is not None for j in sup]] if len(sup) else sup
+    if len(sup) < p.min_contact_columns:
+        return None, -1
+    j = int(np.bincount(sup).argmax())
+    box = boxes[j]
+    assert box is not None
+    sel = below == j
+    d = pixel_rays(K, us[sel], vs[sel] + 1.0) @ R.T
+    s = ray_box_depth(t, d, box)
+    ok = np.isfinite(s)
+    return (t + s[ok, None] * d[ok]) if ok.any() else None, j
+
+
+def layout_depth(masks: Sequence[np.ndarray], boxes: Sequence[PlacedBox | None], K: F64, T_world_cam: F64,
+                 confidence: float = 0.4) -> tuple[F32, F32]:
+    """Depth (z, metres; 0 = none) and confidence maps from placed boxes: each mask pixel's ray cast into its
+    box, the box centre's depth where the ray misses it. Masks are (H, W) bool at the resolution of ``K``."""
+    if not masks:
+        raise ValueError("layout_depth needs at least one mask")
+    h, w = masks[0].shape
+    depth = np.zeros((h, w), np.float32)
+    conf = np.zeros((h, w), np.float32)
+    R, t = T_world_cam[:3, :3], T_world_cam[:3, 3]
+    for m, box in zip(masks, boxes, strict=True):
+        if box is None:
+            continue
+        vs, us = np.nonzero(m & (depth == 0))
+        if len(us) == 0:
+            continue
+        d = pixel_rays(K, us.astype(float), vs.astype(float)) @ R.T
+        s = ray_box_depth(t, d, box)
+        centre_z = float(R[:, 2] @ (box.center - t))
+        s = np.where(np.isfinite(s), s, centre_z)
+        ok = s > 0
+        depth[vs[ok], us[ok]] = s[ok]
+        conf[vs[ok], us[ok]] = confidence
+    return depth, conf
+
+
+def depth_to_world(depth_m: F32, K: F64, T_world_cam: F64) -> F32:
+    """(H, W, 3) world points of a z-depth map (pixels without depth give the camera centre)."""
+    h, w = depth_m.shape
+    vs, us = np.mgrid[0:h, 0:w]
+    rays = pixel_rays(K, us.reshape(-1).astype(float), vs.reshape(-1).astype(float))
+    pts = (rays * depth_m.reshape(-1, 1)) @ T_world_cam[:3, :3].T + T_world_cam[:3, 3]
+    return pts.reshape(h, w, 3).astype(np.float32)

@@ -1,0 +1,166 @@
+"""Single-view placement from the floor plane (mapper.geometry.singleview) and the triangulation of coarse
+nodes seen by several fixed cameras (mapper.fusion.ObjectMap.triangulate_coarse)."""
+
+from __future__ import annotations
+
+import math
+
+import cv2
+import numpy as np
+import pytest
+
+from mapper.fusion import FusionConfig, Object3D, ObjectMap, ray_meeting_point
+from mapper.geometry.singleview import (
+    PlacedBox,
+    SingleViewParams,
+    depth_to_world,
+    layout_depth,
+    place_objects,
+    ray_box_depth,
+)
+from mapper.perception.base import label_descriptor
+from protocol.messages import Intrinsics
+from protocol.poses import look_at
+
+INTR = Intrinsics.from_fov(640, 480, 90.0)
+K = INTR.K()
+CAM = look_at([0.2, 0.3, 2.5], [3.0, 2.5, 0.3])  # a fixed camera high in a room corner, looking down
+
+
+def box(cx: float, cy: float, z0: float, ex: float, ey: float, h: float, yaw_deg: float = 0.0) -> PlacedBox:
+    return PlacedBox(np.array([cx, cy, z0 + h / 2]), np.array([ex, ey, h]), math.radians(yaw_deg), -1, 0)
+
+
+def silhouette(b: PlacedBox, T_world_cam: np.ndarray = CAM) -> np.ndarray:
+    """The box's image mask drawn as the convex hull of its projected corners (independent of ray casting)."""
+    R, t = T_world_cam[:3, :3], T_world_cam[:3, 3]
+    pc = (b.corners() - t) @ R
+    uv = pc[:, :2] / pc[:, 2:3] * np.diag(K)[:2] + K[:2, 2]
+    mask = np.zeros((INTR.height, INTR.width), np.uint8)
+    cv2.fillConvexPoly(mask, cv2.convexHull(np.round(uv).astype(np.int32)), 1)
+    return mask.astype(bool)
+
+
+@pytest.mark.parametrize("yaw_deg", [-20.0, 0.0, 45.0, 60.0])
+def test_box_on_the_floor_is_placed_within_10_cm(yaw_deg: float) -> None:
+    truth = box(3.0, 2.2, 0.0, 0.8, 0.5, 0.7, yaw_deg=yaw_deg)
+    [placed] = place_objects([silhouette(truth)], K, CAM)
+    assert placed is not None and placed.support == -1
+    assert np.linalg.norm(placed.center - truth.center) < 0.10
+    assert placed.extent[2] == pytest.approx(0.7, abs=0.1)
+    assert sorted(placed.extent[:2]) == pytest.approx([0.5, 0.8], abs=0.15)
+
+
+def test_box_with_one_visible_bottom_edge_gets_its_depth_from_the_silhouette() -> None:
+    """At 30 deg yaw the box's long side recedes along the line of sight: only its short front edge touches
+    the floor visibly, and the depth comes from fitting the silhouette (coarser than a corner view)."""
+    truth = box(3.0, 2.2, 0.0, 0.8, 0.5, 0.7, yaw_deg=30.0)
+    [placed] = place_objects([silhouette(truth)], K, CAM)
+    assert placed is not None
+    assert np.linalg.norm(placed.center - truth.center) < 0.2
+    assert max(placed.extent[:2]) > 0.5  # deepened from the edge, not left flat
+
+
+def test_object_on_a_table_rests_on_its_top() -> None:
+    table = box(2.6, 2.0, 0.0, 1.2, 0.7, 0.75)
+    vase = box(2.6, 2.0, 0.75, 0.15, 0.15, 0.3)
+    vase_mask = silhouette(vase)
+    table_mask = silhouette(table) & ~vase_mask
+    placed_table, placed_vase = place_objects([table_mask, vase_mask], K, CAM)
+    assert placed_table is not None and placed_vase is not None
+    assert placed_vase.support == 0
+    assert np.linalg.norm(placed_vase.center - vase.center) < 0.10
+    # the drawn silhouettes are about a pixel fat: the table comes out a few centimetres tall
+    assert placed_vase.center[2] - placed_vase.extent[2] / 2 == pytest.approx(0.75, abs=0.08)
+
+
+def test_floor_seen_between_legs_does_not_push_the_object_back() -> None:
+    """A table's top hides the floor contact in the columns between its legs: those columns see the floor
+    behind it. Only the lower convex envelope (the legs) may place it."""
+    legs = [box(2.6 + sx * 0.5, 2.0 + sy * 0.3, 0.0, 0.06, 0.06, 0.7) for sx in (-1, 1) for sy in (-1, 1)]
+    top = box(2.6, 2.0, 0.7, 1.1, 0.7, 0.05)
+    mask = silhouette(top)
+    for leg in legs:
+        mask |= silhouette(leg)
+    [placed] = place_objects([mask], K, CAM)
+    assert placed is not None
+    assert np.linalg.norm(placed.center[:2] - [2.6, 2.0]) < 0.2
+
+
+def test_masks_touching_nothing_or_cut_by_the_border_are_not_placed() -> None:
+    picture = box(4.0, 3.5, 1.2, 0.6, 0.03, 0.4)  # hangs on a wall: the floor ray passes far behind it
+    params = SingleViewParams(max_range_m=5.0)
+    cut = np.zeros((INTR.height, INTR.width), bool)
+    cut[300:, 100:200] = True  # runs off the bottom of the image
+    assert place_objects([silhouette(picture), cut], K, CAM, params) == [None, None]
+    assert place_objects([], K, CAM) == []
+
+
+def test_layout_depth_puts_the_mask_on_the_box_surface() -> None:
+    truth = box(3.0, 2.2, 0.0, 0.8, 0.5, 0.7, yaw_deg=30.0)
+    mask = silhouette(truth)
+    depth, conf = layout_depth([mask], [truth], K, CAM, confidence=0.4)
+    assert np.all(depth[~mask] == 0) and np.all(conf[mask] == np.float32(0.4))
+    pts = depth_to_world(depth, K, CAM)[mask]
+    local = (pts - truth.center) @ truth.rotation()
+    # every point lies on (or, for silhouette pixels that miss the box, near) the box
+    assert np.mean(np.all(np.abs(local) <= truth.extent / 2 + 0.02, axis=1)) > 0.95
+
+
+def test_ray_box_depth_hits_and_misses() -> None:
+    b = box(0.0, 5.0, 0.0, 2.0, 2.0, 2.0)  # centre (0, 5, 1): faces at y = 4 and y = 6
+    origin = np.array([0.0, 0.0, 1.0])
+    d = np.array([[0.0, 1.0, 0.0], [0.0, 1.0, 1.0], [0.0, -1.0, 0.0]])
+    s = ray_box_depth(origin, d, b)
+    assert s[0] == pytest.approx(4.0)
+    assert np.isnan(s[1]) and np.isnan(s[2])
+
+
+def test_rays_meet_at_the_object() -> None:
+    p = np.array([2.0, 1.0, 0.5])
+    rays = []
+    for o in (np.array([0.0, 0.0, 2.5]), np.array([5.0, 0.0, 2.5]), np.array([0.0, 4.0, 2.5])):
+        rays.append((o, (p - o) / np.linalg.norm(p - o)))
+    q, gap = ray_meeting_point(rays)
+    assert np.allclose(q, p) and gap < 1e-9
+    assert ray_meeting_point([rays[0], rays[0]])[1] == math.inf  # one direction fixes no depth
+
+
+def _coarse(centre: np.ndarray, origin: np.ndarray, label: str) -> Object3D:
+    rng = np.random.default_rng(0)
+    pts = (centre + rng.uniform(-0.1, 0.1, (60, 3))).astype(np.float32)
+    return Object3D(pts, label, 0.9, label_descriptor(label), ray_origin=origin)
+
+
+def test_two_cameras_placements_of_one_object_merge_at_the_ray_crossing() -> None:
+    """Each camera's single-view estimate is off in depth along its own ray; the merged node sits where the
+    rays cross. Two vases 0.4 m apart stay two nodes; a chair is never merged with a vase."""
+    a, b = np.array([0.0, 0.0, 2.5]), np.array([6.0, 0.0, 2.5])
+    vase1, vase2, chair = np.array([2.5, 2.0, 0.6]), np.array([2.9, 2.2, 0.6]), np.array([3.0, 1.0, 0.4])
+
+    def along(o: np.ndarray, p: np.ndarray, err: float) -> np.ndarray:
+        return p + err * (p - o) / np.linalg.norm(p - o)
+
+    om = ObjectMap(FusionConfig())
+    om.integrate([_coarse(along(a, vase1, 0.5), a, "vase"), _coarse(along(a, vase2, -0.4), a, "vase"),
+                  _coarse(along(a, chair, 0.3), a, "chair")], "cam0", 1)
+    om.integrate([_coarse(along(b, vase1, -0.4), b, "vase"), _coarse(along(b, vase2, 0.5), b, "vase")], "cam1", 2)
+    assert len(om.nodes) == 5
+    chair_before = next(n for n in om.nodes.values() if "chair" in n.label_votes).points.copy()
+    res = om.triangulate_coarse()
+    assert res.merged_duplicates == 2 and len(om.nodes) == 3
+    centres = sorted(n.points.mean(0).tolist() for n in om.nodes.values() if "vase" in n.label_votes)
+    assert np.allclose(centres, sorted([vase1.tolist(), vase2.tolist()]), atol=0.03)
+    chair_node = next(n for n in om.nodes.values() if "chair" in n.label_votes)
+    assert np.array_equal(chair_node.points, chair_before)  # one camera: left where it was placed
+
+
+def test_a_multi_view_observation_ends_a_nodes_coarse_state() -> None:
+    om = ObjectMap(FusionConfig())
+    a = np.array([0.0, 0.0, 2.5])
+    om.integrate([_coarse(np.array([2.0, 2.0, 0.5]), a, "vase")], "cam0", 1)
+    [node] = om.nodes.values()
+    assert len(node.rays) == 1
+    stereo = Object3D(node.points.copy(), "vase", 0.9, label_descriptor("vase"))
+    om.integrate([stereo], "robot", 2)
+    assert len(om.nodes) == 1 and node.rays == []
