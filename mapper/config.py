@@ -112,6 +112,11 @@ class SingleViewConfig(BaseModel):
         default=0.4, ge=0.0, le=1.0,
         description="depth confidence of placed objects (stereo depth is 0.5-1): coarse, refined by other views",
     )
+    free_space_check: bool = Field(
+        default=True,
+        description="a placement that another calibrated camera saw as free space (its floor, learnt from under "
+        "the objects it placed) is moved along its ray to where that camera saw a similar object",
+    )
 
     def params(self) -> Any:
         from mapper.geometry.singleview import SingleViewParams

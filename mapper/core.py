@@ -26,7 +26,7 @@ from mapper.config import MapperCoreConfig
 from mapper.consistency import downsample, verify_depth
 from mapper.fusion import LiftStats, ObjectMap, UpdateResult, lift_detections, outside_fraction
 from mapper.geometry.contract import Reconstructor, View, anchor_pose, compose
-from mapper.geometry.singleview import depth_to_world, layout_depth, place_objects
+from mapper.geometry.singleview import SeenView, depth_to_world, layout_depth, place_objects
 from mapper.graph_store import GraphStore
 from mapper.keyframes import KeyframeSelector, KeyframeStore, intrinsics_of
 from mapper.perception.base import Embedder, Mask2D, Segmenter, ViewGeometry
@@ -92,6 +92,8 @@ class MapperCore:
         # Keyframes that had no neighbour to reconstruct with (a fixed camera's first frame before any robot
         # view): retried, one per later keyframe, once neighbours exist. Bounded.
         self._deferred: collections.deque[View] = collections.deque(maxlen=cfg.keyframes.max_deferred)
+        # What each calibrated camera saw at its last single-view keyframe (free-space checks), oldest first.
+        self._seen: dict[str, SeenView] = {}
 
     def _count(self, name: str, value: float = 1.0) -> None:
         self.counters[name] = self.counters.get(name, 0.0) + value
@@ -210,16 +212,20 @@ class MapperCore:
         K = intrinsics_of(view).K()
         shown = [m.mask for m in masks]
         boxes = place_objects(shown, K, view.T_world_cam, self.config.single_view.params())
+        floor_masks = [m for m, b in zip(shown, boxes, strict=True) if b is not None and b.support < 0]
         self._count("keyframes_single_view")
         self._count("single_view_masks", len(masks))
         self._count("single_view_placed", sum(b is not None for b in boxes))
         depth, conf = layout_depth(shown, boxes, K, view.T_world_cam, self.config.single_view.confidence)
         vg = ViewGeometry(points_world=depth_to_world(depth, K, view.T_world_cam), depth_m=depth, confidence=conf)
-        return self._fuse(view, vg, view.T_world_cam, {"geometry": time.perf_counter() - t}, masks, single_view=True)
+        return self._fuse(view, vg, view.T_world_cam, {"geometry": time.perf_counter() - t}, masks,
+                          floor_masks=floor_masks)
 
     def _fuse(self, view: View, vg: ViewGeometry, T_world_cam: np.ndarray, times: dict[str, float],
-              masks: list[Mask2D] | None = None, single_view: bool = False) -> UpdateResult:
-        """2D perception (unless ``masks`` are given), lifting and fusion of one keyframe's geometry."""
+              masks: list[Mask2D] | None = None, floor_masks: list[np.ndarray] | None = None) -> UpdateResult:
+        """2D perception (unless ``masks`` are given), lifting and fusion of one keyframe's geometry.
+        ``floor_masks`` (the masks it placed on the floor) marks a single-view keyframe."""
+        single_view = floor_masks is not None
         outside = outside_fraction(vg.points_world, vg.confidence, vg.depth_m, self.config.fusion)
         if outside > self.config.fusion.max_outside_fraction:
             # Depth that puts much of the view under the floor is wrong everywhere (scale or matching failure):
@@ -241,11 +247,23 @@ class MapperCore:
         self._count("detections_dropped_noise", lift.dropped_noise)
         if single_view:
             objs = [dataclasses.replace(o, ray_origin=T_world_cam[:3, 3].copy()) for o in objs]
+            if dets:
+                self._seen.pop(view.source_id, None)
+                self._seen[view.source_id] = SeenView.build(
+                    view.image, [d.mask for d in dets], [d.descriptor for d in dets], intrinsics_of(view).K(),
+                    T_world_cam, floor_masks, self.config.single_view.floor_z_m)
+                while len(self._seen) > self.config.keyframes.max_keyframes:
+                    self._seen.pop(next(iter(self._seen)))
         res = self.objects.integrate(objs, view.source_id, view.stamp_ns or time.time_ns())
         if single_view:
-            # Other cameras' placements of the same objects fix their depth; cameras that never move make few
-            # keyframes, so duplicates are merged now, not every ``merge_every_updates`` keyframes.
+            # Other cameras' placements of the same objects fix their depth, and what they saw as free space
+            # refutes placements; cameras that never move make few keyframes, so this runs now, not every
+            # ``merge_every_updates`` keyframes.
             self.objects.triangulate_coarse(res)
+            if self.config.single_view.free_space_check:
+                n_before = len(res.removed)
+                self.objects.check_coarse(list(self._seen.values()), res)
+                self._count("single_view_refuted", len(res.removed) - n_before)
             self.objects.maintain(res)
         self._count("nodes_created", res.created)
         self._count("nodes_merged", res.merged_duplicates)

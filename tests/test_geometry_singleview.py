@@ -1,5 +1,5 @@
-"""Single-view placement from the floor plane (mapper.geometry.singleview) and the triangulation of coarse
-nodes seen by several fixed cameras (mapper.fusion.ObjectMap.triangulate_coarse)."""
+"""Single-view placement from the floor plane (mapper.geometry.singleview), the triangulation of coarse nodes
+seen by several fixed cameras and the free-space check against other cameras (mapper.fusion.ObjectMap)."""
 
 from __future__ import annotations
 
@@ -12,11 +12,14 @@ import pytest
 from mapper.fusion import FusionConfig, Object3D, ObjectMap, ray_meeting_point
 from mapper.geometry.singleview import (
     PlacedBox,
+    SeenView,
     SingleViewParams,
     depth_to_world,
     layout_depth,
+    pixel_rays,
     place_objects,
     ray_box_depth,
+    relocate_along_ray,
 )
 from mapper.perception.base import label_descriptor
 from protocol.messages import Intrinsics
@@ -164,3 +167,52 @@ def test_a_multi_view_observation_ends_a_nodes_coarse_state() -> None:
     stereo = Object3D(node.points.copy(), "vase", 0.9, label_descriptor("vase"))
     om.integrate([stereo], "robot", 2)
     assert len(om.nodes) == 1 and node.rays == []
+
+
+def _room_image(T_world_cam: np.ndarray, floor_rgb: tuple[int, int, int] = (150, 110, 70),
+                wall_rgb: tuple[int, int, int] = (90, 140, 90)) -> np.ndarray:
+    """An image of an empty room: floor colour where the pixel's ray meets the floor within 5 m, wall beyond."""
+    vs, us = np.mgrid[0:INTR.height, 0:INTR.width]
+    rays = pixel_rays(K, us.reshape(-1).astype(float), vs.reshape(-1).astype(float)) @ T_world_cam[:3, :3].T
+    with np.errstate(divide="ignore", invalid="ignore"):
+        s = -T_world_cam[2, 3] / rays[:, 2]
+    foot = np.hypot(s * rays[:, 0], s * rays[:, 1])
+    floor = ((s > 0) & (foot < 5.0)).reshape(INTR.height, INTR.width)
+    img = np.empty((INTR.height, INTR.width, 3), np.uint8)
+    img[floor], img[~floor] = floor_rgb, wall_rgb
+    return img
+
+
+def test_another_camera_moves_a_misplaced_object_to_where_it_saw_it() -> None:
+    """Camera A placed the crate (a cabinet) 0.5 m too far along its ray. Camera B sees the crate where it really is and
+    the floor (learnt under a chair it placed) where A put it: the node moves back along A's ray."""
+    cam_b = look_at([0.3, 4.8, 2.5], [3.0, 2.0, 0.3])
+    crate, chair = box(3.0, 2.2, 0.0, 0.5, 0.5, 1.0), box(2.0, 2.6, 0.0, 0.45, 0.45, 0.9)
+    masks = [silhouette(crate, cam_b), silhouette(chair, cam_b) & ~silhouette(crate, cam_b)]
+    seen = SeenView.build(_room_image(cam_b), masks, [label_descriptor("crate"), label_descriptor("chair")], K,
+                          cam_b, floor_masks=[masks[1]])
+    assert seen.floor.any() and not seen.floor[seen.owner >= 0].any()
+    origin = CAM[:3, 3]
+    misplaced = origin + 1.15 * (crate.center - origin)  # on A's ray, ~0.5 m too far, still above the floor
+    rng = np.random.default_rng(1)
+    pts = (misplaced + rng.uniform(-0.2, 0.2, (200, 3))).astype(np.float32)
+    om = ObjectMap(FusionConfig())
+    om.integrate([Object3D(pts, "crate", 0.9, label_descriptor("crate"), ray_origin=origin)], "cam_a", 1)
+    n, free, same = seen.votes(pts.astype(np.float64), label_descriptor("crate"), 0.8)
+    assert n > 100 and free > 0.6 * n and same < 0.3 * n  # what check_coarse calls refuted
+    res = om.check_coarse([seen])
+    [node] = om.nodes.values()
+    assert res.changed == {node.node_id}
+    assert np.linalg.norm(node.points.mean(0) - crate.center) < 0.15
+    # a camera that saw nothing of the kind leaves the node where it is (a wall can look like the floor)
+    far_again = ObjectMap(FusionConfig())
+    far_again.integrate([Object3D(pts, "vase", 0.9, label_descriptor("vase"), ray_origin=origin)], "cam_a", 1)
+    far_again.check_coarse([seen])
+    assert np.allclose(next(iter(far_again.nodes.values())).points, pts)
+
+
+def test_relocation_needs_agreement() -> None:
+    seen_nothing = SeenView(K, CAM, np.full((2, 2), -1, np.int16), np.zeros((2, 2), bool),
+                            np.zeros((0, 4), np.float32))
+    pts = np.array([[3.0, 2.0, 0.5]] * 20)
+    assert relocate_along_ray(pts, np.array([0.0, 0.0, 2.5]), label_descriptor("crate"), [seen_nothing], 0.8) is None

@@ -388,3 +388,116 @@ def depth_to_world(depth_m: F32, K: F64, T_world_cam: F64) -> F32:
     rays = pixel_rays(K, us.reshape(-1).astype(float), vs.reshape(-1).astype(float))
     pts = (rays * depth_m.reshape(-1, 1)) @ T_world_cam[:3, :3].T + T_world_cam[:3, 3]
     return pts.reshape(h, w, 3).astype(np.float32)
+
+
+# ------------------------------------------------------------------------------------------------
+# Free space seen by other calibrated cameras
+
+
+@dataclass(frozen=True)
+class SeenView:
+    """What one calibrated camera saw, kept small to check other cameras' coarse placements against:
+    ``owner`` (h, w) is the index of the detection covering each pixel (-1: nothing detected), ``floor`` (h, w)
+    whether such a pixel looks like the floor next to the camera (so the camera saw the floor there, at a
+    known depth, and nothing in front of it), ``descriptors`` (n, d) the detections' unit descriptors; ``K``
+    is at the maps' size."""
+
+    K: F64
+    T_world_cam: F64
+    owner: np.ndarray
+    floor: np.ndarray
+    descriptors: F32
+    floor_z_m: float = 0.0
+
+    @classmethod
+    def build(cls, image: np.ndarray, masks: Sequence[np.ndarray], descriptors: Sequence[np.ndarray], K: F64,
+              T_world_cam: F64, floor_masks: Sequence[np.ndarray] = (), floor_z_m: float = 0.0, width: int = 160,
+              max_colour_sigma: float = 3.0) -> SeenView:
+        """``image`` (H, W, 3) RGB and ``masks`` (H, W) at the resolution of ``K``. The floor's look is learnt
+        from the undetected pixels just under ``floor_masks`` (the objects placed standing on the floor: what
+        lies at their feet is floor); undetected pixels within ``max_colour_sigma`` robust standard deviations
+        of it (Lab) count as floor. A wall, or another room seen through a doorway, differs and refutes
+        nothing; with no floor-standing object nothing counts as floor."""
+        h, w = image.shape[:2]
+        sh = max(1, round(h * width / w))
+        owner = np.full((h, w), -1, np.int16)
+        for i, m in enumerate(masks):
+            owner[m & (owner < 0)] = i
+        small = cv2.resize(owner, (width, sh), interpolation=cv2.INTER_NEAREST)
+        lab = cv2.cvtColor(cv2.resize(image, (width, sh), interpolation=cv2.INTER_AREA), cv2.COLOR_RGB2LAB)
+        Ks = K.copy()
+        Ks[0] *= width / w
+        Ks[1] *= sh / h
+        feet = np.zeros((h, w), bool)
+        for m in floor_masks:
+            # a few pixels under the mask, where the object stands
+            below = np.zeros_like(m)
+            for k in range(2, 6):
+                below[k:] |= m[:-k]
+            feet |= below & (owner < 0)
+        near = cv2.resize(feet.astype(np.uint8), (width, sh), interpolation=cv2.INTER_NEAREST).astype(bool)
+        floor = np.zeros((sh, width), bool)
+        if int(near.sum()) >= 20:
+            x = lab.reshape(-1, 3).astype(np.float64)
+            sample = x[near.reshape(-1)]
+            mu = np.median(sample, axis=0)
+            sd = np.clip(1.4826 * np.median(np.abs(sample - mu), axis=0), 2.0, 12.0)
+            floor = ((np.abs(x - mu) / sd).max(axis=1) <= max_colour_sigma).reshape(sh, width) & (small < 0)
+        desc = (np.stack([np.asarray(v, np.float32) for v in descriptors]) if len(descriptors)
+                else np.zeros((0, 1), np.float32))
+        return cls(Ks, T_world_cam.copy(), small, floor, desc, floor_z_m)
+
+    def votes(self, points: F64, descriptor: np.ndarray, min_similarity: float, margin_m: float = 0.1,
+              ) -> tuple[int, int, int]:
+        """For world points of one object: how many project into this view (in front of it), how many land
+        where this camera saw the floor behind them (free space: the object cannot be there) and how many land
+        on a detection with a similar descriptor (it saw the object there)."""
+        R, t = self.T_world_cam[:3, :3], self.T_world_cam[:3, 3]
+        pc = (np.asarray(points, np.float64) - t) @ R
+        h, w = self.owner.shape
+        z = pc[:, 2]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            u = np.round(pc[:, 0] / z * self.K[0, 0] + self.K[0, 2])
+            v = np.round(pc[:, 1] / z * self.K[1, 1] + self.K[1, 2])
+        ok = (z > 0.1) & (u >= 0) & (u < w) & (v >= 0) & (v < h)
+        if not ok.any():
+            return 0, 0, 0
+        u, v, z = u[ok].astype(int), v[ok].astype(int), z[ok]
+        own = self.owner[v, u]
+        d = pixel_rays(self.K, u.astype(float), v.astype(float)) @ R.T
+        with np.errstate(divide="ignore", invalid="ignore"):
+            floor = (self.floor_z_m - t[2]) / d[:, 2]
+        free = self.floor[v, u] & (floor > 0) & (z < floor - margin_m)
+        same = np.zeros(len(own), bool)
+        if len(self.descriptors) and (own >= 0).any():
+            sims = self.descriptors @ np.asarray(descriptor, np.float32)
+            same[own >= 0] = sims[own[own >= 0]] >= min_similarity
+        return int(ok.sum()), int(free.sum()), int(same.sum())
+
+
+def relocate_along_ray(points: F64, origin: F64, descriptor: np.ndarray, views: Sequence[SeenView],
+                       min_similarity: float, max_range_m: float = 12.0, step_m: float = 0.05,
+                       min_agree: float = 0.3, max_free: float = 0.3) -> F64 | None:
+    """Where along the ray from ``origin`` through the points' centroid the object agrees best with
+    ``views`` (most points on similar detections, few in free space): the shift to apply to the points,
+    or None when no depth reaches ``min_agree`` with at most ``max_free`` in free space."""
+    c = np.asarray(points, np.float64).mean(axis=0)
+    ray = c - origin
+    dist = float(np.linalg.norm(ray))
+    if dist < 1e-6:
+        return None
+    ray /= dist
+    best: tuple[float, float] | None = None
+    for s in np.arange(0.3, max_range_m, step_m):
+        shifted = points + (origin + s * ray - c)
+        n = agree = free = 0
+        for sv in views:
+            a, f, g = sv.votes(shifted, descriptor, min_similarity)
+            n, free, agree = n + a, free + f, agree + g
+        if n == 0 or free > max_free * n:
+            continue
+        frac = agree / n
+        if frac >= min_agree and (best is None or frac > best[0] + 1e-9 or
+                                  (abs(frac - best[0]) <= 1e-9 and abs(s - dist) < abs(best[1] - dist))):
+            best = (frac, float(s))
+    return None if best is None else (origin + best[1] * ray - c)
