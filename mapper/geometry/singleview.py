@@ -144,6 +144,9 @@ def _erode_runs(us: F64, keep: np.ndarray, k: int) -> np.ndarray:
     u, kk = us[order], keep[order].copy()
     out = kk.copy()
     for shift in range(1, k + 1):
+        if shift >= len(u):
+            out[:] = False
+            break
         left = np.r_[np.zeros(shift, bool), kk[:-shift] & (u[shift:] - u[:-shift] == shift)]
         right = np.r_[kk[shift:] & (u[shift:] - u[:-shift] == shift), np.zeros(shift, bool)]
         out &= left & right
