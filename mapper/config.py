@@ -89,6 +89,23 @@ class DepthCheckConfig(BaseModel):
     map_width: int = Field(default=160, ge=16, description="width of the stored keyframe depth maps, pixels")
 
 
+class PoseCheckConfig(BaseModel):
+    """Whether a calibrated fixed camera still looks where its pose says (``mapper.geometry.posecheck``)."""
+
+    model_config = ConfigDict(extra="forbid")
+    enabled: bool = Field(
+        default=True,
+        description="compare each keyframe of a calibrated (trusted-pose) camera with its first one; a camera that "
+        "turned is flagged in the status and its frames are not fused until it looks the same again or is recalibrated",
+    )
+    max_rotation_deg: float = Field(
+        default=1.0, gt=0.0, description="rotation since the reference keyframe that flags the camera as moved"
+    )
+    min_inliers: int = Field(
+        default=40, ge=8, description="matches the check needs to decide (fewer: inconclusive, frames still fused)"
+    )
+
+
 class SingleViewConfig(BaseModel):
     """Single-view geometry for posed views that have no stereo partner yet (``mapper.geometry.singleview``):
     objects placed from where their masks touch the floor or a placed object, under an upright-box assumption."""
@@ -147,6 +164,9 @@ class MapperCoreConfig(BaseModel):
     point_map: PointMapConfig = Field(default_factory=PointMapConfig, description="global point map")
     depth_check: DepthCheckConfig = Field(
         default_factory=DepthCheckConfig, description="multi-view depth consistency before fusion"
+    )
+    pose_check: PoseCheckConfig = Field(
+        default_factory=PoseCheckConfig, description="flag calibrated fixed cameras that were bumped"
     )
     single_view: SingleViewConfig = Field(
         default_factory=SingleViewConfig, description="single-view floor geometry for views without stereo partners"

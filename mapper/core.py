@@ -26,6 +26,8 @@ from mapper.config import MapperCoreConfig
 from mapper.consistency import downsample, verify_depth
 from mapper.fusion import LiftStats, ObjectMap, UpdateResult, lift_detections, outside_fraction
 from mapper.geometry.contract import Reconstructor, View, anchor_pose, compose
+from mapper.geometry.features import Features, extract_features
+from mapper.geometry.posecheck import rotation_between
 from mapper.geometry.singleview import SeenView, depth_to_world, layout_depth, place_objects
 from mapper.graph_store import GraphStore
 from mapper.keyframes import KeyframeSelector, KeyframeStore, intrinsics_of
@@ -94,6 +96,8 @@ class MapperCore:
         self._deferred: collections.deque[View] = collections.deque(maxlen=cfg.keyframes.max_deferred)
         # What each calibrated camera saw at its last single-view keyframe (free-space checks), oldest first.
         self._seen: dict[str, SeenView] = {}
+        # Each calibrated camera's first keyframe's features: a later one that turned away flags the camera.
+        self._pose_refs: dict[str, Features] = {}
 
     def _count(self, name: str, value: float = 1.0) -> None:
         self.counters[name] = self.counters.get(name, 0.0) + value
@@ -158,9 +162,39 @@ class MapperCore:
         # An unposed view is registered against posed neighbours: put one first to anchor the window.
         return [*nbrs, view], len(nbrs)
 
+    def _moved(self, view: View) -> bool:
+        """Whether a calibrated camera's view no longer agrees with its pose (it turned since its first
+        keyframe). Flags and unflags it in the counters: ``camera_moved_deg.<source>``."""
+        pc = self.config.pose_check
+        if not (pc.enabled and view.pose_trusted and view.T_world_cam is not None):
+            return False
+        feats = extract_features(view.image)
+        ref = self._pose_refs.get(view.source_id)
+        if ref is None:
+            self._pose_refs[view.source_id] = feats
+            while len(self._pose_refs) > self.config.keyframes.max_keyframes:
+                self._pose_refs.pop(next(iter(self._pose_refs)))
+            return False
+        check = rotation_between(ref, feats, intrinsics_of(view).K(), pc.min_inliers)
+        key = f"camera_moved_deg.{view.source_id}"
+        if check.rotation_deg is None:
+            self._count("pose_checks_inconclusive")
+            return key in self.counters
+        if check.rotation_deg > pc.max_rotation_deg:
+            if key not in self.counters:
+                log.warning("camera %s turned %.1f deg since its first keyframe: its frames are not fused until it "
+                            "is recalibrated", view.source_id, check.rotation_deg)
+            self.counters[key] = round(check.rotation_deg, 2)
+            self._count("keyframes_rejected_camera_moved")
+            return True
+        self.counters.pop(key, None)
+        return False
+
     def _process(self, view: View) -> UpdateResult | None:
         times: dict[str, float] = {}
         t = time.perf_counter()
+        if self._moved(view):
+            return None
         views, target = self._window(view)
         if len(views) == 1 and self.config.geometry.backend != "oracle":
             # Multi-view stereo needs a neighbour: keep the view for later windows and retry it later.
