@@ -123,36 +123,27 @@ def _lower_envelope(us: F64, vs: F64) -> F64:
     return np.interp(us, hu, hv)
 
 
-def _slope(us: F64, vs: F64) -> F64:
-    """Rows per column of the lowest-pixel outline at each column (the steeper side where it bends): a
-    vertical silhouette edge (the side of a bookshelf against a wall) is steep, a floor edge is not."""
+def _slope(us: F64, vs: F64, keep: np.ndarray) -> F64:
+    """Rows per column of the lowest-pixel outline at each kept column, between adjacent kept columns only
+    (the steeper side where it bends): a vertical silhouette edge (the side of a bookshelf against a wall)
+    is steep, a floor edge is not."""
     order = np.argsort(us)
-    u, v = us[order], vs[order]
+    u, v, k = us[order], vs[order], keep[order]
     du, dv = np.diff(u), np.abs(np.diff(v))
-    step = np.where(du == 1, dv, 0.0)  # gaps between runs of columns say nothing
+    step = np.where((du == 1) & k[1:] & k[:-1], dv, 0.0)  # gaps between runs say nothing
     out = np.empty_like(v)
     out[order] = np.maximum(np.r_[0.0, step], np.r_[step, 0.0])
     return out
 
 
-def _erode_runs(us: F64, keep: np.ndarray, k: int) -> np.ndarray:
-    """``keep`` without the ``k`` columns at each end of every run of adjacent kept columns (a mask's first
-    and last columns count as run ends)."""
-    if k <= 0:
-        return keep
-    order = np.argsort(us)
-    u, kk = us[order], keep[order].copy()
-    out = kk.copy()
-    for shift in range(1, k + 1):
-        if shift >= len(u):
-            out[:] = False
-            break
-        left = np.r_[np.zeros(shift, bool), kk[:-shift] & (u[shift:] - u[:-shift] == shift)]
-        right = np.r_[kk[shift:] & (u[shift:] - u[:-shift] == shift), np.zeros(shift, bool)]
-        out &= left & right
-    res = np.zeros_like(keep)
-    res[order] = out
-    return res
+def _near(us: F64, flag: np.ndarray, k: int) -> np.ndarray:
+    """Columns within ``k`` columns of a flagged one."""
+    marks = np.sort(us[flag])
+    if len(marks) == 0:
+        return np.zeros(len(us), bool)
+    i = np.clip(np.searchsorted(marks, us), 1, len(marks)) - 1
+    j = np.clip(i + 1, 0, len(marks) - 1)
+    return (np.abs(us - marks[i]) <= k) | (np.abs(us - marks[j]) <= k)
 
 
 def _run_lengths(us: F64, keep: np.ndarray) -> np.ndarray:
@@ -334,8 +325,9 @@ def _contact_points(us: F64, vs: F64, below: np.ndarray, boxes: Sequence[PlacedB
             return None, -1
         us, vs = us[floor], vs[floor]
         env = _lower_envelope(us, vs)
-        gentle = _erode_runs(us, _slope(us, vs) <= p.max_slope_px, p.end_trim_px)
-        on_env = (vs >= env - p.envelope_tol_px) & gentle
+        on_env = vs >= env - p.envelope_tol_px
+        steep = on_env & (_slope(us, vs, on_env) > p.max_slope_px)
+        on_env &= ~_near(us, steep, p.end_trim_px)
         on_env &= _run_lengths(us, on_env) >= p.min_run
         us, vs = us[on_env], vs[on_env]
         d = pixel_rays(K, us, vs + 0.5) @ R.T  # the bottom edge of the lowest pixel
