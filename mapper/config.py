@@ -129,6 +129,11 @@ class SingleViewConfig(BaseModel):
         default=0.4, ge=0.0, le=1.0,
         description="depth confidence of placed objects (stereo depth is 0.5-1): coarse, refined by other views",
     )
+    floor_colour_check: bool = Field(
+        default=True,
+        description="floor contacts must look like the floor under the view's other objects (an object seen "
+        "against a wall is not pushed through it)",
+    )
     free_space_check: bool = Field(
         default=True,
         description="a placement that another calibrated camera saw as free space (its floor, learnt from under "

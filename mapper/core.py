@@ -245,7 +245,8 @@ class MapperCore:
             return UpdateResult()
         K = intrinsics_of(view).K()
         shown = [m.mask for m in masks]
-        boxes = place_objects(shown, K, view.T_world_cam, self.config.single_view.params())
+        sv = self.config.single_view
+        boxes = place_objects(shown, K, view.T_world_cam, sv.params(), view.image if sv.floor_colour_check else None)
         floor_masks = [m for m, b in zip(shown, boxes, strict=True) if b is not None and b.support < 0]
         self._count("keyframes_single_view")
         self._count("single_view_masks", len(masks))

@@ -245,9 +245,12 @@ def _height(box_xy: tuple[F64, F64, float], base_z: float, top_v: float, K: F64,
 
 
 def place_objects(masks: Sequence[np.ndarray], K: F64, T_world_cam: F64,
-                  params: SingleViewParams = SingleViewParams()) -> list[PlacedBox | None]:
+                  params: SingleViewParams = SingleViewParams(), image: np.ndarray | None = None,
+                  ) -> list[PlacedBox | None]:
     """One upright box per mask (None where it cannot be placed), masks (H, W) bool at the resolution of
-    ``K``; see the module docstring."""
+    ``K``; see the module docstring. With the ``image`` (H, W, 3 RGB), floor contacts must also look like
+    the floor under the other objects' feet: an object whose feet seem to stand on a wall (the TV above a
+    stand, seen against the wall) is not pushed through it."""
     p = params
     n = len(masks)
     if n == 0:
@@ -277,13 +280,20 @@ def place_objects(masks: Sequence[np.ndarray], K: F64, T_world_cam: F64,
             below = np.where((below == -2) & (o >= 0) & ~m[rows, cols], o, below)
         below = np.where(below == -2, -1, below)
         contacts.append((cols.astype(float), low.astype(float), below))
+    floor_cols = [None if c is None else _floor_columns(*c, p) for c in contacts]
+    if image is not None:
+        floor_cols = _floor_looking(floor_cols, image, p)
     for level in range(p.max_support_levels + 1):
         placed_any = False
         for i, c in enumerate(contacts):
             if boxes[i] is not None or c is None:
                 continue
             us, vs, below = c
-            pts, support = _contact_points(us, vs, below, boxes, level, K, R, t, p)
+            if level == 0:
+                fc = floor_cols[i]
+                pts, support = (None if fc is None else _floor_points(fc[0], fc[1], K, R, t, p)), -1
+            else:
+                pts, support = _support_points(us, vs, below, boxes, K, R, t, p)
             if pts is None or len(pts) < p.min_contact_columns:
                 continue
             base_z = float(np.median(pts[:, 2]))
@@ -314,28 +324,61 @@ def place_objects(masks: Sequence[np.ndarray], K: F64, T_world_cam: F64,
     return boxes
 
 
-def _contact_points(us: F64, vs: F64, below: np.ndarray, boxes: Sequence[PlacedBox | None], level: int,
-                    K: F64, R: F64, t: F64, p: SingleViewParams) -> tuple[F64 | None, int]:
-    """World contact points of one mask: on the floor at level 0, else where the rays just under it enter the
-    placed box below it: its top (a vase on a table) or its front (a book in a shelf; also an object hidden
-    behind a nearer one, which is then placed too close: one view cannot tell the two apart)."""
-    if level == 0:
-        floor = below == -1
-        if int(floor.sum()) < p.min_contact_columns:
-            return None, -1
-        us, vs = us[floor], vs[floor]
-        env = _lower_envelope(us, vs)
-        on_env = vs >= env - p.envelope_tol_px
-        steep = on_env & (_slope(us, vs, on_env) > p.max_slope_px)
-        on_env &= ~_near(us, steep, p.end_trim_px)
-        on_env &= _run_lengths(us, on_env) >= p.min_run
-        us, vs = us[on_env], vs[on_env]
-        d = pixel_rays(K, us, vs + 0.5) @ R.T  # the bottom edge of the lowest pixel
-        with np.errstate(divide="ignore", invalid="ignore"):
-            s = (p.floor_z_m - t[2]) / d[:, 2]
-        ok = np.isfinite(s) & (s > 0) & (s * np.linalg.norm(d, axis=1) <= p.max_range_m)
-        return (t + s[ok, None] * d[ok]) if ok.any() else None, -1
-    # Rest on the placed object most of the supported columns touch.
+def _floor_columns(us: F64, vs: F64, below: np.ndarray, p: SingleViewParams) -> tuple[F64, F64]:
+    """The columns (u, lowest row) of one mask where it stands on the floor: background below, on the
+    lower convex envelope, not on a steep silhouette side, in runs."""
+    floor = below == -1
+    us, vs = us[floor], vs[floor]
+    if len(us) < p.min_contact_columns:
+        return us[:0], vs[:0]
+    env = _lower_envelope(us, vs)
+    on_env = vs >= env - p.envelope_tol_px
+    steep = on_env & (_slope(us, vs, on_env) > p.max_slope_px)
+    on_env &= ~_near(us, steep, p.end_trim_px)
+    on_env &= _run_lengths(us, on_env) >= p.min_run
+    return us[on_env], vs[on_env]
+
+
+def _floor_looking(cols: list[tuple[F64, F64] | None], image: np.ndarray, p: SingleViewParams,
+                   min_sample: int = 30, max_sigma: float = 3.0) -> list[tuple[F64, F64] | None]:
+    """Floor columns whose pixels just below look like those below all floor columns of the view (Lab,
+    median and robust spread): contacts seen against a wall are dropped. Too small a sample keeps all."""
+    h = image.shape[0]
+    picks = [(u.astype(int), np.minimum(v.astype(int) + 3, h - 1)) for u, v in (c for c in cols if c is not None)]
+    if sum(len(u) for u, _ in picks) < min_sample:
+        return cols
+    lab = cv2.cvtColor(np.ascontiguousarray(image), cv2.COLOR_RGB2LAB).astype(np.float64)
+    sample = np.concatenate([lab[v, u] for u, v in picks])
+    mu = np.median(sample, axis=0)
+    sd = np.clip(1.4826 * np.median(np.abs(sample - mu), axis=0), 3.0, 15.0)
+    out: list[tuple[F64, F64] | None] = []
+    for c in cols:
+        if c is None:
+            out.append(None)
+            continue
+        u, v = c
+        x = lab[np.minimum(v.astype(int) + 3, h - 1), u.astype(int)]
+        ok = (np.abs(x - mu) / sd).max(axis=1) <= max_sigma
+        out.append((u[ok], v[ok]))
+    return out
+
+
+def _floor_points(us: F64, vs: F64, K: F64, R: F64, t: F64, p: SingleViewParams) -> F64 | None:
+    """Where the floor columns' rays meet the floor (through the bottom edge of each lowest pixel)."""
+    if len(us) == 0:
+        return None
+    d = pixel_rays(K, us, vs + 0.5) @ R.T
+    with np.errstate(divide="ignore", invalid="ignore"):
+        s = (p.floor_z_m - t[2]) / d[:, 2]
+    ok = np.isfinite(s) & (s > 0) & (s * np.linalg.norm(d, axis=1) <= p.max_range_m)
+    return (t + s[ok, None] * d[ok]) if ok.any() else None
+
+
+def _support_points(us: F64, vs: F64, below: np.ndarray, boxes: Sequence[PlacedBox | None], K: F64, R: F64,
+                    t: F64, p: SingleViewParams) -> tuple[F64 | None, int]:
+    """Where the rays just under a mask enter the placed box below it: its top (a vase on a table) or its
+    front (a book in a shelf; also an object hidden behind a nearer one, which is then placed too close: one
+    view cannot tell the two apart)."""
     sup = below[below >= 0]
     sup = sup[[boxes[int(j)] is not None for j in sup]] if len(sup) else sup
     if len(sup) < p.min_contact_columns:
