@@ -216,3 +216,22 @@ def test_relocation_needs_agreement() -> None:
                             np.zeros((0, 4), np.float32))
     pts = np.array([[3.0, 2.0, 0.5]] * 20)
     assert relocate_along_ray(pts, np.array([0.0, 0.0, 2.5]), label_descriptor("crate"), [seen_nothing], 0.8) is None
+
+
+def test_an_object_seen_against_the_wall_is_not_pushed_through_it() -> None:
+    """A TV on a wall bracket, 1 m above the floor: under it the camera sees the wall, and its floor ray
+    would place it 8 m away. The floor under the other objects' feet looks different, so with the image the
+    TV gets no floor placement; without it, it is placed far behind the wall."""
+    tv = box(4.0, 3.2, 1.0, 1.0, 0.1, 0.6)
+    floor_objects = [box(1.8, 1.6, 0.0, 0.5, 0.5, 0.5), box(2.4, 1.0, 0.0, 0.6, 0.4, 0.8),
+                     box(1.2, 2.2, 0.0, 0.4, 0.4, 0.6)]
+    masks = [silhouette(tv)]
+    for b in floor_objects:
+        masks.append(silhouette(b) & ~np.any(masks, axis=0))
+    image = _room_image(CAM)
+    blind = place_objects(masks, K, CAM)
+    assert blind[0] is not None and np.linalg.norm(blind[0].center[:2] - tv.center[:2]) > 2.0
+    seeing = place_objects(masks, K, CAM, image=image)
+    assert seeing[0] is None
+    assert all(b is not None and np.linalg.norm(b.center - t.center) < 0.15
+               for b, t in zip(seeing[1:], floor_objects, strict=True))
