@@ -58,6 +58,7 @@ BARS = {
     "reg_rot_deg": 2.0,
     "reg_trans_m": 0.15,
     "reg_success": 0.90,
+    "pair_trans_frac": 0.05,
     "s_per_keyframe": 2.0,
 }
 
@@ -201,11 +202,13 @@ def bench_sim(
     odom = ScenarioResult("sim robot, odometry priors (1 cm, 0.5 deg)")
     fixed_depth = ScenarioResult("sim fixed camera, registered pose, depth from the robot keyframes")
     reg_trials: list[dict[str, Any]] = []
+    pair_trials: list[dict[str, Any]] = []
     # One continuous drive per scene, like the stream of keyframes the mapper sees.
     n_clusters, per_cluster = (1, 8) if quick else (1, 12)
     for family in families:
         for seed in seeds:
-            kfs, (cam, fixed), _ = sim_sequences(family, seed, n_clusters, per_cluster, None)
+            kfs, (cam, fixed), renderer = sim_sequences(family, seed, n_clusters, per_cluster, None)
+            pair_trials.append(fixed_pair_trial(renderer, cam, fixed.rgb, f"{family}/{seed}"))
             rec = make_reconstructor(backend, **opts)
             gts = [(k.gt_depth, k.gt_depth > 0) for k in kfs]
             outs = run_incremental(rec, [k.view for k in kfs], gts, known, f"{family}/{seed}")
@@ -242,6 +245,13 @@ def bench_sim(
     return {
         "depth": [known.summary(), odom.summary(), fixed_depth.summary()],
         "depth_frames": {known.name: known.frames, odom.name: odom.frames, fixed_depth.name: fixed_depth.frames},
+        "fixed_pair": {
+            "trials": pair_trials,
+            "median_rot_deg": _median([t["rot_deg"] for t in pair_trials]),
+            "median_trans_pct": _median([t["trans_pct"] for t in pair_trials]),
+            "within_bar": (sum(t["trans_pct"] <= 100 * BARS["pair_trans_frac"] for t in pair_trials) / len(pair_trials)
+                           if pair_trials else float("nan")),
+        },
         "registration": {
             "trials": reg_trials,
             "success_rate": len(ok) / len(reg_trials) if reg_trials else float("nan"),
@@ -249,6 +259,39 @@ def bench_sim(
             "median_trans_m": float(np.median([t["trans_m"] for t in reg_trials])) if reg_trials else float("nan"),
         },
     }
+
+
+def _median(values: Sequence[float]) -> float:
+    return float(np.median(values)) if len(values) else float("nan")
+
+
+def fixed_pair_trial(renderer: Any, cam: Any, image_a: np.ndarray, label: str, baseline_m: float = 1.2,
+                     ) -> dict[str, Any]:
+    """A second fixed camera ``baseline_m`` along the wall from a calibrated one, aimed at the same spot:
+    its pose from the essential matrix, metric scale from the first camera's mounting height (floor z = 0)."""
+    from mapper.geometry.register import two_view_pose
+    from protocol.poses import look_at
+
+    A = np.asarray(cam.T_world_cam, np.float64)
+    axis = A[:3, 2]
+    target = A[:3, 3] + axis * ((0.6 - A[2, 3]) / axis[2])  # where A's optical axis is 0.6 m above the floor
+    # Along the wall (a world axis) towards the room: the horizontal axis A looks along most.
+    k = int(np.argmax(np.abs(axis[:2])))
+    step = np.zeros(3)
+    step[k] = math.copysign(baseline_m, axis[k])
+    B = look_at(A[:3, 3] + step, target)
+    image_b = renderer.render(cam.intrinsics, B).rgb
+    t0 = time.perf_counter()
+    est = two_view_pose(View(image_a, "cam_a", cam.intrinsics, A, True), View(image_b, "cam_b", cam.intrinsics, None),
+                        camera_height_m=float(A[2, 3]))
+    dt = time.perf_counter() - t0
+    if est.T_world_cam is None:
+        rot, trans = float("inf"), float("inf")
+    else:
+        rot = rotation_angle_deg(est.T_world_cam, B)
+        trans = float(np.linalg.norm(est.T_world_cam[:3, 3] - B[:3, 3]))
+    return {"label": label, "ok": bool(est.ok), "inliers": int(est.inliers), "rot_deg": rot,
+            "trans_m": trans, "trans_pct": 100.0 * trans / baseline_m, "seconds": dt, "reason": est.reason}
 
 
 def _reg_trial(est: PoseEstimate, T_true: np.ndarray, label: str, seconds: float) -> dict[str, Any]:
@@ -334,6 +377,15 @@ def markdown(report: dict[str, Any]) -> str:
             lines.append(f"| {t['label']} | {t['ok']} | {t['inliers']} | {_fmt(t['rot_deg'], 2)} | "
                          f"{_fmt(t['trans_m'], 3)} | {t['success']} | {t['reason']} |")
         lines.append(f"\nsuccess rate {_fmt(reg['success_rate'], 2)} (bar >= {BARS['reg_success']})")
+        pair = report["sim"].get("fixed_pair")
+        if pair:
+            lines += ["", "## Second fixed camera 1.2 m along the wall: essential matrix, scale from the first "
+                      "camera's mounting height", "",
+                      "| trial | ok | inliers | rot err (deg) | trans err (% of baseline) | reason |",
+                      "|---|---|---|---|---|---|"]
+            for t in pair["trials"]:
+                lines.append(f"| {t['label']} | {t['ok']} | {t['inliers']} | {_fmt(t['rot_deg'], 2)} | "
+                             f"{_fmt(t['trans_pct'], 1)} | {t['reason']} |")
     lines += ["", "## Bars", "", "| bar | target | measured | met |", "|---|---|---|---|"]
     for b in report["bars"]:
         lines.append(f"| {b['bar']} | {b['target']} | {_fmt(b['measured'])} | {b['met']} |")
@@ -356,6 +408,11 @@ def check_bars(report: dict[str, Any]) -> list[dict[str, Any]]:
         reg = report["sim"]["registration"]
         add("uncalibrated camera within 2 deg / 0.15 m", f">= {BARS['reg_success']}", reg["success_rate"],
             reg["success_rate"] >= BARS["reg_success"])
+        pair = report["sim"].get("fixed_pair")
+        if pair and pair["trials"]:
+            add("second fixed camera from mounting height: median translation error, % of baseline",
+                f"<= {100 * BARS['pair_trans_frac']:.0f}", pair["median_trans_pct"],
+                pair["median_trans_pct"] <= 100 * BARS["pair_trans_frac"])
         times += [x["seconds"] for name, sc in report["sim"]["depth_frames"].items() if name.startswith("sim robot")
                   for x in sc]
     if report.get("real"):

@@ -84,3 +84,23 @@ def test_two_view_pose_scale_from_camera_height(rendered: dict) -> None:
     baseline_true = float(np.linalg.norm(a.T_world_cam[:3, 3] - b.T_world_cam[:3, 3]))
     baseline_est = float(np.linalg.norm(a.T_world_cam[:3, 3] - est.T_world_cam[:3, 3]))
     assert abs(baseline_est - baseline_true) < 0.2 * baseline_true
+
+
+def test_floor_distance_is_the_lowest_well_supported_band_along_up() -> None:
+    from mapper.geometry.register import floor_distance
+
+    rng = np.random.default_rng(0)
+    up = np.array([0.0, -0.8, 0.6])  # a camera pitched down: world up in its frame
+    up /= np.linalg.norm(up)
+    side = np.cross(up, [1.0, 0.0, 0.0])
+    side /= np.linalg.norm(side)
+
+    def layer(height: float, n: int) -> np.ndarray:
+        a, b = rng.uniform(-2, 2, n), rng.uniform(-2, 2, n)
+        return height * up + a[:, None] * np.array([1.0, 0.0, 0.0]) + b[:, None] * side
+
+    floor, table = layer(-2.4, 400), layer(-1.65, 900)  # the table top holds more points than the floor
+    strays = layer(-3.5, 5)
+    X = np.concatenate([floor, table, strays]) + rng.normal(0, 0.005, (1305, 3))
+    assert floor_distance(X, up) == pytest.approx(2.4, abs=0.03)
+    assert floor_distance(X[:10], up) is None

@@ -214,7 +214,8 @@ def two_view_pose(
 ) -> PoseEstimate:
     """Pose of ``view_b`` from two images when nothing is mapped: essential matrix, cheirality, then
     metric scale from the known camera-centre distance ``baseline_m`` or from ``camera_height_m``
-    (height of view_a above the dominant plane of the triangulated points, assumed the floor).
+    (height of view_a above the floor: with a calibrated view_a the floor is the lowest well-supported
+    height band of the triangulated points along its known up direction, else the dominant plane).
 
     The pose is in view_a's world frame when view_a has ``T_world_cam``, else in view_a's camera frame.
     Both views need intrinsics.
@@ -250,13 +251,37 @@ def two_view_pose(
         P2 = T_b_a[:3, :]
         Xh = cv2.triangulatePoints(P1, P2, na[sel].T, nb[sel].T)
         Xa = (Xh[:3] / Xh[3]).T
-        h_unit = _plane_distance(Xa[Xa[:, 2] > 0])
+        Xa = Xa[Xa[:, 2] > 0]
+        if view_a.T_world_cam is not None:
+            # view_a is calibrated: the floor's direction is known, only its distance is not.
+            up_a = np.asarray(view_a.T_world_cam, np.float64)[2, :3]  # world z in view_a's camera frame
+            h_unit = floor_distance(Xa, up_a)
+        else:
+            h_unit = _plane_distance(Xa)
         if h_unit is None:
             return PoseEstimate(None, int(n_inl), False, "no ground plane found for the height scale", len(m))
         scale = float(camera_height_m) / h_unit  # type: ignore[arg-type]
     T_a_b[:3, 3] *= scale
     T_world_b = np.asarray(view_a.T_world_cam @ T_a_b if view_a.T_world_cam is not None else T_a_b, np.float64)
     return PoseEstimate(T_world_b, int(n_inl), True, "ok", len(m), view_b.intrinsics, {"scale": scale})
+
+
+def floor_distance(X: F64, up: F64, bins: int = 60, min_share: float = 0.3) -> float | None:
+    """Distance from the camera (origin) down to the floor among points ``X`` (N, 3) in its frame, ``up`` the
+    world's up direction in that frame: the lowest height band that holds at least ``min_share`` of the
+    fullest band's points (table tops and seats lie above the floor; stray points below it are few)."""
+    if len(X) < 20:
+        return None
+    u = np.asarray(up, np.float64) / max(float(np.linalg.norm(up)), 1e-12)
+    h = X @ u
+    lo, hi = np.percentile(h, [1.0, 99.0])
+    if not hi > lo:
+        return None
+    counts, edges = np.histogram(h, bins=bins, range=(lo, hi))
+    first = int(np.flatnonzero(counts >= min_share * counts.max())[0])
+    band = (h >= edges[max(first - 1, 0)]) & (h <= edges[min(first + 2, bins)])
+    floor_h = float(np.median(h[band]))
+    return -floor_h if floor_h < 0 else None
 
 
 def _plane_distance(X: F64, iters: int = 300, seed: int = 0) -> float | None:
