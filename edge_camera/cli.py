@@ -20,6 +20,7 @@ EPILOG = """examples:
   argus edge-camera --source pattern --id cam1 --rate 5 --width 640
   argus edge-camera --config edge_camera/examples/sim.toml --set source.camera_index=1
   argus edge-camera --describe      # every config field, every source type
+  argus edge-camera calibrate --help    # a calibration file (intrinsics + pose) from a ChArUco board
 
 Command-line flags override the file; --set PATH=VALUE overrides any field (TOML value syntax).
 Exit status: 0 after SIGINT/SIGTERM, 2 on a configuration error. Source faults never end it."""
@@ -51,6 +52,11 @@ def describe_all() -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
+    argv = sys.argv[1:] if argv is None else argv
+    if argv[:1] == ["calibrate"]:
+        from edge_camera.calibrate import main as calibrate_main
+
+        return calibrate_main(argv[1:])
     a = parser().parse_args(argv)
     if a.describe:
         print(describe_all())
