@@ -75,7 +75,7 @@ def detect(image: NDArray[np.uint8], spec: BoardSpec, min_corners: int = 6) -> B
         raise BoardError(f"board not found: {n} of {(spec.squares_x - 1) * (spec.squares_y - 1)} corners seen "
                          f"(need {min_corners}; is the board {spec.squares_x}x{spec.squares_y} {spec.dictionary}, "
                          "in focus and fully lit?)")
-    obj, img = board.matchImagePoints(corners, ids)
+    obj, img = board.matchImagePoints(corners, ids)  # type: ignore[call-overload]  # stubs want a list of UMat
     return BoardView(np.asarray(obj, np.float64).reshape(-1, 3), np.asarray(img, np.float64).reshape(-1, 2))
 
 

@@ -98,7 +98,7 @@ def calibrate(a: argparse.Namespace) -> dict[str, object]:
             raise ValueError(f"{path}: {img.shape[1]}x{img.shape[0]}, the other images are {size[1]}x{size[0]}")
         size = img.shape
         try:
-            views.append(detect(img, spec))
+            views.append(detect(np.asarray(img, np.uint8), spec))
         except BoardError as e:
             raise BoardError(f"{path}: {e}") from None
     assert size is not None
