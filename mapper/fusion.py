@@ -538,7 +538,10 @@ class ObjectMap:
 
     def _absorb(self, node: NodeState, obj: Object3D, source_id: str, stamp_ns: int) -> None:
         n = node.observations
-        node.points = self._cap(voxel_downsample(np.concatenate([node.points, obj.points]), self.cfg.voxel_m))
+        if node.rays and obj.ray_origin is None:
+            node.points = self._cap(obj.points.astype(np.float32))  # measured depth replaces a coarse guess
+        else:
+            node.points = self._cap(voxel_downsample(np.concatenate([node.points, obj.points]), self.cfg.voxel_m))
         node.descriptor = unit(node.descriptor * n + obj.descriptor)
         node.observations = n + 1
         node.label_votes[obj.label] = node.label_votes.get(obj.label, 0.0) + max(obj.confidence, 1e-3)
@@ -575,7 +578,10 @@ class ObjectMap:
     def merge_nodes(self, keep: NodeState, gone: NodeState) -> None:
         """Fold ``gone`` into ``keep`` (clouds, descriptors weighted by observations, votes, sources)."""
         a, b = keep.observations, gone.observations
-        keep.points = self._cap(voxel_downsample(np.concatenate([keep.points, gone.points]), self.cfg.voxel_m))
+        if bool(keep.rays) != bool(gone.rays):
+            keep.points = (gone if keep.rays else keep).points  # measured depth replaces a coarse guess
+        else:
+            keep.points = self._cap(voxel_downsample(np.concatenate([keep.points, gone.points]), self.cfg.voxel_m))
         keep.descriptor = unit(keep.descriptor * a + gone.descriptor * b)
         keep.observations = a + b
         for lab, v in gone.label_votes.items():

@@ -158,15 +158,16 @@ def test_two_cameras_placements_of_one_object_merge_at_the_ray_crossing() -> Non
     assert np.array_equal(chair_node.points, chair_before)  # one camera: left where it was placed
 
 
-def test_a_multi_view_observation_ends_a_nodes_coarse_state() -> None:
+def test_a_multi_view_observation_replaces_a_coarse_node() -> None:
     om = ObjectMap(FusionConfig())
     a = np.array([0.0, 0.0, 2.5])
     om.integrate([_coarse(np.array([2.0, 2.0, 0.5]), a, "vase")], "cam0", 1)
     [node] = om.nodes.values()
     assert len(node.rays) == 1
-    stereo = Object3D(node.points.copy(), "vase", 0.9, label_descriptor("vase"))
+    stereo = Object3D(node.points + np.float32(0.05), "vase", 0.9, label_descriptor("vase"))  # 5 cm off
     om.integrate([stereo], "robot", 2)
     assert len(om.nodes) == 1 and node.rays == []
+    assert np.array_equal(node.points, stereo.points)  # the measured points replace the coarse guess
 
 
 def _room_image(T_world_cam: np.ndarray, floor_rgb: tuple[int, int, int] = (150, 110, 70),
