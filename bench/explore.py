@@ -54,6 +54,14 @@ def travel_costs(nav: Any, xy: tuple[float, float], vp_xy: np.ndarray) -> np.nda
     return out
 
 
+def _merged(base: dict[str, Any], update: dict[str, Any]) -> dict[str, Any]:
+    """``base`` with ``update``'s leaves written over it (nested tables merged, not replaced)."""
+    out = dict(base)
+    for k, v in update.items():
+        out[k] = _merged(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else v
+    return out
+
+
 def run_episode(
     family: str = "apartment",
     seed: int = 0,
@@ -69,6 +77,7 @@ def run_episode(
     viewpoint_spacing_m: float = 0.6,
     n_headings: int = 8,
     planner_overrides: dict[str, Any] | None = None,
+    mapper_overrides: dict[str, Any] | None = None,
     score_every: int = 1,
     move_frames: int = 0,
     log_fn: Callable[[str], None] | None = None,
@@ -117,7 +126,10 @@ def run_episode(
         seed=seed,
         renderer=renderer,
     )
-    mapper = MapperCore(core_config(geometry, perception, torch_threads))
+    mcfg = core_config(geometry, perception, torch_threads)
+    if mapper_overrides:
+        mcfg = type(mcfg).model_validate(_merged(mcfg.model_dump(), mapper_overrides))
+    mapper = MapperCore(mcfg)
     pcfg = PlannerConfig.model_validate(
         {
             "strategy": strategy,
@@ -370,6 +382,14 @@ def parser() -> argparse.ArgumentParser:
         help="planner config override, e.g. --set asp.travel_weight_per_m=0.03",
     )
     p.add_argument(
+        "--mapper-set",
+        dest="mapper_overrides",
+        action="append",
+        default=[],
+        metavar="PATH=VALUE",
+        help="mapper config override, e.g. --mapper-set single_view.untrusted_poses=true (see argus mapper --describe)",
+    )
+    p.add_argument(
         "--out", type=Path, default=None, help="write the JSON here (default: stdout summary only)"
     )
     p.add_argument("--quiet", action="store_true", help="no per-step lines")
@@ -381,15 +401,29 @@ def main(argv: list[str] | None = None) -> int:
     from protocol.tomlconfig import ConfigError, parse_value, set_path
 
     overrides: dict[str, Any] = {}
+    mapper_overrides: dict[str, Any] = {}
     try:
-        for item in a.overrides:
-            path, sep, text = item.partition("=")
-            if not sep:
-                raise ConfigError(f"override {item!r} is not of the form path=value")
-            set_path(overrides, path.strip(), parse_value(text.strip()))
+        for target, items in ((overrides, a.overrides), (mapper_overrides, a.mapper_overrides)):
+            for item in items:
+                path, sep, text = item.partition("=")
+                if not sep:
+                    raise ConfigError(f"override {item!r} is not of the form path=value")
+                set_path(target, path.strip(), parse_value(text.strip()))
     except ConfigError as e:
         print(f"argus explore: {e}", file=sys.stderr)
         return 2
+    if mapper_overrides:
+        from pydantic import ValidationError
+
+        from bench.eval import core_config
+
+        base = core_config(a.geometry, a.perception, a.threads)
+        try:
+            type(base).model_validate(_merged(base.model_dump(), mapper_overrides))
+        except ValidationError as e:
+            bad = "; ".join(f"{'.'.join(map(str, err['loc']))}: {err['msg']}" for err in e.errors())
+            print(f"argus explore: bad --mapper-set: {bad}", file=sys.stderr)
+            return 2
     starts = _ints(a.start_list) if a.start_list else list(range(a.starts))
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
 
@@ -417,6 +451,7 @@ def main(argv: list[str] | None = None) -> int:
                             odometry_noise=a.odometry_noise,
                             move_frames=a.move_frames,
                             planner_overrides=overrides,
+                            mapper_overrides=mapper_overrides,
                             log_fn=say,
                         )
                     )

@@ -79,3 +79,13 @@ def test_summarize_mean_and_std() -> None:
     assert asp["episodes"] == 2
     assert asp["recall@1"] == pytest.approx([0.5, 0.1])
     assert asp["n_nodes@0"] == [0.0, 0.0]
+
+
+def test_mapper_overrides_reach_the_mapper() -> None:
+    """RGB-only geometry: a robot's first frame has no stereo partner, so it maps nothing, unless single-view
+    floor geometry is switched on for robot (prior-posed) frames."""
+    kw = dict(family="furnished_room", seed=1, strategy="see", steps=0, start_index=0, geometry="mvs")
+    plain = run_episode(**kw)  # type: ignore[arg-type]
+    single = run_episode(**kw, mapper_overrides={"single_view": {"untrusted_poses": True}})  # type: ignore[arg-type]
+    assert plain["steps"][0]["n_nodes"] == 0
+    assert single["steps"][0]["n_nodes"] > 0
