@@ -4,13 +4,16 @@
 from __future__ import annotations
 
 from pathlib import Path
-from typing import Any, Literal
+from typing import TYPE_CHECKING, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
 from mapper.fusion import FusionConfig
 from mapper.relations import RelationConfig
 from protocol.session import ZenohSettings
+
+if TYPE_CHECKING:
+    from mapper.geometry.singleview import SingleViewParams
 
 
 class GeometryConfig(BaseModel):
@@ -140,7 +143,7 @@ class SingleViewConfig(BaseModel):
         "the objects it placed) is moved along its ray to where that camera saw a similar object",
     )
 
-    def params(self) -> Any:
+    def params(self) -> SingleViewParams:
         from mapper.geometry.singleview import SingleViewParams
 
         return SingleViewParams(floor_z_m=self.floor_z_m, max_range_m=self.max_range_m,

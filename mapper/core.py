@@ -296,9 +296,7 @@ class MapperCore:
             # ``merge_every_updates`` keyframes.
             self.objects.triangulate_coarse(res)
             if self.config.single_view.free_space_check:
-                n_before = len(res.removed)
-                self.objects.check_coarse(list(self._seen.values()), res)
-                self._count("single_view_refuted", len(res.removed) - n_before)
+                self._count("single_view_moved", self.objects.check_coarse(list(self._seen.values()), res))
             self.objects.maintain(res)
         self._count("nodes_created", res.created)
         self._count("nodes_merged", res.merged_duplicates)

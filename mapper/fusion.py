@@ -680,17 +680,19 @@ class ObjectMap:
         return res
 
     def check_coarse(self, views: Sequence[Any], res: UpdateResult | None = None, min_points: int = 15,
-                     max_free: float = 0.6, remove_refuted: bool = False) -> UpdateResult:
+                     max_free: float = 0.6, remove_refuted: bool = False) -> int:
         """Check coarse nodes placed from one camera against what other calibrated cameras saw
         (``mapper.geometry.singleview.SeenView``): a node most of whose points another camera saw as free space
         (the floor, with nothing in front of it) is misplaced. It is moved along its own camera's ray to where
         the other cameras saw a similar detection; when there is no such place it stays, unless
         ``remove_refuted`` (off: a wall that looks like the floor would remove correct nodes; measured on the
-        sim apartments, removing cost 0.02 F1 with 3 cameras)."""
+        sim apartments, removing cost 0.02 F1 with 3 cameras). Returns how many nodes moved or went;
+        ``res`` records them."""
         from mapper.geometry.singleview import relocate_along_ray
 
         res = res if res is not None else UpdateResult()
         sim = self.cfg.merge_similarity
+        acted = 0
         for node_id in sorted(self.nodes):
             node = self.nodes[node_id]
             origin = node.rays[0][0] if node.rays else None
@@ -712,13 +714,15 @@ class ObjectMap:
                 del self.nodes[node_id]
                 res.removed.add(node_id)
                 res.pruned += 1
+                acted += 1
                 continue
             node.points = (node.points + shift).astype(np.float32)
             node.rays = [(origin, unit((node.points.mean(0) - origin).astype(np.float64)))]
             node.touch()
             res.changed.add(node_id)
+            acted += 1
         res.changed -= res.removed
-        return res
+        return acted
 
     def _enforce_cap(self, res: UpdateResult) -> None:
         excess = len(self.nodes) - self.cfg.max_nodes

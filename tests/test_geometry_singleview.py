@@ -9,7 +9,7 @@ import cv2
 import numpy as np
 import pytest
 
-from mapper.fusion import FusionConfig, Object3D, ObjectMap, ray_meeting_point
+from mapper.fusion import FusionConfig, Object3D, ObjectMap, UpdateResult, ray_meeting_point
 from mapper.geometry.singleview import (
     PlacedBox,
     SeenView,
@@ -201,14 +201,15 @@ def test_another_camera_moves_a_misplaced_object_to_where_it_saw_it() -> None:
     om.integrate([Object3D(pts, "crate", 0.9, label_descriptor("crate"), ray_origin=origin)], "cam_a", 1)
     n, free, same = seen.votes(pts.astype(np.float64), label_descriptor("crate"), 0.8)
     assert n > 100 and free > 0.6 * n and same < 0.3 * n  # what check_coarse calls refuted
-    res = om.check_coarse([seen])
+    res = UpdateResult()
+    assert om.check_coarse([seen], res) == 1
     [node] = om.nodes.values()
     assert res.changed == {node.node_id}
     assert np.linalg.norm(node.points.mean(0) - crate.center) < 0.15
     # a camera that saw nothing of the kind leaves the node where it is (a wall can look like the floor)
     far_again = ObjectMap(FusionConfig())
     far_again.integrate([Object3D(pts, "vase", 0.9, label_descriptor("vase"), ray_origin=origin)], "cam_a", 1)
-    far_again.check_coarse([seen])
+    assert far_again.check_coarse([seen]) == 0
     assert np.allclose(next(iter(far_again.nodes.values())).points, pts)
 
 
