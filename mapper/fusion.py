@@ -671,7 +671,9 @@ class ObjectMap:
         for node_id in sorted(self.nodes):
             node = self.nodes[node_id]
             aged = self.updates - node.created_update >= cfg.prune_after_updates
-            weak = node.observations < 2 and len(node.points) < cfg.weak_node_points
+            # A coarse (single-view) node is a deliberate placement of a whole mask, not a stray: few points
+            # there mean a small object.
+            weak = node.observations < 2 and len(node.points) < cfg.weak_node_points and not node.rays
             if (aged and (node.observations < cfg.min_observations or weak)) or len(node.points) < 3:
                 del self.nodes[node_id]
                 res.pruned += 1

@@ -237,3 +237,19 @@ def test_an_object_seen_against_the_wall_is_not_pushed_through_it() -> None:
     assert seeing[0] is None
     assert all(b is not None and np.linalg.norm(b.center - t.center) < 0.15
                for b, t in zip(seeing[1:], floor_objects, strict=True))
+
+
+def test_a_coarse_node_of_a_small_object_is_not_pruned_as_a_stray() -> None:
+    """Nodes seen once with few points are dropped as noise after ``prune_after_updates``; a single-view
+    placement of a small object (a cup: few points on its box) is a whole mask, not a stray, and stays."""
+    cfg = FusionConfig()
+    om = ObjectMap(cfg)
+    rng = np.random.default_rng(2)
+    few = lambda c: (np.asarray(c) + rng.uniform(-0.04, 0.04, (20, 3))).astype(np.float32)  # noqa: E731
+    om.integrate([_coarse(np.array([2.0, 2.0, 0.8]), np.array([0.0, 0.0, 2.5]), "cup")], "cam", 1)
+    om.nodes[next(iter(om.nodes))].points = few([2.0, 2.0, 0.8])
+    om.integrate([Object3D(few([4.0, 1.0, 0.5]), "cup", 0.9, label_descriptor("cup"))], "robot", 2)
+    for k in range(cfg.prune_after_updates + 1):
+        om.integrate([], "robot", 3 + k)
+    om.maintain()
+    assert [bool(n.rays) for n in om.nodes.values()] == [True]
