@@ -297,6 +297,8 @@ class MapperCore:
             self.objects.triangulate_coarse(res)
             if self.config.single_view.free_space_check:
                 self._count("single_view_moved", self.objects.check_coarse(list(self._seen.values()), res))
+                if dets:  # what this camera placed before and now sees floor in place of: gone
+                    self._count("single_view_gone", self.objects.forget_gone(self._seen[view.source_id], res))
             self.objects.maintain(res)
         self._count("nodes_created", res.created)
         self._count("nodes_merged", res.merged_duplicates)

@@ -681,6 +681,26 @@ class ObjectMap:
         res.changed -= res.removed
         return res
 
+    def forget_gone(self, seen: Any, res: UpdateResult | None = None, min_points: int = 15,
+                    min_free: float = 0.6) -> int:
+        """Coarse nodes that the camera of ``seen`` (a ``SeenView`` of its new keyframe) placed before and now
+        sees as free floor are gone (moved or taken away): removed, and ``res`` says so. Nodes this keyframe
+        just updated stay. Returns how many went."""
+        res = res if res is not None else UpdateResult()
+        origin = seen.T_world_cam[:3, 3]
+        gone = 0
+        for node_id in sorted(self.nodes):
+            node = self.nodes[node_id]
+            if node_id in res.changed or not any(float(np.linalg.norm(o - origin)) < 1e-6 for o, _ in node.rays):
+                continue
+            n, free, _ = seen.votes(node.points, node.descriptor, self.cfg.merge_similarity)
+            if n >= min_points and free >= min_free * n:
+                del self.nodes[node_id]
+                res.removed.add(node_id)
+                res.pruned += 1
+                gone += 1
+        return gone
+
     def check_coarse(self, views: Sequence[Any], res: UpdateResult | None = None, min_points: int = 15,
                      max_free: float = 0.6, remove_refuted: bool = False) -> int:
         """Check coarse nodes placed from one camera against what other calibrated cameras saw

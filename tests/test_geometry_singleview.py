@@ -253,3 +253,27 @@ def test_a_coarse_node_of_a_small_object_is_not_pruned_as_a_stray() -> None:
         om.integrate([], "robot", 3 + k)
     om.maintain()
     assert [bool(n.rays) for n in om.nodes.values()] == [True]
+
+
+def test_an_object_taken_away_is_forgotten_by_the_camera_that_placed_it() -> None:
+    """A fixed camera placed a crate and a chair; in its next keyframe the crate is gone and the floor shows
+    where it stood: the crate's node goes (a removal to publish), the chair's stays."""
+    crate, chair = box(3.0, 2.2, 0.0, 0.5, 0.5, 0.5), box(2.0, 1.4, 0.0, 0.45, 0.45, 0.9)
+    image = _room_image(CAM)
+    before = [silhouette(crate), silhouette(chair) & ~silhouette(crate)]
+    boxes = place_objects(before, K, CAM, image=image)
+    depth, conf = layout_depth(before, boxes, K, CAM)
+    pts = depth_to_world(depth, K, CAM)
+    om = ObjectMap(FusionConfig())
+    objs = [Object3D(pts[m & (depth > 0)], lab, 0.9, label_descriptor(lab), ray_origin=CAM[:3, 3])
+            for m, lab in zip(before, ("crate", "chair"), strict=True)]
+    om.integrate(objs, "cam", 1)
+    crate_id = next(i for i, n in om.nodes.items() if "crate" in n.label_votes)
+    still = SeenView.build(image, before, [label_descriptor("crate"), label_descriptor("chair")], K, CAM,
+                           floor_masks=before)
+    assert om.forget_gone(still) == 0 and len(om.nodes) == 2  # both still there
+    after = [silhouette(chair)]
+    now = SeenView.build(image, after, [label_descriptor("chair")], K, CAM, floor_masks=after)
+    res = UpdateResult()
+    assert om.forget_gone(now, res) == 1
+    assert res.removed == {crate_id} and [next(iter(n.label_votes)) for n in om.nodes.values()] == ["chair"]
