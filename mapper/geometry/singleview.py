@@ -9,16 +9,20 @@ mask can be placed in 3D from the pixels where it touches its support, under an 
    are background, the object touches the floor there (its ray meets the floor plane); when they belong to
    another, already placed mask, the object rests on (or in) that object (its ray meets that object's box).
    Columns that reach the image border are truncated and say nothing. Floor columns are kept only on the
-   mask's lower convex envelope: a convex footprint projects to a convex outline, so columns that end
-   higher (between a chair's legs, under a table top) see the floor *behind* the object.
+   mask's lower convex envelope (a convex footprint projects to a convex outline, so columns that end
+   higher, between a chair's legs or under a table top, see the floor *behind* the object), off steep
+   silhouette sides, in runs, and, given the image, where the pixels below look like the floor under the
+   view's other objects (so an object seen against a wall is not pushed through it).
 2. **Footprint.** The rectangle the contact points lie along (L-shape fitting): the two visible bottom
-   edges of a box seen across a corner give the whole rectangle. A footprint seen edge-on (one visible side) is given an
-   assumed depth away from the camera.
+   edges of a box seen across a corner give the whole rectangle. A footprint seen edge-on (one visible
+   side) gets the depth, away from the camera, whose box silhouette best matches the mask.
 3. **Height.** The upright box whose top projects to the mask's top row.
 4. **Depth.** Each mask pixel's ray is cast into its box (the camera-facing faces); rays that miss it get
    the box centre's depth.
 
 Objects are placed support-first (floor objects, then what rests on them, up to ``max_support_levels``).
+``SeenView`` keeps what a calibrated camera saw (detections and the floor) so that other cameras' coarse
+placements can be checked against it (``mapper.fusion.ObjectMap.check_coarse`` and ``forget_gone``).
 A mask that touches neither the floor nor a placed object (a picture on a wall, an object cut by the image
 border) gets no depth: it is left to multi-view geometry. The estimate is coarse (centimetres to decimetres)
 and says so: its confidence is ``confidence``, below stereo depth, so other views refine it.
