@@ -98,6 +98,7 @@ class MapperCore:
         self._seen: dict[str, SeenView] = {}
         # Each calibrated camera's first keyframe's features: a later one that turned away flags the camera.
         self._pose_refs: dict[str, Features] = {}
+        self._failed_key: tuple[str, int] | None = None  # the last view whose processing raised
 
     def _count(self, name: str, value: float = 1.0) -> None:
         self.counters[name] = self.counters.get(name, 0.0) + value
@@ -125,7 +126,7 @@ class MapperCore:
             return None
         removed = set().union(*(r.removed for r in results))
         changed = set().union(*(r.changed for r in results)) - removed
-        return self._commit(changed, removed, view.stamp_ns or time.time_ns())
+        return self._commit(changed, removed, view.stamp_ns or time.time_ns(), {view.source_id: view.seq})
 
     def _timed(self, view: View) -> UpdateResult | None:
         t0 = time.perf_counter()
@@ -133,6 +134,7 @@ class MapperCore:
             res = self._process(view)
         except Exception as e:  # noqa: BLE001 - one bad view must never stop the mapper
             self._count("keyframe_errors")
+            self._failed_key = view.key
             log.warning("keyframe %s#%d failed: %s: %s", view.source_id, view.seq, type(e).__name__, e)
             return None
         if res is not None:
@@ -142,7 +144,17 @@ class MapperCore:
             self.counters["last_update_s"] = dt
         return res
 
-    def _commit(self, changed: set[str], removed: set[str], stamp_ns: int) -> GraphDelta | None:
+    def mark_processed(self, view: View) -> GraphDelta | None:
+        """A frames-only delta saying ``view`` was processed, when it changed nothing (and is newer than what the
+        graph already covers): a planner waiting for a robot's arrival frame needs to know. A view whose
+        processing failed is not marked (the graph stays exactly as it was)."""
+        if self._failed_key == view.key:
+            return None
+        with self.lock:
+            return self.store.commit_frames({view.source_id: view.seq}, view.stamp_ns or time.time_ns())
+
+    def _commit(self, changed: set[str], removed: set[str], stamp_ns: int,
+                frames: dict[str, int] | None = None) -> GraphDelta | None:
         t = time.perf_counter()
         boxes = self.objects.boxes()
         edges = compute_edges(boxes, self.config.relations)
@@ -150,7 +162,7 @@ class MapperCore:
         edges = refine_with_points(edges, boxes, clouds, self.config.relations)
         ups = self.objects.messages(sorted(changed), with_embedding=self.config.node_embeddings)
         with self.lock:
-            delta = self.store.commit(ups, removed, edges, stamp_ns)
+            delta = self.store.commit(ups, removed, edges, stamp_ns, frames)
         if self.last is not None:
             self.last.timings_s["edges"] = time.perf_counter() - t
         return delta

@@ -20,6 +20,7 @@ class GraphStore:
         self.nodes: dict[str, GraphNode] = {}
         self.edges: dict[tuple[str, str, str], GraphEdge] = {}
         self.changed_at: dict[str, int] = {}
+        self.frames: dict[str, int] = {}  # per source, the newest frame seq processed
 
     def commit(
         self,
@@ -27,10 +28,13 @@ class GraphStore:
         removed: Iterable[str],
         edges: Sequence[GraphEdge],
         stamp_ns: int,
+        frames: dict[str, int] | None = None,
     ) -> GraphDelta | None:
         """Apply a change set; returns its delta, or None when nothing actually changed.
 
-        ``edges`` is the complete new edge set (edges are recomputed as a whole after each update).
+        ``edges`` is the complete new edge set (edges are recomputed as a whole after each update);
+        ``frames``: the frames (source -> seq) processed for it, carried by the delta when they advance (with
+        no change they are not recorded: :meth:`commit_frames` says so on its own).
         """
         removed_ids = sorted({r for r in removed if r in self.nodes})
         gone = set(removed_ids)
@@ -44,6 +48,7 @@ class GraphStore:
         dropped = [e for k, e in sorted(self.edges.items()) if k not in new_edges]
         if not (ups or removed_ids or added or dropped):
             return None
+        advanced = self._advance(frames)
         self.version += 1
         self.stamp_ns = stamp_ns
         for node_id in removed_ids:
@@ -60,7 +65,23 @@ class GraphStore:
             removed=removed_ids,
             edges_added=added,
             edges_removed=dropped,
+            frames=advanced,
         )
+
+    def _advance(self, frames: dict[str, int] | None) -> dict[str, int]:
+        advanced = {k: int(v) for k, v in (frames or {}).items() if int(v) > self.frames.get(k, -1)}
+        self.frames.update(advanced)
+        return advanced
+
+    def commit_frames(self, frames: dict[str, int], stamp_ns: int) -> GraphDelta | None:
+        """A delta that only says these frames were processed (they changed nothing), when they advance: a
+        planner waiting for a robot's arrival frame learns the graph it has already covers it."""
+        advanced = self._advance(frames)
+        if not advanced:
+            return None
+        self.version += 1
+        self.stamp_ns = stamp_ns
+        return GraphDelta(version=self.version, stamp_ns=stamp_ns, frames=advanced)
 
     def snapshot(self) -> GraphSnapshot:
         """The whole graph at the current version (nodes by id, edges by triple)."""
@@ -69,6 +90,7 @@ class GraphStore:
             stamp_ns=self.stamp_ns,
             nodes=[self.nodes[k] for k in sorted(self.nodes)],
             edges=[self.edges[k] for k in sorted(self.edges)],
+            frames=dict(self.frames),
         )
 
     def query(self, q: GraphQuery) -> list[GraphNode]:
@@ -92,4 +114,5 @@ class GraphStore:
         self.stamp_ns = snap.stamp_ns
         self.nodes = {n.node_id: n for n in snap.nodes}
         self.edges = {edge_key(e): e for e in snap.edges}
+        self.frames = dict(snap.frames)
         self.changed_at = {str(k): int(v) for k, v in state.get("changed_at", {}).items() if k in self.nodes}

@@ -413,6 +413,8 @@ class MapperNode:
             delta = self.core.ingest(view)
             if self.core.last is not None and self.core.last.view is view:
                 self._log_rerun()
+            if delta is None and frame.header.source_kind == "robot":
+                delta = self.core.mark_processed(view)  # a planner may be waiting for this frame
             if delta is not None:
                 self._publish_delta(session, pubs, delta)
         self._publish_periodic(pubs)

@@ -169,6 +169,11 @@ class PlannerNodeConfig(_Model):
     resend_s: float = Field(
         default=5.0, gt=0.0, description="re-plan an idle robot that ignored its goal after this"
     )
+    fusion_wait_s: float = Field(
+        default=5.0, ge=0.0,
+        description="after a robot arrives, wait up to this long for a graph version that covers its arrival frame "
+        "(RobotState.last_frame_seq against the graph's frames) before planning its next goal; 0: do not wait",
+    )
     status_period_s: float = Field(default=1.0, gt=0.0, description="status publication period")
     query_timeout_s: float = Field(default=2.0, gt=0.0, description="start-up query timeout")
     log_level: str = Field(default="INFO", description="logging level")

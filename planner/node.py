@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import collections
 import logging
+import math
 import threading
 import time
 from dataclasses import dataclass
@@ -58,6 +59,8 @@ class PlannerNode:
         self._snapshot_in: GraphSnapshot | None = None
         self.point_map: PointMap | None = None
         self.states: dict[str, RobotState] = {}
+        # Per robot waiting for its arrival frame to be fused: (that frame's seq, when the wait began).
+        self._fusion_wait: dict[str, tuple[int | None, float]] = {}
         self.viewpoints: dict[str, ViewpointSet] = {}
         self.pending: dict[str, _Pending] = {}
         self._need_snapshot = True
@@ -190,9 +193,33 @@ class PlannerNode:
                 need = n_nodes - p.n_nodes >= self.config.replan_new_nodes
                 if need:
                     self.counters.add("replans_graph_change")
+            if need and not self._arrival_fused(rid, st, now_s):
+                need = False
             if need:
                 out[rid] = (st, vps)
         return out
+
+    def _arrival_fused(self, rid: str, st: RobotState, now_s: float) -> bool:
+        """Whether the graph covers an arrived robot's arrival frame, or waiting for it has timed out
+        (``fusion_wait_s``): the next goal is chosen on a map that includes what the robot just saw."""
+        if st.status != "arrived" or st.last_frame_seq is None or self.config.fusion_wait_s <= 0:
+            return True
+        if self.graph.frames.get(rid, -1) >= st.last_frame_seq:
+            self._fusion_wait.pop(rid, None)
+            return True
+        seq, since = self._fusion_wait.get(rid, (None, now_s))
+        if seq != st.last_frame_seq:
+            self._fusion_wait[rid] = (st.last_frame_seq, now_s)
+            self.counters.add("fusion_waits")
+            return False
+        if now_s - since < self.config.fusion_wait_s:
+            return False
+        if since != -math.inf:  # the first time this wait runs out
+            self._fusion_wait[rid] = (seq, -math.inf)
+            self.counters.add("fusion_wait_timeouts")
+            log.warning("robot %s: no graph version covers its arrival frame %d after %.1f s; planning anyway",
+                        rid, st.last_frame_seq, now_s - since)
+        return True
 
     def plan_once(self, now_s: float | None = None) -> list:
         """Follow the graph, plan for the robots that need it, publish; returns the goals sent."""

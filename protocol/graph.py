@@ -44,4 +44,5 @@ def apply_delta(snapshot: GraphSnapshot, delta: GraphDelta) -> GraphSnapshot:
         stamp_ns=delta.stamp_ns,
         nodes=[nodes[k] for k in sorted(nodes)],
         edges=kept,
+        frames={**snapshot.frames, **delta.frames},
     )

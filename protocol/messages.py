@@ -152,6 +152,7 @@ class RobotState(Message):
     """A robot's state, published on its state key."""
 
     KIND: ClassVar[str] = "robot_state"
+    SCHEMA: ClassVar[tuple[int, int]] = (1, 1)
     robot_id: str = Field(min_length=1, max_length=128)
     stamp_ns: int = Field(ge=0)
     status: RobotStatus
@@ -167,6 +168,11 @@ class RobotState(Message):
     travel_cost_m: NDArray | None = Field(
         default=None,
         description="geodesic distance from here to each viewpoint of the robot's ViewpointSet (inf: none)",
+    )
+    last_frame_seq: int | None = Field(
+        default=None, ge=0,
+        description="seq of the newest frame this robot published (once arrived: its arrival frame); a planner "
+        "waits for a graph version whose ``frames`` cover it (schema 1.1)",
     )
 
     @field_validator("travel_cost_m")
@@ -281,22 +287,33 @@ class GraphSnapshot(Message):
     """The whole graph at one version."""
 
     KIND: ClassVar[str] = "graph_snapshot"
+    SCHEMA: ClassVar[tuple[int, int]] = (1, 1)
     version: int = Field(ge=0)
     stamp_ns: int = Field(ge=0)
     nodes: list[GraphNode] = Field(default_factory=list)
     edges: list[GraphEdge] = Field(default_factory=list)
+    frames: dict[str, int] = Field(
+        default_factory=dict,
+        description="per source id, the newest frame seq the mapper had processed at this version (schema 1.1)",
+    )
 
 
 class GraphDelta(Message):
     """Changes from version ``version - 1`` to ``version`` (versions increase by exactly one)."""
 
     KIND: ClassVar[str] = "graph_delta"
+    SCHEMA: ClassVar[tuple[int, int]] = (1, 1)
     version: int = Field(ge=1)
     stamp_ns: int = Field(ge=0)
     upserted: list[GraphNode] = Field(default_factory=list)
     removed: list[str] = Field(default_factory=list)
     edges_added: list[GraphEdge] = Field(default_factory=list)
     edges_removed: list[GraphEdge] = Field(default_factory=list)
+    frames: dict[str, int] = Field(
+        default_factory=dict,
+        description="sources whose newest processed frame seq advanced with this version, and that seq; a delta "
+        "may carry only this (a robot's arrival frame that changed nothing) (schema 1.1)",
+    )
 
 
 class PointMap(Message):

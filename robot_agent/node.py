@@ -138,6 +138,7 @@ class RobotAgent:
             steps=self.steps,
             viewpoint_id=self.viewpoint_id,
             travel_cost_m=None if self.status == "moving" else self._travel_cost,
+            last_frame_seq=self.seq - 1 if self.seq > 0 else None,
         )
 
     def _set(self, status: RobotStatus, reason: str | None = None) -> None:
