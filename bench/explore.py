@@ -80,6 +80,7 @@ def run_episode(
     mapper_overrides: dict[str, Any] | None = None,
     score_every: int = 1,
     move_frames: int = 0,
+    goal_capture_m: float = 0.0,
     log_fn: Callable[[str], None] | None = None,
 ) -> dict[str, Any]:
     """One closed-loop episode; returns ``{"steps": [{step, n_nodes, recall, ...}], ...}``.
@@ -180,6 +181,26 @@ def run_episode(
         for T_true, T_odom in passed:
             ingest(renderer.render(intr, T_true), T_true, T_odom, ROBOT_ID)
 
+    capture_m = [0.0]  # metres driven by goal captures (sidesteps out and back), counted in distance_m
+
+    def capture(step_m: float) -> None:
+        """At the goal, also map the views from the camera moved ``step_m`` to its left and to its right
+        (where the robot can stand): a stereo baseline at the goal for RGB-only geometry. The sidesteps,
+        out and back, count in the distance driven."""
+        T_true, T_odom = np.asarray(robot.T_world_cam_true()), np.asarray(robot.T_world_cam_odom())
+        side = T_true[:3, 0].copy()
+        side[2] = 0.0
+        side /= max(float(np.linalg.norm(side)), 1e-9)
+        for sign in (-1.0, 1.0):
+            off = sign * step_m * side
+            if not nav.is_free(float(T_true[0, 3] + off[0]), float(T_true[1, 3] + off[1])):
+                continue
+            Tt, To = T_true.copy(), T_odom.copy()
+            Tt[:3, 3] += off
+            To[:3, 3] += off
+            ingest(renderer.render(intr, Tt), Tt, To, ROBOT_ID)
+            capture_m[0] += 2.0 * step_m
+
     records: list[dict[str, Any]] = []
     last_score: dict[str, float] = {"recall": 0.0, "precision": 0.0}
 
@@ -193,7 +214,7 @@ def run_episode(
             "n_nodes": len(snap.nodes),
             "recall": last_score["recall"],
             "precision": last_score["precision"],
-            "distance_m": round(robot.distance_m, 3),
+            "distance_m": round(robot.distance_m + capture_m[0], 3),
             **extra,
         }
         records.append(rec)
@@ -242,6 +263,8 @@ def run_episode(
             planner.mark_failed(ROBOT_ID, g.vp_id)
         if goal is not None:
             drive(move_frames)
+            if goal_capture_m > 0:
+                capture(goal_capture_m)
         ingest(robot.render(), robot.T_world_cam_true(), robot.T_world_cam_odom(), ROBOT_ID)
         record(
             step,
@@ -382,6 +405,14 @@ def parser() -> argparse.ArgumentParser:
         help="planner config override, e.g. --set asp.travel_weight_per_m=0.03",
     )
     p.add_argument(
+        "--goal-capture",
+        type=float,
+        default=0.0,
+        metavar="M",
+        help="at each goal also map the views M metres to the left and right (sidesteps, counted in the distance): "
+        "a stereo baseline at the goal for --geometry mvs",
+    )
+    p.add_argument(
         "--mapper-set",
         dest="mapper_overrides",
         action="append",
@@ -450,6 +481,7 @@ def main(argv: list[str] | None = None) -> int:
                             torch_threads=a.threads,
                             odometry_noise=a.odometry_noise,
                             move_frames=a.move_frames,
+                            goal_capture_m=a.goal_capture,
                             planner_overrides=overrides,
                             mapper_overrides=mapper_overrides,
                             log_fn=say,

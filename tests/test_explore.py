@@ -4,7 +4,9 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
+from typing import Any
 
+import numpy as np
 import pytest
 
 from bench.explore import main, run_episode, start_pose, summarize
@@ -89,3 +91,38 @@ def test_mapper_overrides_reach_the_mapper() -> None:
     single = run_episode(**kw, mapper_overrides={"single_view": {"untrusted_poses": True}})  # type: ignore[arg-type]
     assert plain["steps"][0]["n_nodes"] == 0
     assert single["steps"][0]["n_nodes"] > 0
+
+
+def test_goal_capture_gives_the_arrival_view_stereo_partners() -> None:
+    """With --goal-capture, each goal adds views from the camera moved sideways; the view selection the mapper
+    uses accepts them as stereo sources for the arrival view, and the sidesteps count in the distance."""
+    from mapper.config import KeyframeConfig
+    from mapper.core import MapperCore
+    from mapper.keyframes import KeyframeStore
+
+    seen: list[Any] = []
+    orig = MapperCore.ingest
+
+    def spy(self: MapperCore, view: Any, force_keyframe: bool = False) -> Any:
+        seen.append(view)
+        return orig(self, view, force_keyframe)
+
+    kw = dict(family="furnished_room", seed=1, strategy="see", steps=1, start_index=0)
+    MapperCore.ingest = spy  # type: ignore[method-assign]
+    try:
+        plain = run_episode(**kw)  # type: ignore[arg-type]
+        n_plain = len(seen)
+        seen.clear()
+        captured = run_episode(**kw, goal_capture_m=0.3)  # type: ignore[arg-type]
+    finally:
+        MapperCore.ingest = orig  # type: ignore[method-assign]
+    extra = len(seen) - n_plain
+    assert extra in (1, 2)  # one sidestep may be blocked by a wall or furniture
+    arrival, sides = seen[-1], seen[-1 - extra:-1]
+    for v in sides:
+        assert np.linalg.norm(v.T_world_cam[:3, 3] - arrival.T_world_cam[:3, 3]) == pytest.approx(0.3, abs=1e-6)
+    store = KeyframeStore(KeyframeConfig())
+    for v in sides:
+        store.add(v)
+    assert {v.key for v in store.neighbours(arrival, 2.5)} == {v.key for v in sides}
+    assert captured["steps"][1]["distance_m"] == pytest.approx(plain["steps"][1]["distance_m"] + 0.6 * extra, abs=1e-3)
