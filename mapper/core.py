@@ -17,7 +17,7 @@ import logging
 import threading
 import time
 from dataclasses import dataclass, field
-from typing import Any
+from typing import Any, cast
 
 import cv2
 import numpy as np
@@ -26,7 +26,7 @@ from mapper.config import MapperCoreConfig
 from mapper.consistency import downsample, verify_depth
 from mapper.fusion import LiftStats, ObjectMap, UpdateResult, lift_detections, outside_fraction
 from mapper.geometry.contract import Reconstructor, View, anchor_pose, compose
-from mapper.geometry.features import Features, extract_features
+from mapper.geometry.features import Features, LruCache, extract_features
 from mapper.geometry.posecheck import rotation_between
 from mapper.geometry.singleview import SeenView, depth_to_world, layout_depth, place_objects
 from mapper.graph_store import GraphStore
@@ -95,9 +95,9 @@ class MapperCore:
         # view): retried, one per later keyframe, once neighbours exist. Bounded.
         self._deferred: collections.deque[View] = collections.deque(maxlen=cfg.keyframes.max_deferred)
         # What each calibrated camera saw at its last single-view keyframe (free-space checks), oldest first.
-        self._seen: dict[str, SeenView] = {}
+        self._seen = LruCache(cfg.keyframes.max_keyframes)  # source id -> SeenView
         # Each calibrated camera's first keyframe's features: a later one that turned away flags the camera.
-        self._pose_refs: dict[str, Features] = {}
+        self._pose_refs = LruCache(cfg.keyframes.max_keyframes)  # source id -> Features
         self._failed_key: tuple[str, int] | None = None  # the last view whose processing raised
 
     def _count(self, name: str, value: float = 1.0) -> None:
@@ -117,7 +117,9 @@ class MapperCore:
             for _ in range(len(self._deferred)):
                 old = self._deferred.popleft()
                 if self.keyframes.neighbours(old, self.selector.scene_depth(old.source_id)):
-                    extra = self._timed(old)
+                    # Checked for a moved camera when it came in; re-checking it now could only unflag the
+                    # camera on an image taken before it moved.
+                    extra = self._timed(old, check_pose=False)
                     if extra is not None:
                         results.append(extra)
                     break
@@ -128,10 +130,10 @@ class MapperCore:
         changed = set().union(*(r.changed for r in results)) - removed
         return self._commit(changed, removed, view.stamp_ns or time.time_ns(), {view.source_id: view.seq})
 
-    def _timed(self, view: View) -> UpdateResult | None:
+    def _timed(self, view: View, check_pose: bool = True) -> UpdateResult | None:
         t0 = time.perf_counter()
         try:
-            res = self._process(view)
+            res = self._process(view, check_pose)
         except Exception as e:  # noqa: BLE001 - one bad view must never stop the mapper
             self._count("keyframe_errors")
             self._failed_key = view.key
@@ -181,11 +183,9 @@ class MapperCore:
         if not (pc.enabled and view.pose_trusted and view.T_world_cam is not None):
             return False
         feats = extract_features(view.image)
-        ref = self._pose_refs.get(view.source_id)
+        ref = cast(Features | None, self._pose_refs.get(view.source_id))
         if ref is None:
-            self._pose_refs[view.source_id] = feats
-            while len(self._pose_refs) > self.config.keyframes.max_keyframes:
-                self._pose_refs.pop(next(iter(self._pose_refs)))
+            self._pose_refs.put(view.source_id, feats)
             return False
         check = rotation_between(ref, feats, intrinsics_of(view).K(), pc.min_inliers)
         key = f"camera_moved_deg.{view.source_id}"
@@ -202,10 +202,10 @@ class MapperCore:
         self.counters.pop(key, None)
         return False
 
-    def _process(self, view: View) -> UpdateResult | None:
+    def _process(self, view: View, check_pose: bool = True) -> UpdateResult | None:
         times: dict[str, float] = {}
         t = time.perf_counter()
-        if self._moved(view):
+        if check_pose and self._moved(view):
             return None
         views, target = self._window(view)
         if len(views) == 1 and self.config.geometry.backend != "oracle":
@@ -263,7 +263,7 @@ class MapperCore:
         self._count("keyframes_single_view")
         self._count("single_view_masks", len(masks))
         self._count("single_view_placed", sum(b is not None for b in boxes))
-        depth, conf = layout_depth(shown, boxes, K, view.T_world_cam, self.config.single_view.confidence)
+        depth, conf = layout_depth(shown, boxes, K, view.T_world_cam, sv.confidence)
         vg = ViewGeometry(points_world=depth_to_world(depth, K, view.T_world_cam), depth_m=depth, confidence=conf)
         return self._fuse(view, vg, view.T_world_cam, {"geometry": time.perf_counter() - t}, masks,
                           floor_masks=floor_masks)
@@ -292,15 +292,14 @@ class MapperCore:
         self._count("detections_dropped_no_depth", lift.dropped_no_depth)
         self._count("detections_dropped_small", lift.dropped_small_mask)
         self._count("detections_dropped_noise", lift.dropped_noise)
+        seen: SeenView | None = None
         if single_view:
             objs = [dataclasses.replace(o, ray_origin=T_world_cam[:3, 3].copy()) for o in objs]
             if dets:
-                self._seen.pop(view.source_id, None)
-                self._seen[view.source_id] = SeenView.build(
+                seen = SeenView.build(
                     view.image, [d.mask for d in dets], [d.descriptor for d in dets], intrinsics_of(view).K(),
                     T_world_cam, floor_masks, self.config.single_view.floor_z_m)
-                while len(self._seen) > self.config.keyframes.max_keyframes:
-                    self._seen.pop(next(iter(self._seen)))
+                self._seen.put(view.source_id, seen)
         res = self.objects.integrate(objs, view.source_id, view.stamp_ns or time.time_ns())
         if single_view:
             # Other cameras' placements of the same objects fix their depth, and what they saw as free space
@@ -308,9 +307,9 @@ class MapperCore:
             # ``merge_every_updates`` keyframes.
             self.objects.triangulate_coarse(res)
             if self.config.single_view.free_space_check:
-                self._count("single_view_moved", self.objects.check_coarse(list(self._seen.values()), res))
-                if dets:  # what this camera placed before and now sees floor in place of: gone
-                    self._count("single_view_gone", self.objects.forget_gone(self._seen[view.source_id], res))
+                self._count("single_view_moved", self.objects.check_coarse(self._seen.values(), res))
+                if seen is not None:  # what this camera placed before and now sees floor in place of: gone
+                    self._count("single_view_gone", self.objects.forget_gone(seen, res))
             self.objects.maintain(res)
         self._count("nodes_created", res.created)
         self._count("nodes_merged", res.merged_duplicates)

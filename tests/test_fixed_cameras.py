@@ -102,3 +102,18 @@ def test_two_close_calibrated_cameras_are_a_stereo_pair(scene) -> None:  # type:
     ok = (c >= 0.5) & (d > 0) & (true > 0)
     assert ok.mean() > 0.2
     assert float(np.median(np.abs(d[ok] - true[ok]) / true[ok])) <= 0.10
+
+
+def test_a_retried_old_view_does_not_unflag_a_bumped_camera(scene) -> None:  # type: ignore[no-untyped-def]
+    """cam0's first keyframe waits for a stereo partner; cam0 is then bumped and flagged. When cam1 (0.8 m
+    away) arrives, cam0's old keyframe is reconstructed with it, but the camera stays flagged: that image was
+    taken before it moved."""
+    target = np.array([3.0, 2.5, 0.6])
+    T0 = look_at([0.6, 0.25, 2.3], target)
+    core = MapperCore(core_config("mvs", "sim"))
+    core.ingest(_render(scene, T0, "cam0", 0), force_keyframe=True)
+    core.ingest(_render(scene, _yawed(T0, 5.0), "cam0", 1, pose=T0), force_keyframe=True)
+    assert "camera_moved_deg.cam0" in core.counters
+    core.ingest(_render(scene, look_at([1.4, 0.25, 2.3], target), "cam1", 0), force_keyframe=True)
+    assert core.last is not None and core.last.view.source_id == "cam0"  # the old keyframe was retried
+    assert "camera_moved_deg.cam0" in core.counters

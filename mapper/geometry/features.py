@@ -123,6 +123,10 @@ class LruCache:
         while len(self._d) > self.capacity:
             self._d.popitem(last=False)
 
+    def values(self) -> list[object]:
+        """The cached values, least recently used first."""
+        return list(self._d.values())
+
     def __len__(self) -> int:
         return len(self._d)
 
