@@ -62,6 +62,15 @@ def _merged(base: dict[str, Any], update: dict[str, Any]) -> dict[str, Any]:
     return out
 
 
+def mapper_config(geometry: str, perception: str, torch_threads: int, overrides: dict[str, Any] | None) -> Any:
+    """The episode's mapper configuration: ``bench.eval.core_config`` with ``overrides`` (nested tables)
+    written over it; pydantic's ValidationError on a bad override."""
+    from bench.eval import core_config
+
+    cfg = core_config(geometry, perception, torch_threads)
+    return type(cfg).model_validate(_merged(cfg.model_dump(), overrides)) if overrides else cfg
+
+
 def run_episode(
     family: str = "apartment",
     seed: int = 0,
@@ -89,7 +98,6 @@ def run_episode(
     """
     import torch
 
-    from bench.eval import core_config
     from bench.scoring import score_nodes
     from mapper.core import MapperCore
     from mapper.geometry.contract import OracleData, View
@@ -127,10 +135,7 @@ def run_episode(
         seed=seed,
         renderer=renderer,
     )
-    mcfg = core_config(geometry, perception, torch_threads)
-    if mapper_overrides:
-        mcfg = type(mcfg).model_validate(_merged(mcfg.model_dump(), mapper_overrides))
-    mapper = MapperCore(mcfg)
+    mapper = MapperCore(mapper_config(geometry, perception, torch_threads, mapper_overrides))
     pcfg = PlannerConfig.model_validate(
         {
             "strategy": strategy,
@@ -446,11 +451,8 @@ def main(argv: list[str] | None = None) -> int:
     if mapper_overrides:
         from pydantic import ValidationError
 
-        from bench.eval import core_config
-
-        base = core_config(a.geometry, a.perception, a.threads)
         try:
-            type(base).model_validate(_merged(base.model_dump(), mapper_overrides))
+            mapper_config(a.geometry, a.perception, a.threads, mapper_overrides)
         except ValidationError as e:
             bad = "; ".join(f"{'.'.join(map(str, err['loc']))}: {err['msg']}" for err in e.errors())
             print(f"argus explore: bad --mapper-set: {bad}", file=sys.stderr)

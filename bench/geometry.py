@@ -247,21 +247,22 @@ def bench_sim(
         "depth_frames": {known.name: known.frames, odom.name: odom.frames, fixed_depth.name: fixed_depth.frames},
         "fixed_pair": {
             "trials": pair_trials,
-            "median_rot_deg": _median([t["rot_deg"] for t in pair_trials]),
-            "median_trans_pct": _median([t["trans_pct"] for t in pair_trials]),
+            "median_rot_deg": _median_of_trials([t["rot_deg"] for t in pair_trials]),
+            "median_trans_pct": _median_of_trials([t["trans_pct"] for t in pair_trials]),
             "within_bar": (sum(t["trans_pct"] <= 100 * BARS["pair_trans_frac"] for t in pair_trials) / len(pair_trials)
                            if pair_trials else float("nan")),
         },
         "registration": {
             "trials": reg_trials,
             "success_rate": len(ok) / len(reg_trials) if reg_trials else float("nan"),
-            "median_rot_deg": float(np.median([t["rot_deg"] for t in reg_trials])) if reg_trials else float("nan"),
-            "median_trans_m": float(np.median([t["trans_m"] for t in reg_trials])) if reg_trials else float("nan"),
+            "median_rot_deg": _median_of_trials([t["rot_deg"] for t in reg_trials]),
+            "median_trans_m": _median_of_trials([t["trans_m"] for t in reg_trials]),
         },
     }
 
 
-def _median(values: Sequence[float]) -> float:
+def _median_of_trials(values: Sequence[float]) -> float:
+    """Median over trials, failed ones (inf) included; NaN when there are none."""
     return float(np.median(values)) if len(values) else float("nan")
 
 

@@ -37,6 +37,8 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from protocol.poses import unproject
+
 F64 = NDArray[np.float64]
 F32 = NDArray[np.float32]
 
@@ -87,7 +89,7 @@ class PlacedBox:
 
 def pixel_rays(K: F64, us: np.ndarray, vs: np.ndarray) -> F64:
     """Camera-frame rays (N, 3) with z = 1 through pixel centres (u, v)."""
-    return np.stack([(us - K[0, 2]) / K[0, 0], (vs - K[1, 2]) / K[1, 1], np.ones(len(us))], axis=-1)
+    return unproject(K, np.stack([us, vs], axis=-1), np.ones(len(us)))
 
 
 def ray_box_depth(origin: F64, dirs_world: F64, box: PlacedBox) -> F64:
