@@ -39,6 +39,7 @@ from protocol.transport import (
     Counters,
     Frame,
     LatestSlots,
+    LatestValue,
     StatusReporter,
     declare_message_publisher,
     decode_frame_sample,
@@ -373,7 +374,8 @@ class MapperNode:
             pubs = {
                 "delta": declare_message_publisher(session, self.keys.graph_delta, important=True),
                 "snapshot": declare_message_publisher(session, self.keys.graph_snapshot, important=True),
-                "map": declare_message_publisher(session, self.keys.map_points, important=False),
+                # the point map answers queries with its newest value (late joiners)
+                "map": LatestValue(session, declare_message_publisher(session, self.keys.map_points, important=False)),
             }
             subs = [session.declare_subscriber(self.keys.all_frames, self._on_frame)]
             if self.needs_oracle:

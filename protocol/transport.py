@@ -59,6 +59,50 @@ def declare_message_publisher(session: zenoh.Session, key: str, *, important: bo
     )
 
 
+class LatestValue:
+    """A publisher whose newest payload also answers queries on its key: late joiners get it at once.
+
+    Zenoh delivers a put only to subscribers that exist at that moment; a consumer that joins later
+    would wait for the next put (seconds for status and robot state, longer for the point map). So the
+    publishing process also declares a queryable on the same key that replies with the newest payload
+    and encoding; any Zenoh binding reads the current value with a plain ``get`` (then subscribes for
+    updates). Thread-safe; one payload is held, so memory is bounded by the largest message.
+    """
+
+    def __init__(self, session: zenoh.Session, publisher: zenoh.Publisher) -> None:
+        self.publisher = publisher
+        self.key = str(publisher.key_expr)
+        self._lock = threading.Lock()
+        self._latest: bytes | None = None
+        self.queries = 0
+        self._queryable = session.declare_queryable(self.key, self._on_query)
+
+    def put(self, payload: bytes) -> None:
+        """Publish ``payload`` and keep it as the value late joiners get."""
+        with self._lock:
+            self._latest = payload
+        self.publisher.put(payload)
+
+    @property
+    def latest(self) -> bytes | None:
+        with self._lock:
+            return self._latest
+
+    def _on_query(self, query: zenoh.Query) -> None:
+        payload = self.latest
+        if payload is None:
+            return  # nothing published yet: the getter sees no reply, not a made-up value
+        try:
+            query.reply(self.key, payload, encoding=self.publisher.encoding)
+            self.queries += 1
+        except Exception as e:  # noqa: BLE001 - a callback must never raise into zenoh
+            log.debug("latest-value reply on %s failed: %s", self.key, e)
+
+    def undeclare(self) -> None:
+        self._queryable.undeclare()
+        self.publisher.undeclare()
+
+
 def put_frame(publisher: zenoh.Publisher, header: FrameHeader, jpeg: bytes) -> None:
     """Put one frame sample: JPEG payload, encoded header as attachment."""
     publisher.put(jpeg, attachment=encode(header))
@@ -178,7 +222,7 @@ class StatusReporter:
         period_s: float = 1.0,
         extra: Callable[[], dict[str, Any]] | None = None,
     ) -> None:
-        self._pub = declare_message_publisher(session, key, important=False)
+        self._pub = LatestValue(session, declare_message_publisher(session, key, important=False))
         self.role, self.node_id, self.counters, self.period_s = role, node_id, counters, period_s
         self.state = "ok"
         self.last_error: str | None = None
@@ -187,6 +231,7 @@ class StatusReporter:
         self._thread = threading.Thread(target=self._run, name=f"status-{role}", daemon=True)
 
     def __enter__(self) -> StatusReporter:
+        self.publish()  # at once, so a consumer (or a late joiner's get) sees the process without waiting a period
         self._thread.start()
         return self
 
@@ -194,6 +239,10 @@ class StatusReporter:
         self._stop.set()
         self._thread.join(timeout=2.0)
         self.publish()
+        try:
+            self._pub.undeclare()
+        except Exception as e:  # noqa: BLE001 - the session may already be closing
+            log.debug("status undeclare failed: %s", e)
 
     def publish(self) -> Status:
         counters = self.counters.snapshot()

@@ -22,7 +22,14 @@ from protocol.keys import Keys
 from protocol.messages import FrameHeader, NbvGoal, OracleFrame, RobotState, RobotStatus, ViewpointSet
 from protocol.oracle import depth_to_png, ids_to_png
 from protocol.session import open_session
-from protocol.transport import Counters, StatusReporter, declare_frame_publisher, declare_message_publisher, put_frame
+from protocol.transport import (
+    Counters,
+    LatestValue,
+    StatusReporter,
+    declare_frame_publisher,
+    declare_message_publisher,
+    put_frame,
+)
 from robot_agent.bodies import create_body
 from robot_agent.bodies.base import RobotBody
 from robot_agent.config import RobotAgentConfig
@@ -327,10 +334,10 @@ class RobotAgent:
             if self.body.oracle
             else None
         )
-        self._state_pub = session.declare_publisher(
+        self._state_pub = LatestValue(session, session.declare_publisher(  # late joiners query the newest state
             self.keys.robot_state(rid), encoding=zenoh.Encoding.APPLICATION_OCTET_STREAM,
             congestion_control=zenoh.CongestionControl.BLOCK, priority=zenoh.Priority.DATA,
-        )
+        ))
         self._vp_pub = declare_message_publisher(session, self.keys.robot_viewpoints(rid), important=True)
 
     def run(self, stop: threading.Event) -> int:

@@ -20,7 +20,7 @@ from protocol.codec import DecodeError, decode, encode
 from protocol.graph import apply_delta
 from protocol.jpeg import encode_jpeg
 from protocol.keys import Keys
-from protocol.messages import FrameHeader, GraphDelta, GraphNode, GraphSnapshot, OracleFrame, Status
+from protocol.messages import FrameHeader, GraphDelta, GraphNode, GraphSnapshot, OracleFrame, PointMap, Status
 from protocol.oracle import depth_to_png, ids_to_png
 from protocol.query import GraphQuery
 from protocol.session import ZenohSettings, open_session
@@ -151,6 +151,10 @@ def test_mapper_process_end_to_end(router: str, procs: list[Proc], consumer: Con
     node_key = keys.graph_node(chair[0].node_id)
     assert [decode(b, GraphNode) for b in consumer.get(node_key)] == chair
     assert consumer.get(keys.graph_nodes, "bogus=1") == []  # an error reply, not a crash
+    # The point map is publish-only on its key, but its newest value answers a late joiner's get.
+    wait_for(lambda: consumer.get(keys.map_points), timeout=20, what="the point map answering a get")
+    (points,) = consumer.get(keys.map_points)
+    assert len(decode(points, PointMap).points) > 0
     assert mapper.alive()
 
     # Killed without warning and restarted: the same graph (ids, version) comes back.
