@@ -28,7 +28,16 @@ from protocol.codec import DecodeError, decode, peek_kind
 from protocol.keys import Keys
 from protocol.messages import GraphDelta, GraphEdge, GraphNode, GraphSnapshot
 from protocol.query import GraphQuery
-from protocol.session import DEFAULT_ENDPOINT, ZenohSettings, open_session
+from protocol.session import (
+    DEFAULT_ENDPOINT,
+    DEFAULT_SITE,
+    ENV_CONNECT,
+    ENV_SITE,
+    ZenohSettings,
+    default_endpoints,
+    default_site,
+    open_session,
+)
 
 
 class QueryError(RuntimeError):
@@ -215,6 +224,11 @@ def run_watch(
     return 0
 
 
+def query_hint(endpoint: str, site: str) -> str:
+    """The exact ``argus query`` line that reads the graph of the stack on ``endpoint`` / ``site``."""
+    return f"argus query --connect {endpoint} --site {site} snapshot"
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(
         prog="argus query",
@@ -222,8 +236,9 @@ def main(argv: list[str] | None = None) -> int:
         epilog="examples: argus query nodes --label chair --near 1,2,0 --radius 2 | "
         "argus query snapshot --json | argus query watch",
     )
-    p.add_argument("--connect", default=DEFAULT_ENDPOINT, help=f"router endpoint ({DEFAULT_ENDPOINT})")
-    p.add_argument("--site", default="default", help="Argus site name")
+    p.add_argument("--connect", action="append", default=None,
+                   help=f"router endpoint (repeatable; default ${ENV_CONNECT} or {DEFAULT_ENDPOINT})")
+    p.add_argument("--site", default=None, help=f"Argus site name (default ${ENV_SITE} or {DEFAULT_SITE})")
     p.add_argument("--timeout", type=float, default=5.0, help="seconds to wait for answers")
     sub = p.add_subparsers(dest="what", required=True)
     pn = sub.add_parser("nodes", help="nodes selected by label / position / id")
@@ -242,7 +257,7 @@ def main(argv: list[str] | None = None) -> int:
     a = p.parse_args(argv)
 
     try:
-        keys = Keys(a.site)
+        keys = Keys(a.site or default_site())
         query = None
         if a.what == "nodes":
             near = None
@@ -260,7 +275,7 @@ def main(argv: list[str] | None = None) -> int:
 
     stop = install_stop_handlers()
     try:
-        with open_session(ZenohSettings(mode="client", connect=[a.connect])) as session:
+        with open_session(ZenohSettings(mode="client", connect=a.connect or default_endpoints())) as session:
             if a.what == "nodes":
                 assert query is not None
                 return run_nodes(session, keys, query, a.json, a.timeout)

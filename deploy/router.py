@@ -16,7 +16,7 @@ from pathlib import Path
 
 from protocol.keys import Keys
 from protocol.runtime import install_stop_handlers, setup_logging
-from protocol.session import DEFAULT_ENDPOINT, ZenohSettings, open_session
+from protocol.session import ENV_CONNECT, ENV_SITE, ZenohSettings, default_endpoints, default_site, open_session
 
 log = logging.getLogger("argus.router")
 
@@ -45,18 +45,18 @@ def main(argv: list[str] | None = None) -> int:
         epilog="example: argus router --listen tcp/127.0.0.1:7447",
     )
     p.add_argument("--listen", action="append", default=None,
-                   help=f"endpoint to listen on (repeatable; default {DEFAULT_ENDPOINT})")
+                   help=f"endpoint to listen on (repeatable; default ${ENV_CONNECT} or tcp/127.0.0.1:7447)")
     p.add_argument("--connect", action="append", default=[], help="other routers to connect to (repeatable)")
     p.add_argument("--config", type=Path, default=None, help="json5 Zenoh config file (e.g. deploy/zenoh/router.json5)")
-    p.add_argument("--site", default="default", help="Argus site name (for the liveliness token)")
+    p.add_argument("--site", default=None, help=f"site name for the liveliness token (default ${ENV_SITE} or default)")
     p.add_argument("--ready-file", type=Path, default=None, help="write the router id here once listening")
     p.add_argument("--log-level", default="INFO")
     a = p.parse_args(argv)
     setup_logging("router", a.log_level)
-    listen = a.listen if a.listen is not None else ([] if a.config else [DEFAULT_ENDPOINT])
+    listen = a.listen if a.listen is not None else ([] if a.config else default_endpoints())
     try:
         settings = ZenohSettings(mode="router", connect=a.connect, listen=listen, config_file=a.config)
-        return run(settings, a.site, a.ready_file)
+        return run(settings, a.site or default_site(), a.ready_file)
     except Exception as e:  # noqa: BLE001 - configuration errors end the process with a message
         print(f"argus router: {e}", file=sys.stderr)
         return 2

@@ -54,6 +54,7 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
+from deploy.query import query_hint
 from protocol.keys import Keys, validate_id
 
 # The liveliness role a command declares (``alive/<role>/<id>``) when it differs from the command
@@ -149,6 +150,19 @@ def load_launch(path: Path) -> LaunchFile:
     except (OSError, tomllib.TOMLDecodeError) as e:
         raise ValueError(f"cannot read launch file {path}: {e}") from None
     return LaunchFile.model_validate(data)
+
+
+def with_endpoint(launch: LaunchFile, endpoint: str | None = None, port: int | None = None) -> LaunchFile:
+    """``launch`` with its router endpoint replaced (``endpoint``) or moved to another ``port``."""
+    new = endpoint or launch.endpoint
+    if port is not None:
+        if not 0 < port < 65536:
+            raise ValueError(f"--port {port} is not a TCP port")
+        head, sep, _ = new.rpartition(":")
+        if not sep or "/" not in head:
+            raise ValueError(f"cannot set a port on endpoint {new!r} (expected proto/host:port)")
+        new = f"{head}:{port}"
+    return launch if new == launch.endpoint else launch.model_copy(update={"endpoint": new})
 
 
 def _expand(value: Any, subs: dict[str, str]) -> Any:
@@ -560,6 +574,7 @@ class Stack:
                 f"{self.healthy_at - self.started_at:.1f}s"
                 f" (roles {', '.join(roles)}; alive: {self.health.summary()})"
             )
+            self.say(f"read the graph: {query_hint(self.launch.endpoint, self.launch.site)}")
         elif missing and self.healthy_at is not None:
             self.healthy_at = None
             self.say(f"health: degraded, missing {', '.join(missing)}")
@@ -625,11 +640,16 @@ def run(
     log_dir: Path | None = None,
     ready_file: Path | None = None,
     dry_run: bool = False,
+    endpoint: str | None = None,
+    port: int | None = None,
 ) -> int:
-    """Start the stack of ``launch_path`` and keep it up until SIGINT/SIGTERM (or ``duration_s``)."""
+    """Start the stack of ``launch_path`` and keep it up until SIGINT/SIGTERM (or ``duration_s``).
+
+    ``endpoint`` replaces the launch file's router endpoint; ``port`` only its port.
+    """
     from protocol.runtime import install_stop_handlers
 
-    launch = load_launch(launch_path)
+    launch = with_endpoint(load_launch(launch_path), endpoint, port)
     stack = Stack(launch, launch_path.parent, only=only, log_dir=log_dir)
     if dry_run:
         for spec in stack.local:
@@ -688,10 +708,13 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--log-dir", type=Path, default=None, help="also write one <name>.log per process here")
     p.add_argument("--ready-file", type=Path, default=None, help="write the pids here once all are healthy")
     p.add_argument("--dry-run", action="store_true", help="print the command lines and exit")
+    p.add_argument("--endpoint", default=None, help="router endpoint instead of the launch file's ({endpoint})")
+    p.add_argument("--port", type=int, default=None, help="the launch file's router endpoint on this port instead")
     a = p.parse_args(argv)
     only = [s.strip() for s in a.only.split(",") if s.strip()] if a.only else None
     try:
-        return run(a.launch, only, a.duration, a.log_dir, a.ready_file, a.dry_run)
+        return run(a.launch, only, a.duration, a.log_dir, a.ready_file, a.dry_run,
+                   endpoint=a.endpoint, port=a.port)
     except ValueError as e:
         print(f"argus up: {e}", file=sys.stderr)
         return 2

@@ -10,7 +10,8 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from mapper.fusion import FusionConfig
 from mapper.relations import RelationConfig
-from protocol.session import ZenohSettings
+from protocol.keys import SiteName
+from protocol.session import ZenohSettings, default_site
 
 if TYPE_CHECKING:
     from mapper.geometry.singleview import SingleViewParams
@@ -209,7 +210,11 @@ class MapperConfig(MapperCoreConfig):
     """``argus mapper``: the core plus Zenoh I/O, persistence and logging."""
 
     id: str = Field(default="mapper", description="process id (liveliness and status keys)")
-    site: str = Field(default="default", description="Argus site name")
+    site: SiteName = Field(
+        default_factory=default_site,
+        validate_default=True,
+        description="Argus site name (key prefix argus/<site>/...; default $ARGUS_SITE or default)",
+    )
     key_prefix: str = Field(default="argus", description="key expression prefix")
     zenoh: ZenohSettings = Field(default_factory=ZenohSettings, description="how to join Zenoh")
     publish: PublishConfig = Field(default_factory=PublishConfig, description="publishing rates")

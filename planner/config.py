@@ -7,7 +7,8 @@ from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
-from protocol.session import ZenohSettings
+from protocol.keys import SiteName
+from protocol.session import ZenohSettings, default_site
 
 
 class _Model(BaseModel):
@@ -157,7 +158,11 @@ class PlannerNodeConfig(_Model):
     """The `argus planner` process."""
 
     zenoh: ZenohSettings = Field(default_factory=ZenohSettings, description="how to join the Zenoh network")
-    site: str = Field(default="default", description="site name in key expressions")
+    site: SiteName = Field(
+        default_factory=default_site,
+        validate_default=True,
+        description="Argus site name (key prefix argus/<site>/...; default $ARGUS_SITE or default)",
+    )
     prefix: str = Field(default="argus", description="key prefix")
     node_id: str = Field(default="planner", description="id of this planner (liveliness, status)")
     planner: PlannerConfig = Field(default_factory=PlannerConfig, description="the planner itself")

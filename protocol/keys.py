@@ -21,7 +21,9 @@ from __future__ import annotations
 
 import re
 from dataclasses import dataclass
-from typing import Literal
+from typing import Annotated, Literal
+
+from pydantic import AfterValidator
 
 _ID_RE = re.compile(r"^[A-Za-z0-9_.\-]+$")
 _FORBIDDEN = set("/*$?#")
@@ -42,6 +44,10 @@ def validate_id(value: str, what: str = "id") -> str:
     if _FORBIDDEN & set(value) or not _ID_RE.match(value) or value in {".", ".."}:
         raise ValueError(f"{what} {value!r} may only hold letters, digits, '_', '.', '-'")
     return value
+
+
+SiteName = Annotated[str, AfterValidator(lambda v: validate_id(v, "site"))]
+"""A site name in a pydantic config: validated as one key chunk."""
 
 
 @dataclass(frozen=True)

@@ -1,7 +1,10 @@
 """One Zenoh session config builder for every Argus process.
 
 Multicast scouting is **off** unless explicitly enabled, and processes find each other through
-explicit endpoints (``tcp/127.0.0.1:7447`` by default). Processes that connect to a router should run
+explicit endpoints (``tcp/127.0.0.1:7447`` by default, or the comma-separated endpoints of the
+``ARGUS_CONNECT`` environment variable; ``ARGUS_SITE`` likewise replaces the default site ``default``).
+Precedence everywhere: a command-line flag, then the config file, then the environment, then the
+built-in default. Processes that connect to a router should run
 in ``client`` mode. Shared memory is off by default (killed processes leave ``/dev/shm`` files and
 the loopback TCP path is fast enough for JPEG frames).
 """
@@ -9,6 +12,7 @@ the loopback TCP path is fast enough for JPEG frames).
 from __future__ import annotations
 
 import json
+import os
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal
 
@@ -18,6 +22,21 @@ if TYPE_CHECKING:
     import zenoh
 
 DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
+DEFAULT_SITE = "default"
+ENV_CONNECT = "ARGUS_CONNECT"
+ENV_SITE = "ARGUS_SITE"
+
+
+def default_endpoints() -> list[str]:
+    """``ARGUS_CONNECT`` (comma-separated Zenoh endpoints) if set, else ``[DEFAULT_ENDPOINT]``."""
+    raw = os.environ.get(ENV_CONNECT, "")
+    endpoints = [e.strip() for e in raw.split(",") if e.strip()]
+    return endpoints or [DEFAULT_ENDPOINT]
+
+
+def default_site() -> str:
+    """``ARGUS_SITE`` if set, else ``default`` (validated like every site name where it is used)."""
+    return os.environ.get(ENV_SITE, "").strip() or DEFAULT_SITE
 
 
 class ZenohSettings(BaseModel):
@@ -28,7 +47,8 @@ class ZenohSettings(BaseModel):
         default="client", description="client (connects to a router), peer, or router"
     )
     connect: list[str] = Field(
-        default_factory=lambda: [DEFAULT_ENDPOINT], description="endpoints to connect to, e.g. tcp/127.0.0.1:7447"
+        default_factory=default_endpoints,
+        description=f"endpoints to connect to, e.g. tcp/127.0.0.1:7447 (default: ${ENV_CONNECT} or {DEFAULT_ENDPOINT})",
     )
     listen: list[str] = Field(default_factory=list, description="endpoints to listen on (routers, peers)")
     config_file: Path | None = Field(default=None, description="optional json5 Zenoh config applied first")

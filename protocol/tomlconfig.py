@@ -20,7 +20,7 @@ from typing import Annotated, Any, Literal, TypeVar, Union, get_args, get_origin
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
 from protocol.keys import validate_id
-from protocol.session import ZenohSettings
+from protocol.session import ZenohSettings, default_site
 
 C = TypeVar("C", bound=BaseModel)
 
@@ -158,7 +158,11 @@ class AgentConfig(BaseModel):
 
     model_config = ConfigDict(extra="forbid")
     id: str = Field(default="agent0", description="id (a single key chunk: letters, digits, _ . -)")
-    site: str = Field(default="default", description="Argus site name (key prefix argus/<site>/...)")
+    site: str = Field(
+        default_factory=default_site,
+        validate_default=True,
+        description="Argus site name (key prefix argus/<site>/...; default $ARGUS_SITE or default)",
+    )
     key_prefix: str = Field(default="argus", description="top-level key prefix")
     status_period_s: float = Field(default=2.0, gt=0, description="seconds between Status messages")
     zenoh: ZenohSettings = Field(default_factory=ZenohSettings, description="how to join the Zenoh network")

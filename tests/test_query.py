@@ -150,6 +150,37 @@ def test_cli_nodes_snapshot_and_watch(router: str, holder: FakeGraphHolder, proc
     assert w.output.count("1 upserted") == 2 and "lamp(n9)" in w.output
 
 
+def test_cli_takes_endpoint_and_site_from_the_environment(router: str, holder: FakeGraphHolder,
+                                                         procs: list[Proc]) -> None:
+    p = Proc(["query", "snapshot"], env={"ARGUS_CONNECT": router, "ARGUS_SITE": SITE})
+    procs.append(p)
+    assert p.wait(30) == 0, p.output
+    assert "version 7: 3 nodes" in p.output
+    p = Proc(["query", "--site", "elsewhere", "--timeout", "1", "snapshot"], env={"ARGUS_CONNECT": router,
+                                                                                 "ARGUS_SITE": SITE})
+    procs.append(p)
+    assert p.wait(30) == 1, p.output  # the flag wins over the environment: no graph on that site
+
+
+def test_env_defaults_for_every_process_config(monkeypatch: pytest.MonkeyPatch) -> None:
+    from mapper.config import MapperConfig
+    from planner.config import PlannerNodeConfig
+    from protocol.session import ZenohSettings, default_endpoints
+    from protocol.tomlconfig import AgentConfig
+
+    assert default_endpoints() == ["tcp/127.0.0.1:7447"] and MapperConfig().site == "default"
+    monkeypatch.setenv("ARGUS_CONNECT", "tcp/127.0.0.1:7501, tcp/127.0.0.1:7502")
+    monkeypatch.setenv("ARGUS_SITE", "lab")
+    assert ZenohSettings().connect == ["tcp/127.0.0.1:7501", "tcp/127.0.0.1:7502"]
+    for cfg in (MapperConfig(), PlannerNodeConfig(), AgentConfig()):  # AgentConfig: camera and robot
+        assert cfg.site == "lab" and cfg.zenoh.connect == ["tcp/127.0.0.1:7501", "tcp/127.0.0.1:7502"]
+    assert MapperConfig(site="other").site == "other"  # a config value wins over the environment
+    monkeypatch.setenv("ARGUS_SITE", "bad/site")
+    for make in (AgentConfig, MapperConfig, PlannerNodeConfig):
+        with pytest.raises(ValueError):
+            make()  # validated like a site given any other way
+
+
 def test_watch_exits_cleanly_on_ctrl_c(router: str, procs: list[Proc]) -> None:
     import signal
 

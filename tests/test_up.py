@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 import signal
+import socket
 import tomllib
 from pathlib import Path
 
@@ -144,25 +145,40 @@ def test_health_counts_roles_and_pinned_ids() -> None:
     assert h.missing(specs) == ["c2"]
 
 
-def test_up_starts_reports_healthy_and_stops_all_on_sigint(tmp_path: Path, procs: list[Proc]) -> None:
+def _port_free(port: int) -> bool:
+    with socket.socket() as s:
+        try:
+            s.bind(("127.0.0.1", port))
+        except OSError:
+            return False
+        return True
+
+
+@pytest.mark.parametrize("how", [signal.SIGINT, signal.SIGTERM])
+def test_up_starts_reports_healthy_and_stops_all(tmp_path: Path, procs: list[Proc], how: signal.Signals) -> None:
     launch, _ = _tiny_launch(tmp_path)
+    port = free_port()  # --port moves the launch file's router endpoint
+    ports = [port, int(load_launch(launch).process[1].args[1].rsplit(":", 1)[1])]
     ready = tmp_path / "ready"
-    up = Proc(["up", str(launch), "--ready-file", str(ready), "--log-dir", str(tmp_path / "logs")])
+    up = Proc(["up", str(launch), "--port", str(port), "--ready-file", str(ready), "--log-dir", str(tmp_path / "logs")])
     procs.append(up)
     wait_for(ready.exists, timeout=40, what="stack healthy")
     pids = [int(p) for p in ready.read_text().split(",")]
     assert len(pids) == 2 and all(not _pid_gone(p) for p in pids)
     assert "[up] health: all 2 processes up" in up.output
+    assert f"[up] read the graph: argus query --connect {endpoint(port)} --site uptest snapshot" in up.output
+    assert not any(_port_free(p) for p in ports)  # both routers listen
     wait_for(lambda: "[router]" in up.output and "[edge]" in up.output, timeout=10, what="prefixed logs")
     assert (tmp_path / "logs" / "router.log").read_text().strip()
 
-    os.kill(up.popen.pid, signal.SIGINT)
+    os.kill(up.popen.pid, how)
     assert up.wait(30) == 0, up.output
     assert "[up] all stopped" in up.output
     for pid in pids:
         assert _pid_gone(pid), f"process {pid} survived argus up"
         with pytest.raises(ProcessLookupError):
             os.killpg(pid, 0)  # nothing left in its process group either
+    assert all(_port_free(p) for p in ports), "a port of the stack is still held"
 
 
 def test_up_killed_hard_leaves_no_orphans(tmp_path: Path, procs: list[Proc]) -> None:
@@ -208,3 +224,8 @@ def test_dry_run_prints_commands(tmp_path: Path, capsys: pytest.CaptureFixture[s
     out = capsys.readouterr().out
     assert "[edge]" in out and f"--connect {ep}" in out and "[router]" not in out
     assert main([str(launch), "--only", "nope"]) == 2
+    assert main([str(launch), "--dry-run", "--only", "edge", "--port", "7999"]) == 0
+    assert "--connect tcp/127.0.0.1:7999" in capsys.readouterr().out
+    assert main([str(launch), "--dry-run", "--endpoint", "tcp/127.0.0.1:7998"]) == 0
+    assert "--listen tcp/127.0.0.1:7998" in capsys.readouterr().out
+    assert main([str(launch), "--port", "70000"]) == 2
