@@ -37,7 +37,6 @@ that is exactly ``"{seed}"`` becomes an integer.
 from __future__ import annotations
 
 import argparse
-import ctypes
 import os
 import shlex
 import signal
@@ -56,6 +55,7 @@ from pydantic import BaseModel, ConfigDict, Field, field_validator, model_valida
 
 from deploy.query import query_hint
 from protocol.keys import Keys, validate_id
+from protocol.runtime import kill_with_parent
 
 # The liveliness role a command declares (``alive/<role>/<id>``) when it differs from the command
 # name; used when a launch entry does not name its role.
@@ -216,26 +216,6 @@ def dump_toml(data: dict[str, Any]) -> str:
     return "\n".join(lines) + "\n"
 
 
-def _load_prctl() -> Any:
-    try:
-        return ctypes.CDLL(None, use_errno=True).prctl
-    except (OSError, AttributeError):  # not Linux
-        return None
-
-
-_PRCTL = None
-_PR_SET_PDEATHSIG = 1
-
-
-def _set_parent_death_signal() -> None:
-    """In the child: get SIGKILL if ``argus up`` dies without cleaning up (Linux), so none is orphaned.
-
-    Runs between fork and exec, so it only calls the prctl function resolved in the parent.
-    """
-    if _PRCTL is not None:
-        _PRCTL(_PR_SET_PDEATHSIG, int(signal.SIGKILL))
-
-
 def _group_alive(pgid: int) -> bool:
     try:
         os.killpg(pgid, 0)
@@ -261,9 +241,6 @@ class Child:
         self.finished = False
 
     def start(self) -> None:
-        global _PRCTL
-        if _PRCTL is None:
-            _PRCTL = _load_prctl()
         self.finished = False
         self.popen = subprocess.Popen(
             self.argv,
@@ -275,7 +252,7 @@ class Child:
             errors="replace",
             bufsize=1,
             start_new_session=True,
-            preexec_fn=_set_parent_death_signal,
+            preexec_fn=kill_with_parent(),  # if argus up dies without cleaning up, no child is orphaned
         )
         self.started_at = time.monotonic()
         self._reader = threading.Thread(target=self._read, args=(self.popen,), daemon=True,

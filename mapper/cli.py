@@ -19,6 +19,7 @@ EPILOG = """examples:
   argus mapper --config mapper.toml --set fusion.voxel_m=0.025
   argus mapper --geometry oracle --segmenter sim --embedder sim   # ORACLE geometry + 2D perception (sim only)
   argus mapper --rerun map.rrd                                    # also record a Rerun file
+  argus mapper --rerun-web 9090      # headless server: web viewer on http://127.0.0.1:9090 (ssh -L 9090:127.0.0.1:9090)
   argus mapper --describe                                         # every config field
 
 Backends: geometry mvs (default, RGB only) | oracle (sim truth) | mapanything (optional extra);
@@ -37,7 +38,10 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--embedder", default=None, help="embedder: classical, sim (ORACLE), clip")
     p.add_argument("--state-dir", type=Path, default=None, help="persist the graph here and resume from it")
     p.add_argument("--rerun", type=Path, default=None, metavar="FILE.rrd", help="record a Rerun file")
-    p.add_argument("--rerun-serve", action="store_true", help="serve a live Rerun viewer on 127.0.0.1 only")
+    p.add_argument("--rerun-serve", action="store_true",
+                   help="serve a live Rerun stream on 127.0.0.1 only (rerun --connect rerun+http://127.0.0.1:9876/proxy)")
+    p.add_argument("--rerun-web", type=int, default=None, metavar="PORT",
+                   help="serve the live Rerun stream and the web viewer on http://127.0.0.1:PORT only")
     return p
 
 
@@ -56,7 +60,8 @@ def main(argv: list[str] | None = None) -> int:
         "perception.embedder": a.embedder,
         "state_dir": None if a.state_dir is None else str(a.state_dir),
         "rerun.file": None if a.rerun is None else str(a.rerun),
-        "rerun.serve": True if a.rerun_serve else None,
+        "rerun.serve": True if a.rerun_serve or a.rerun_web is not None else None,
+        "rerun.web_port": a.rerun_web,
     }
     try:
         config = load_config(MapperConfig, a.config, values, a.overrides)

@@ -202,8 +202,20 @@ class RerunConfig(BaseModel):
     model_config = ConfigDict(extra="forbid")
     file: Path | None = Field(default=None, description="write a .rrd recording here")
     serve: bool = Field(default=False, description="serve a live viewer on 127.0.0.1 only (rerun CLI subprocess)")
-    port: int = Field(default=9876, ge=1, le=65535, description="port of the served viewer (127.0.0.1)")
+    port: int = Field(default=9876, ge=1, le=65535, description="gRPC port of the served stream (127.0.0.1)")
+    web_port: int | None = Field(
+        default=None, ge=1, le=65535,
+        description="with serve: also host the web viewer on http://127.0.0.1:<web_port> (headless servers)",
+    )
+    server_memory_limit: str = Field(
+        default="512MB", description="with serve: the server keeps at most this much for late viewers (oldest dropped)"
+    )
     image_width: int = Field(default=160, ge=16, description="logged images are downscaled to this width")
+    jpeg_quality: int = Field(default=75, ge=1, le=100, description="logged images are JPEG-compressed")
+    point_parts: int = Field(
+        default=16, ge=1,
+        description="new voxels are logged as parts; beyond this many parts the whole map is logged once afresh",
+    )
 
 
 class MapperConfig(MapperCoreConfig):

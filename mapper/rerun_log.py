@@ -1,16 +1,25 @@
 """Optional Rerun output of the mapper: point map, labelled boxes, edges, camera frusta with images.
 
-``--rerun FILE.rrd`` records to a file. ``--rerun-serve`` starts the ``rerun`` CLI as a subprocess with
-``--serve-grpc --bind 127.0.0.1`` (never all interfaces; ``rr.serve_*`` is deliberately not used
-because it binds every interface) and streams to it; connect a viewer with
-``rerun --connect rerun+http://127.0.0.1:<port>/proxy``.
+``--rerun FILE.rrd`` records to a file. ``--rerun-serve`` starts the ``rerun`` viewer binary as a child
+process bound to 127.0.0.1 only (``rr.serve_*`` is deliberately not used: it binds every interface)
+and streams to it: connect a desktop viewer with ``rerun --connect rerun+http://127.0.0.1:<port>/proxy``;
+with ``rerun.web_port`` set it also hosts the web viewer (``http://127.0.0.1:<web_port>``; from another
+machine use an SSH tunnel). The child runs in its own process group, gets SIGKILL if the mapper dies
+(Linux), is stopped with the mapper, and has Rerun's telemetry turned off (loopback only).
+
+Size: the point map is logged as deltas (only voxels not logged before, as numbered parts; after
+``point_parts`` parts the whole map is logged once afresh) and images are small JPEGs, so a recording
+grows with the map and the number of keyframes (a few KB per keyframe for boxes and the image), not with
+the map size times the keyframes. The served stream keeps at most ``server_memory_limit`` for late viewers.
 """
 
 from __future__ import annotations
 
 import logging
 import math
+import os
 import shutil
+import signal
 import socket
 import subprocess
 import sys
@@ -22,6 +31,7 @@ import cv2
 import numpy as np
 
 from mapper.config import RerunConfig
+from protocol.runtime import kill_with_parent
 
 if TYPE_CHECKING:
     from mapper.core import MapperCore
@@ -30,6 +40,16 @@ log = logging.getLogger(__name__)
 
 
 def _rerun_cli() -> str:
+    """The rerun viewer binary itself (the ``rerun`` script is a Python wrapper whose child would be
+    orphaned when only the wrapper is stopped), else whatever ``rerun`` is on the PATH."""
+    try:
+        import rerun_cli
+
+        binary = Path(rerun_cli.__file__).with_name("rerun")
+        if binary.exists():
+            return str(binary)
+    except ImportError:
+        pass
     exe = Path(sys.executable).with_name("rerun")
     if exe.exists():
         return str(exe)
@@ -37,6 +57,15 @@ def _rerun_cli() -> str:
     if found is None:
         raise RuntimeError("the rerun CLI is not installed (pip install rerun-sdk)")
     return found
+
+
+def server_command(cfg: RerunConfig) -> list[str]:
+    """The rerun command line of the served viewer: loopback only, memory-bounded."""
+    cmd = [_rerun_cli(), "--bind", "127.0.0.1", "--port", str(cfg.port),
+           "--server-memory-limit", cfg.server_memory_limit]
+    if cfg.web_port is not None:
+        return [*cmd, "--serve-web", "--web-viewer-port", str(cfg.web_port)]
+    return [*cmd, "--serve-grpc"]
 
 
 def _wait_port(port: int, timeout_s: float = 15.0) -> None:
@@ -74,26 +103,51 @@ class RerunLogger:
             sinks.append(rr.FileSink(str(cfg.file)))
         if cfg.serve:
             self._server = subprocess.Popen(
-                [_rerun_cli(), "--serve-grpc", "--bind", "127.0.0.1", "--port", str(cfg.port)],
+                server_command(cfg),
                 stdout=subprocess.DEVNULL,
                 stderr=subprocess.DEVNULL,
+                env={**os.environ, "RERUN_TELEMETRY_ENABLED": "false"},
                 start_new_session=True,
+                preexec_fn=kill_with_parent(),
             )
-            _wait_port(cfg.port)
+            try:
+                _wait_port(cfg.port)
+            except RuntimeError:
+                self._stop_server()
+                raise
             url = f"rerun+http://127.0.0.1:{cfg.port}/proxy"
             sinks.append(rr.GrpcSink(url))
             log.info("Rerun live at %s (127.0.0.1 only): rerun --connect %s", url, url)
+            if cfg.web_port is not None:
+                log.info("Rerun web viewer (127.0.0.1 only): http://127.0.0.1:%d/?url=%s", cfg.web_port, url)
         self.rec.set_sinks(*sinks)
         self.rec.log("world", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
         self.step = 0
+        self._logged_keys = np.zeros(0, dtype=np.int64)  # voxel keys already in the recording (sorted)
+        self._parts = 0
+
+    def _log_points(self, core: MapperCore) -> None:
+        """Log the voxels not logged before as one more part; every ``point_parts`` parts, the whole map."""
+        rr, rec = self._rr, self.rec
+        with core.lock:
+            vox = core.voxels
+            keys, pts, cols, voxel_m = vox.keys.copy(), vox.points(), vox.colors(), vox.voxel_m
+        new = ~np.isin(keys, self._logged_keys, assume_unique=True)
+        if not new.any():
+            return
+        if self._parts >= self.cfg.point_parts:  # afresh: also drops voxels the map has since evicted
+            rec.log("world/points", rr.Clear(recursive=True))
+            self._logged_keys, self._parts = np.zeros(0, dtype=np.int64), 0
+            new[:] = True
+        rec.log(f"world/points/part{self._parts}", rr.Points3D(pts[new], colors=cols[new], radii=voxel_m / 3))
+        self._logged_keys = np.union1d(self._logged_keys, keys[new])
+        self._parts += 1
 
     def log(self, core: MapperCore) -> None:
         rr, rec = self._rr, self.rec
         self.step += 1
         rec.set_time("keyframe", sequence=self.step)
-        pm = core.point_map(200_000)
-        if len(pm.points):
-            rec.log("world/points", rr.Points3D(pm.points, colors=pm.colors, radii=pm.voxel_m / 3))
+        self._log_points(core)
         nodes = core.nodes()
         if nodes:
             rec.log(
@@ -134,7 +188,7 @@ class RerunLogger:
                 f, pp = (ow / 2 / math.tan(math.radians(35)),) * 2, (ow / 2, oh / 2)
             rec.log(path + "/image", rr.Pinhole(focal_length=f, principal_point=pp, resolution=(ow, oh),
                                                 camera_xyz=rr.ViewCoordinates.RDF, image_plane_distance=0.3))
-            rec.log(path + "/image", rr.Image(img))
+            rec.log(path + "/image", rr.Image(img).compress(jpeg_quality=self.cfg.jpeg_quality))
 
     def close(self) -> None:
         try:
@@ -142,9 +196,20 @@ class RerunLogger:
             self.rec.disconnect()
         except Exception as e:  # noqa: BLE001 - closing a viewer stream must not fail shutdown
             log.debug("closing Rerun failed: %s", e)
-        if self._server is not None:
-            self._server.terminate()
+        self._stop_server()
+
+    def _stop_server(self) -> None:
+        """SIGTERM the server's process group, SIGKILL it after 5 s: nothing keeps holding the port."""
+        if self._server is None:
+            return
+        for sig in (signal.SIGTERM, signal.SIGKILL):
+            try:
+                os.killpg(self._server.pid, sig)
+            except ProcessLookupError:
+                break
             try:
                 self._server.wait(timeout=5)
+                break
             except subprocess.TimeoutExpired:
-                self._server.kill()
+                continue
+        self._server = None

@@ -1,11 +1,15 @@
-"""Process plumbing shared by every Argus process: stop signals and logging."""
+"""Process plumbing shared by every Argus process: stop signals, logging, child processes."""
 
 from __future__ import annotations
 
+import ctypes
 import logging
 import signal
 import sys
 import threading
+from collections.abc import Callable
+
+_PR_SET_PDEATHSIG = 1
 
 
 def install_stop_handlers() -> threading.Event:
@@ -35,3 +39,20 @@ def setup_logging(name: str, level: str = "INFO") -> logging.Logger:
         force=True,
     )
     return logging.getLogger(name)
+
+
+def kill_with_parent() -> Callable[[], None] | None:
+    """A ``preexec_fn`` for ``subprocess.Popen`` that makes the child get SIGKILL when its parent dies
+    (Linux ``PR_SET_PDEATHSIG``), so a parent killed without cleaning up leaves no orphan; ``None``
+    where prctl is not available. The function is resolved here, in the parent: between fork and exec
+    the child only calls it.
+    """
+    try:
+        prctl = ctypes.CDLL(None, use_errno=True).prctl
+    except (OSError, AttributeError):  # not Linux
+        return None
+
+    def preexec() -> None:
+        prctl(_PR_SET_PDEATHSIG, int(signal.SIGKILL))
+
+    return preexec

@@ -102,9 +102,40 @@ def test_rerun_file_output(tmp_path: Path) -> None:
 
     core = oracle_core()
     out = tmp_path / "map.rrd"
-    logger = RerunLogger(RerunConfig(file=out))
+    logger = RerunLogger(RerunConfig(file=out, point_parts=2))
+    parts = []
     for i, eye in enumerate(EYES[:2]):
         core.ingest(view(eye, i))
         logger.log(core)
+        parts.append(logger._parts)
+        assert len(logger._logged_keys) == len(core.voxels)  # every voxel is in the recording once
+    logger.log(core)  # nothing new: no part logged
+    parts.append(logger._parts)
+    core.ingest(view(EYES[2], 2))
+    logger.log(core)  # two parts already: the whole map afresh as part 0
+    parts.append(logger._parts)
     logger.close()
+    assert parts == [1, 2, 2, 1]
+    assert len(logger._logged_keys) == len(core.voxels)
     assert out.stat().st_size > 1000
+
+
+def test_rerun_server_is_loopback_only_and_stopped_with_its_port(tmp_path: Path) -> None:
+    import socket
+
+    from mapper.config import RerunConfig
+    from mapper.rerun_log import RerunLogger, server_command
+    from tests.procs import free_port
+
+    cfg = RerunConfig(serve=True, port=free_port())
+    cmd = server_command(cfg)
+    assert cmd[cmd.index("--bind") + 1] == "127.0.0.1" and "--serve-grpc" in cmd
+    web = server_command(cfg.model_copy(update={"web_port": 9999}))
+    assert "--serve-web" in web and web[web.index("--web-viewer-port") + 1] == "9999"
+    logger = RerunLogger(cfg)
+    server = logger._server
+    assert server is not None and server.poll() is None
+    logger.close()
+    assert server.poll() is not None  # the viewer binary itself, stopped
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", cfg.port))  # and its port is free again
