@@ -34,6 +34,7 @@ from protocol.session import (
     ENV_CONNECT,
     ENV_SITE,
     ZenohSettings,
+    ZenohUnavailable,
     default_endpoints,
     default_site,
     open_session,
@@ -282,7 +283,7 @@ def main(argv: list[str] | None = None) -> int:
             if a.what == "snapshot":
                 return run_snapshot(session, keys, a.json, a.timeout)
             return run_watch(session, keys, a.json, stop, a.count, a.idle_timeout)
-    except QueryError as e:
+    except (QueryError, ZenohUnavailable) as e:
         print(f"argus query: {e}", file=sys.stderr)
         return 1
     except Exception as e:  # noqa: BLE001 - e.g. no router reachable: a message, not a traceback

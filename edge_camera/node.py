@@ -24,7 +24,7 @@ from protocol.jpeg import encode_jpeg
 from protocol.keys import Keys
 from protocol.messages import FrameHeader, Intrinsics, OracleFrame
 from protocol.oracle import depth_to_png, ids_to_png
-from protocol.session import open_session
+from protocol.session import open_session_retrying
 from protocol.transport import Counters, StatusReporter, declare_frame_publisher, declare_message_publisher, put_frame
 
 if TYPE_CHECKING:
@@ -176,15 +176,12 @@ class EdgeCamera:
 
     def _open_session(self, stop: threading.Event) -> zenoh.Session | None:
         backoff = Backoff(self.config.reconnect)
-        while not stop.is_set():
-            try:
-                return open_session(self.config.zenoh)
-            except Exception as e:  # noqa: BLE001 - zenoh raises ZError; retry whatever it is
-                wait = backoff.next_wait_s()
-                log.warning("cannot reach Zenoh (%s); retrying in %.1f s", e, wait)
-                self.counters.add("session_attempts")
-                stop.wait(wait)
-        return None
+
+        def next_wait_s() -> float:
+            self.counters.add("session_attempts")
+            return backoff.next_wait_s()
+
+        return open_session_retrying(self.config.zenoh, stop, log, next_wait_s)
 
     def run(self, stop: threading.Event) -> int:
         session = self._open_session(stop)

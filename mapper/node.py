@@ -34,7 +34,7 @@ from protocol.messages import GraphDelta, GraphSnapshot, OracleFrame
 from protocol.oracle import decode_u16_png, png_to_depth
 from protocol.poses import PoseError, check_pose
 from protocol.query import GraphQuery
-from protocol.session import open_session
+from protocol.session import open_session_retrying
 from protocol.transport import (
     Counters,
     Frame,
@@ -368,7 +368,10 @@ class MapperNode:
 
     def run(self, stop: threading.Event) -> int:
         cfg = self.config
-        with open_session(cfg.zenoh) as session:
+        session = open_session_retrying(cfg.zenoh, stop, log)  # the router may start after the mapper
+        if session is None:
+            return 0
+        with session:
             self._session = session
             token = session.liveliness().declare_token(self.keys.alive(ROLE, cfg.id))
             pubs = {

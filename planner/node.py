@@ -23,7 +23,7 @@ from protocol.codec import DecodeError, decode, encode
 from protocol.graph import GraphVersionError, apply_delta
 from protocol.keys import Keys
 from protocol.messages import GraphDelta, GraphSnapshot, PointMap, RobotState, ViewpointSet
-from protocol.session import open_session
+from protocol.session import open_session_retrying
 from protocol.transport import Counters, StatusReporter, declare_message_publisher
 
 if TYPE_CHECKING:
@@ -329,15 +329,7 @@ class PlannerNode:
 
     # --- process -----------------------------------------------------------------------------
     def run(self, stop: threading.Event) -> int:
-        wait = 0.5
-        session = None
-        while session is None and not stop.is_set():
-            try:
-                session = open_session(self.config.zenoh)
-            except Exception as e:  # noqa: BLE001 - retry whatever zenoh raises
-                log.warning("cannot reach Zenoh (%s); retrying in %.1f s", e, wait)
-                stop.wait(wait)
-                wait = min(10.0, wait * 2)
+        session = open_session_retrying(self.config.zenoh, stop, log)
         if session is None:
             return 0
         k = self.keys

@@ -12,7 +12,11 @@ the loopback TCP path is fast enough for JPEG frames).
 from __future__ import annotations
 
 import json
+import logging
 import os
+import re
+import threading
+from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal
 
@@ -78,12 +82,70 @@ def build_config(settings: ZenohSettings) -> zenoh.Config:
     return conf
 
 
+class ZenohUnavailable(RuntimeError):
+    """A Zenoh session could not be opened; the message is one line, fit for a user."""
+
+
+_RUST_LOCATION = re.compile(r"\s+at\s+\S+\.rs:\d+\.?")
+
+
+def clean_error(e: BaseException) -> str:
+    """One line of ``e`` without the Rust source location zenoh appends (``at /root/.cargo/...rs:447.``)."""
+    text = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+    return _RUST_LOCATION.sub("", text).strip()
+
+
+def describe_endpoints(settings: ZenohSettings) -> str:
+    parts = [f"mode {settings.mode}"]
+    if settings.connect:
+        parts.append("connect " + ", ".join(settings.connect))
+    if settings.listen:
+        parts.append("listen " + ", ".join(settings.listen))
+    return "; ".join(parts)
+
+
 def open_session(settings: ZenohSettings) -> zenoh.Session:
-    """Open a Zenoh session (use it as a context manager: ``with open_session(s) as session:``)."""
+    """Open a Zenoh session (use it as a context manager: ``with open_session(s) as session:``).
+
+    Raises :class:`ZenohUnavailable` with a one-line message naming the endpoints.
+    """
     import zenoh
 
     zenoh.init_log_from_env_or("error")
-    return zenoh.open(build_config(settings))
+    try:
+        return zenoh.open(build_config(settings))
+    except Exception as e:  # noqa: BLE001 - zenoh raises ZError for everything; one message for the user
+        where = describe_endpoints(settings)
+        raise ZenohUnavailable(f"cannot open a Zenoh session ({where}): {clean_error(e)}") from None
+
+
+def open_session_retrying(
+    settings: ZenohSettings,
+    stop: threading.Event,
+    logger: logging.Logger,
+    next_wait_s: Callable[[], float] | None = None,
+) -> zenoh.Session | None:
+    """Open a session, retrying until it works or ``stop`` is set (then ``None``).
+
+    Waits ``next_wait_s()`` between attempts (default: 0.5 s doubling to 10 s) and logs one line each.
+    Every long-running process starts this way, so it may start before its router.
+    """
+    wait = 0.25
+
+    def doubling() -> float:
+        nonlocal wait
+        wait = min(10.0, wait * 2)
+        return wait
+
+    pause = next_wait_s or doubling
+    while not stop.is_set():
+        try:
+            return open_session(settings)
+        except ZenohUnavailable as e:
+            seconds = pause()
+            logger.warning("%s; retrying in %.1f s", e, seconds)
+            stop.wait(seconds)
+    return None
 
 
 def client(endpoint: str = DEFAULT_ENDPOINT) -> ZenohSettings:

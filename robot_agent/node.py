@@ -21,7 +21,7 @@ from protocol.jpeg import encode_jpeg
 from protocol.keys import Keys
 from protocol.messages import FrameHeader, NbvGoal, OracleFrame, RobotState, RobotStatus, ViewpointSet
 from protocol.oracle import depth_to_png, ids_to_png
-from protocol.session import open_session
+from protocol.session import open_session_retrying
 from protocol.transport import (
     Counters,
     LatestValue,
@@ -303,17 +303,6 @@ class RobotAgent:
             self._publish_viewpoints()
 
     # --- process ----------------------------------------------------------------------------
-    def _open_session(self, stop: threading.Event) -> zenoh.Session | None:
-        wait = 0.5
-        while not stop.is_set():
-            try:
-                return open_session(self.config.zenoh)
-            except Exception as e:  # noqa: BLE001 - zenoh raises ZError; retry whatever it is
-                log.warning("cannot reach Zenoh (%s); retrying in %.1f s", e, wait)
-                stop.wait(wait)
-                wait = min(10.0, wait * 2)
-        return None
-
     def declare_publishers(self, session: zenoh.Session) -> None:
         """Frame, arrival-frame, ORACLE, state and viewpoint publishers on this robot's keys."""
         import zenoh
@@ -341,7 +330,7 @@ class RobotAgent:
         self._vp_pub = declare_message_publisher(session, self.keys.robot_viewpoints(rid), important=True)
 
     def run(self, stop: threading.Event) -> int:
-        session = self._open_session(stop)
+        session = open_session_retrying(self.config.zenoh, stop, log)
         if session is None:
             return 0
         rid = self.config.id

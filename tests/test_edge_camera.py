@@ -225,7 +225,7 @@ def test_video_end_without_loop_keeps_process_up_and_router_may_come_later(tmp_p
     proc = Proc(["edge-camera", "--config", str(cfg)])
     procs.append(proc)
     # No router yet: the camera keeps retrying instead of exiting.
-    wait_for(lambda: "cannot reach Zenoh" in proc.output, timeout=30, what=f"a retry message:\n{proc.output}")
+    wait_for(lambda: "cannot open a Zenoh session" in proc.output, timeout=30, what=f"a retry message:\n{proc.output}")
     assert proc.alive()
     router = Proc(["router", "--listen", ep])
     procs.append(router)
