@@ -21,6 +21,18 @@ from protocol.session import ENV_CONNECT, ENV_SITE, ZenohSettings, default_endpo
 log = logging.getLogger("argus.router")
 
 
+def unsupported_plugins(config_file: Path) -> list[str]:
+    """Names of the plugins (e.g. ``storage_manager``) a json5 config asks for. The router embedded in
+    the eclipse-zenoh Python package loads no plugins, so such a config would start and silently do
+    nothing; the ``zenohd`` binary runs them."""
+    import json
+
+    import zenoh
+
+    plugins = json.loads(zenoh.Config.from_file(str(config_file)).get_json("plugins") or "{}")
+    return sorted(plugins) if isinstance(plugins, dict) else []
+
+
 def run(settings: ZenohSettings, site: str = "default", ready_file: Path | None = None) -> int:
     """Run a router until SIGINT/SIGTERM. Declares ``alive/router/<zid>`` while up."""
     stop = install_stop_handlers()
@@ -55,6 +67,12 @@ def main(argv: list[str] | None = None) -> int:
     setup_logging("router", a.log_level)
     listen = a.listen if a.listen is not None else ([] if a.config else default_endpoints())
     try:
+        plugins = unsupported_plugins(a.config) if a.config else []
+        if plugins:
+            raise ValueError(
+                f"{a.config} configures Zenoh plugins ({', '.join(plugins)}), which the Python router cannot load;"
+                " run the zenohd binary for storages, or remove the plugins section"
+            )
         settings = ZenohSettings(mode="router", connect=a.connect, listen=listen, config_file=a.config)
         return run(settings, a.site or default_site(), a.ready_file)
     except Exception as e:  # noqa: BLE001 - configuration errors end the process with a message

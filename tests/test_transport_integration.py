@@ -78,3 +78,13 @@ def test_router_refuses_a_bad_config_with_a_message(tmp_path) -> None:  # noqa: 
     assert r.wait(timeout=30) == 2
     r.stop()
     assert "argus router:" in r.output
+
+
+def test_router_refuses_plugin_config_it_cannot_load(tmp_path) -> None:  # noqa: ANN001
+    conf = tmp_path / "storage.json5"
+    conf.write_text('{ mode: "router", plugins: { storage_manager: { storages: { g: { key_expr: "argus/**",'
+                    ' volume: "memory" } } } } }')
+    r = Proc(["router", "--config", str(conf)])
+    assert r.wait(timeout=30) == 2
+    r.stop()
+    assert "configures Zenoh plugins (storage_manager)" in r.output and "zenohd" in r.output
