@@ -8,7 +8,7 @@ PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed-$(shell sha1sum pyproject.toml | cut -c1-12)
 export PYTHONUNBUFFERED := 1
 
-.PHONY: install demo test test-all lint typecheck bench clean
+.PHONY: install demo test test-all lint typecheck bench wheel clean
 
 # mypy-clean: the protocol and the pure modules (geometry, fusion, relations, planner maths)
 TYPED := protocol mapper/geometry mapper/fusion.py mapper/relations.py planner/gain.py planner/frontier.py planner/geometry.py
@@ -48,5 +48,10 @@ test-all: install lint typecheck
 bench: install
 	$(VENV)/bin/argus bench all --out bench_out
 
+# the wheel an edge device installs (core dependencies only): pip install dist/argus_scenegraph-*.whl
+wheel: install
+	$(PY) -m pip wheel -q --no-deps --no-build-isolation -w dist .
+	@ls dist/argus_scenegraph-*.whl
+
 clean:
-	rm -rf $(VENV) build *.egg-info
+	rm -rf $(VENV) build dist *.egg-info
