@@ -21,7 +21,10 @@ BENCHES: dict[str, tuple[str, str]] = {
     "graph": ("bench.graph", "scene-graph node/edge quality vs ground truth, update and query time"),
     "planner": ("bench.planner", "planner decision time for many candidates and completions"),
     "system": ("bench.system", "N cameras into one mapper: ingest, drops, latency, CPU, memory, queries"),
+    "soak": ("bench.soak", "the whole stack under load for 30 minutes: RSS per process, latency, drops"),
 }
+
+LONG_RUNNING = {"soak"}  # not part of ``argus bench all``
 
 USAGE = """usage: argus bench <name> [options]   (argus bench <name> --help)
        argus bench all [--quick] [--out DIR]
@@ -54,6 +57,9 @@ def _run_all(rest: list[str]) -> int:
         rest = rest[:i] + rest[i + 2 :]
     failed = []
     for name, (module, _) in BENCHES.items():
+        if name in LONG_RUNNING:
+            print(f"== argus bench {name}: skipped by 'all' (run it on its own)", flush=True)
+            continue
         print(f"== argus bench {name}", flush=True)
         try:
             rc = int(importlib.import_module(module).main([*rest, "--out", f"{out}/{name}"]) or 0)
