@@ -34,6 +34,7 @@ ROLE = "planner"
 MAX_ROBOTS = 64
 MAX_PENDING_DELTAS = 256
 TRIGGER_STATES = ("arrived", "failed", "refused")
+ROBOT_ROLE = "robot-agent"  # the role in a robot agent's liveliness token
 
 
 @dataclass
@@ -63,6 +64,7 @@ class PlannerNode:
         self._fusion_wait: dict[str, tuple[int | None, float]] = {}
         self.viewpoints: dict[str, ViewpointSet] = {}
         self.pending: dict[str, _Pending] = {}
+        self._gone: set[str] = set()  # robots whose liveliness token went away (until it comes back)
         self._need_snapshot = True
         self._pubs: dict[str, Any] = {}
         self._session: zenoh.Session | None = None
@@ -127,6 +129,9 @@ class PlannerNode:
             log.warning("state on %s names robot %r; ignored", sample.key_expr, st.robot_id)
             return
         with self._lock:
+            if rid in self._gone:
+                self.counters.add("states_of_gone_robots")
+                return
             if rid not in self.states and len(self.states) >= MAX_ROBOTS:
                 self.counters.add("robots_refused")
                 return
@@ -147,6 +152,39 @@ class PlannerNode:
                 self.counters.add("robots_refused")
                 return
             self.viewpoints[rid] = vps
+        self._wake.set()
+
+    def on_alive(self, sample: zenoh.Sample) -> None:
+        """Robot liveliness: a robot whose token goes away (it stopped, crashed or lost its link) is
+        forgotten (state, viewpoints, pending goal, claim), so the others are planned without it; when it
+        comes back its state and viewpoints arrive afresh."""
+        try:
+            role, rid = self.keys.parse_alive(str(sample.key_expr))
+        except ValueError:
+            self.counters.add("bad_keys")
+            return
+        if role != ROBOT_ROLE:
+            return
+        if str(sample.kind).endswith("DELETE"):
+            self.forget_robot(rid)
+        else:
+            with self._lock:
+                self._gone.discard(rid)
+            self.counters.add("robots_joined")
+            log.info("robot %s is alive", rid)
+
+    def forget_robot(self, rid: str) -> None:
+        with self._lock:
+            if len(self._gone) < MAX_ROBOTS:
+                self._gone.add(rid)  # its last samples may still be on their way: ignored until it is back
+            known = self.states.pop(rid, None) is not None
+            self.viewpoints.pop(rid, None)
+            self.pending.pop(rid, None)
+            self._fusion_wait.pop(rid, None)
+            self.planner.release(rid)
+        if known:
+            self.counters.add("robots_lost")
+            log.warning("robot %s went away (liveliness); planning for the remaining robots", rid)
         self._wake.set()
 
     # --- planning thread ---------------------------------------------------------------------
@@ -341,6 +379,7 @@ class PlannerNode:
                 session.declare_subscriber(k.map_points, self.on_map),
                 session.declare_subscriber(k.all_robot_states, self.on_state),
                 session.declare_subscriber(k.all_robot_viewpoints, self.on_viewpoints),
+                session.liveliness().declare_subscriber(k.all_alive_of(ROBOT_ROLE), self.on_alive),
             ]
             self._reporter = StatusReporter(
                 session,

@@ -105,6 +105,10 @@ class Keys:
         return f"{self.root}/robot/*/state"
 
     @property
+    def all_robot_goals(self) -> str:
+        return f"{self.root}/robot/*/goal"
+
+    @property
     def all_robot_viewpoints(self) -> str:
         return f"{self.root}/robot/*/viewpoints"
 
@@ -138,6 +142,10 @@ class Keys:
     # --- presence and status --------------------------------------------------------------
     def alive(self, role: str, node_id: str) -> str:
         return f"{self.root}/alive/{validate_id(role, 'role')}/{validate_id(node_id, 'node id')}"
+
+    def all_alive_of(self, role: str) -> str:
+        """Liveliness tokens of every process of one role."""
+        return f"{self.root}/alive/{validate_id(role, 'role')}/*"
 
     @property
     def all_alive(self) -> str:
