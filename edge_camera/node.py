@@ -130,6 +130,14 @@ class FramePublisher:
             pose_trusted=trusted if T is not None else False,
         )
 
+    def delivered(self) -> bool:
+        """Whether anyone (through a router) subscribes to the frame key right now: a frame put with no
+        subscriber goes nowhere and is not counted as sent."""
+        try:
+            return bool(self.frame_pub.matching_status.matching)
+        except Exception:  # noqa: BLE001 - a publisher without matching support: assume delivered
+            return True
+
     def publish(self, grab: Grab, grab_ms: float = 0.0) -> Published:
         t0 = time.perf_counter()
         h0, w0 = grab.rgb.shape[:2]
@@ -281,6 +289,9 @@ class EdgeCamera:
                 log.warning("publish failed: %s", e)
                 continue
             c = self.counters
+            if not publisher.delivered():
+                c.add("frames_undelivered")  # no subscriber (or no router): not counted as sent
+                continue
             c.add("frames_sent")
             c.add("bytes_sent", done.jpeg_bytes)
             _ema(c, "grab_ms", done.grab_ms)

@@ -349,7 +349,7 @@ class Status(Message):
     role: str
     node_id: str
     stamp_ns: int = Field(ge=0)
-    state: str = Field(default="ok", description="ok / degraded / error / starting / stopping")
+    state: str = Field(default="ok", description="ok / degraded / error / starting / stopping / no_link")
     counters: dict[str, float] = Field(default_factory=dict)
     last_error: str | None = None
 

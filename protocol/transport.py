@@ -209,8 +209,48 @@ class Counters:
             return dict(self._values)
 
 
+class LinkWatch:
+    """Whether a session is linked to any router or peer; says so once when the link goes and comes back.
+
+    A client whose router died keeps its session open and its puts go nowhere, silently. This checks
+    the session's routers and peers (``session.info``) and keeps ``links`` (current count),
+    ``link_losses`` and ``link_down_s`` (seconds without any link, growing while down) in ``counters``.
+    """
+
+    def __init__(self, session: zenoh.Session, counters: Counters, what: str) -> None:
+        self._session, self.counters, self.what = session, counters, what
+        self.linked: bool | None = None
+        self._down_since = 0.0
+
+    def check(self) -> bool:
+        try:
+            info = self._session.info
+            links = len(list(info.routers_zid())) + len(list(info.peers_zid()))
+        except Exception as e:  # noqa: BLE001 - a closing session: report no link, never raise
+            log.debug("link check failed: %s", e)
+            links = 0
+        self.counters.set("links", links)
+        now = time.monotonic()
+        if links == 0:
+            if self.linked is not False:
+                self._down_since = now
+                if self.linked is True:
+                    self.counters.add("link_losses")
+                    log.warning("%s: no Zenoh link (router gone?): nothing is delivered until it is back",
+                                self.what)
+            self.counters.set("link_down_s", now - self._down_since)
+        elif self.linked is False:
+            log.info("%s: Zenoh link back after %.1f s", self.what, now - self._down_since)
+        self.linked = links > 0
+        return self.linked
+
+
 class StatusReporter:
-    """Publishes a :class:`Status` for one process every ``period_s`` from a daemon thread."""
+    """Publishes a :class:`Status` for one process every ``period_s`` from a daemon thread.
+
+    Each period it also checks the session's link (:class:`LinkWatch`): while there is none the
+    state reads ``no_link`` (seen by whoever reads the status once the link is back, and in the log).
+    """
 
     def __init__(
         self,
@@ -224,6 +264,7 @@ class StatusReporter:
     ) -> None:
         self._pub = LatestValue(session, declare_message_publisher(session, key, important=False))
         self.role, self.node_id, self.counters, self.period_s = role, node_id, counters, period_s
+        self.link = LinkWatch(session, counters, f"{role} {node_id}")
         self.state = "ok"
         self.last_error: str | None = None
         self._extra = extra
@@ -245,6 +286,7 @@ class StatusReporter:
             log.debug("status undeclare failed: %s", e)
 
     def publish(self) -> Status:
+        linked = self.link.check()
         counters = self.counters.snapshot()
         if self._extra is not None:
             counters.update({k: float(v) for k, v in self._extra().items()})
@@ -252,7 +294,7 @@ class StatusReporter:
             role=self.role,
             node_id=self.node_id,
             stamp_ns=time.time_ns(),
-            state=self.state,
+            state=self.state if linked else "no_link",
             counters=counters,
             last_error=self.last_error,
         )

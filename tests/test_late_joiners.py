@@ -43,3 +43,26 @@ def test_robot_state_and_status_reach_a_late_joiner_within_one_second(tmp_path, 
         statuses = _latest(late, KEYS.all_status)
     assert [decode(s.payload.to_bytes(), RobotState).robot_id for s in states] == [RID]
     assert [decode(s.payload.to_bytes(), Status).node_id for s in statuses] == [RID]
+
+
+def test_link_watch_says_when_the_router_goes_and_comes_back(caplog) -> None:  # noqa: ANN001
+    import logging
+
+    from protocol.session import router as router_settings
+    from protocol.transport import Counters, LinkWatch
+    from tests.procs import endpoint, free_port, wait_for
+
+    ep = endpoint(free_port())
+    counters = Counters()
+    r = open_session(router_settings(ep))
+    with open_session(client(ep)) as c, caplog.at_level(logging.INFO):
+        watch = LinkWatch(c, counters, "test")
+        assert watch.check() and counters.get("links") == 1
+        r.close()
+        wait_for(lambda: not watch.check(), timeout=10, what="the link to go")
+        assert counters.get("link_losses") == 1 and counters.get("links") == 0
+        assert any("no Zenoh link" in m for m in caplog.messages)
+        r = open_session(router_settings(ep))
+        wait_for(watch.check, timeout=20, what="the client to reconnect")
+        assert any("link back after" in m for m in caplog.messages)
+    r.close()
