@@ -4,8 +4,10 @@ Poses follow the conventions of :mod:`protocol.poses`: ``T_world_cam`` is a 4x4 
 mapping camera-frame points (OpenCV axes: x right, y down, z forward) into the world frame (metres,
 z up). Times are integer nanoseconds since the Unix epoch (``time.time_ns()``).
 
-Arrays travel compactly (dtype, shape, raw bytes) through :mod:`protocol.codec`; in Python they are
-numpy arrays. Messages compare equal field by field, arrays included.
+Arrays travel as plain msgpack maps ``{"dtype", "shape", "data"}`` (:mod:`protocol.arrays`) through
+:mod:`protocol.codec` and as nested lists in JSON; in Python they are numpy arrays. Messages compare
+equal field by field, arrays included. docs/WIRE.md documents every message for non-Python readers
+(its field tables and protocol/schema/*.json are generated from these classes by ``python -m protocol.wire``).
 """
 
 from __future__ import annotations
@@ -14,22 +16,55 @@ import math
 from typing import Annotated, Any, ClassVar, Literal
 
 import numpy as np
-from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, PlainSerializer, field_validator, model_validator
+from pydantic import (
+    AliasChoices,
+    BaseModel,
+    BeforeValidator,
+    ConfigDict,
+    Field,
+    PlainSerializer,
+    WithJsonSchema,
+    field_validator,
+    model_validator,
+)
+
+from protocol import arrays
 
 
 def _to_ndarray(v: Any) -> np.ndarray:
     if isinstance(v, np.ndarray):
         return v
+    if arrays.is_wire_array(v):
+        return arrays.from_wire(v)  # the msgpack map form; ArrayError is a ValueError
     if isinstance(v, (list, tuple)):
         return np.asarray(v)
     raise ValueError(f"expected an array, got {type(v).__name__}")
 
 
+NDARRAY_JSON_SCHEMA: dict[str, Any] = {
+    "description": "numpy array. msgpack: a map {dtype: numpy type string such as '<f4', shape: [int], "
+    "data: bin, the raw little-endian C-order bytes}; JSON: nested lists of numbers",
+    "anyOf": [
+        {
+            "type": "object",
+            "properties": {
+                "dtype": {"type": "string", "enum": sorted(arrays.ALLOWED_DTYPES)},
+                "shape": {"type": "array", "items": {"type": "integer", "minimum": 0}, "maxItems": arrays.MAX_DIMS},
+                "data": {"description": "msgpack bin: prod(shape) * itemsize bytes"},
+            },
+            "required": ["dtype", "shape", "data"],
+            "additionalProperties": False,
+        },
+        {"type": "array"},
+    ],
+}
+
 NDArray = Annotated[
     np.ndarray,
     BeforeValidator(_to_ndarray),
-    # JSON dumps (model_dump_json, --json outputs) get nested lists; msgpack keeps the ndarray.
+    # JSON dumps (model_dump_json, the JSON view, --json outputs) get nested lists; msgpack keeps the ndarray.
     PlainSerializer(lambda a: a.tolist(), when_used="json"),
+    WithJsonSchema(NDARRAY_JSON_SCHEMA),
 ]
 
 
@@ -376,6 +411,46 @@ class OracleFrame(Message):
     depth_png: bytes | None = Field(default=None, description="16-bit PNG of z-depth in millimetres (0 = none)")
     labels: dict[str, str] = Field(default_factory=dict, description="str(object id) -> label")
 
+class GoalStatus(Message):
+    """A robot's answer to one goal message it received: accepted, or refused with the reason.
+
+    Published on ``robot/<id>/goal/status`` (and as JSON on ``robot/<id>/goal/status/json``) for every
+    goal payload, undecodable ones included (refusals are rate-limited; ``suppressed`` counts the ones
+    not published since the last published status).
+    """
+
+    KIND: ClassVar[str] = "goal_status"
+    robot_id: str = Field(min_length=1, max_length=128, description="the robot answering")
+    stamp_ns: int = Field(ge=0, description="when the robot decided, ns since the epoch")
+    goal_id: str | None = Field(
+        default=None, description="the goal's id (assigned by the robot for plain goals without one); null when "
+        "the payload was unreadable"
+    )
+    accepted: bool = Field(description="true: the robot is driving to the goal (or already pursues it)")
+    reason: str = Field(default="", description="why the goal was refused (validation error, ...); empty if accepted")
+    received: int = Field(ge=0, description="goal payloads this robot has received so far, this one included")
+    suppressed: int = Field(default=0, ge=0, description="refusals not published (rate limit) since the last status")
+
+
+class PlainGoal(BaseModel):
+    """A goal as a plain JSON object or plain msgpack map (no envelope), for clients without Argus.
+
+    The robot turns it into an :class:`NbvGoal` (``goal_id`` assigned when absent, ``stamp_ns`` = receipt).
+    Not an envelope message: it has no kind and no version.
+    """
+
+    model_config = ConfigDict(extra="forbid")
+    robot_id: str = Field(min_length=1, max_length=128, description="the robot that must drive")
+    x: float = Field(description="goal base position x, metres (world frame)")
+    y: float = Field(description="goal base position y, metres (world frame)")
+    yaw_rad: float = Field(
+        default=0.0, validation_alias=AliasChoices("yaw_rad", "yaw"),
+        description="goal heading, radians from world +x, counter-clockwise (key 'yaw' or 'yaw_rad')",
+    )
+    goal_id: str | None = Field(default=None, min_length=1, max_length=128, description="optional id echoed back")
+    vp_id: int | None = Field(default=None, ge=0, description="viewpoint id, if the goal is one of the robot's")
+
+
 ALL_MESSAGES: tuple[type[Message], ...] = (
     Intrinsics,
     FrameHeader,
@@ -392,4 +467,5 @@ ALL_MESSAGES: tuple[type[Message], ...] = (
     PointMap,
     Status,
     OracleFrame,
+    GoalStatus,
 )
