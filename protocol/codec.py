@@ -134,6 +134,10 @@ def decode(data: bytes | bytearray | memoryview, expected: type[M] | None = None
     try:
         return cls.model_validate(body)  # type: ignore[return-value]
     except ValidationError as e:
-        raise DecodeError(f"{kind} failed validation: {e.error_count()} error(s): {e.errors()[0]['msg']}") from None
+        first = e.errors()[0]
+        where = ".".join(str(p) for p in first["loc"])
+        raise DecodeError(
+            f"{kind} failed validation: {e.error_count()} error(s): {where + ': ' if where else ''}{first['msg']}"
+        ) from None
     except Exception as e:  # noqa: BLE001 - validators may raise anything on hostile data
         raise DecodeError(f"{kind} failed validation: {type(e).__name__}: {e}") from None
