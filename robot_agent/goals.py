@@ -84,7 +84,7 @@ def parse_goal(data: bytes, default_id: str, stamp_ns: int) -> tuple[NbvGoal, st
     """
     if len(data) > MAX_GOAL_BYTES:
         raise GoalRefused(f"goal payload of {len(data)} bytes exceeds {MAX_GOAL_BYTES}")
-    if data.lstrip()[:1] == b"{":
+    if data.lstrip()[:1] in (b"{", b"["):  # JSON (0x7b and 0x5b are msgpack ints, never a goal)
         try:
             body, form = json.loads(data.decode("utf-8")), "json"
         except (UnicodeDecodeError, ValueError) as e:
