@@ -178,7 +178,8 @@ class RobotAgent:
 
     def _on_viewpoints_query(self, query: zenoh.Query) -> None:
         try:
-            query.reply(self.keys.robot_viewpoints(self.config.id), self._viewpoints_bytes)
+            query.reply(self.keys.robot_viewpoints(self.config.id), self._viewpoints_bytes,
+                        encoding=message_encoding(ViewpointSet))
             self.counters.add("viewpoint_queries")
         except Exception as e:  # noqa: BLE001
             log.warning("viewpoint query reply failed: %s", e)

@@ -425,6 +425,17 @@ def test_argus_goal_prints_the_robots_answer(router: str, procs: list[Proc]) -> 
     procs.append(robot)
     base = ["goal", "--connect", router, "--site", "wiretest", "--robot", "rg", "--timeout", "10"]
     wait_for(lambda: "goals on" in robot.output or not robot.alive(), 30, what=f"robot up\n{robot.output}")
+    from protocol.session import client, open_session
+
+    keys = Keys("wiretest")
+    encodings: dict[str, set[str]] = {}
+
+    def on_sample(sample: Any) -> None:
+        encodings.setdefault(str(sample.key_expr), set()).add(str(sample.encoding))
+
+    session = open_session(client(router))
+    subs = [session.declare_subscriber(k, on_sample) for k in (
+        keys.robot_goal_status("rg"), keys.robot_goal_status_json("rg"), keys.robot_state("rg"), keys.all_status)]
     ok = Proc([*base, "--x", "1.0", "--y", "0.5", "--yaw-deg", "90", "--goal-id", "cli-ok"])
     assert ok.wait(30) == 0, ok.output + robot.output
     ok.stop()
@@ -438,3 +449,14 @@ def test_argus_goal_prints_the_robots_answer(router: str, procs: list[Proc]) -> 
     assert nobody.wait(30) == 4
     nobody.stop()
     assert "no answer from robot 'nobody'" in nobody.output
+    # Every sample names its schema in its Zenoh encoding; the viewpoint query reply too.
+    (vp,) = [r.ok for r in session.get(keys.robot_viewpoints("rg"), timeout=5.0) if r.ok is not None]
+    wait_for(lambda: keys.status("robot-agent", "rg") in encodings, 10, what="a Status sample")
+    for sub in subs:
+        sub.undeclare()
+    session.close()
+    assert str(vp.encoding) == "application/msgpack;argus/viewpoint_set/1.0"
+    assert encodings[keys.robot_goal_status("rg")] == {"application/msgpack;argus/goal_status/1.0"}
+    assert encodings[keys.robot_goal_status_json("rg")] == {"application/json;argus/goal_status/1.0"}
+    assert encodings[keys.robot_state("rg")] == {"application/msgpack;argus/robot_state/1.1"}
+    assert encodings[keys.status("robot-agent", "rg")] == {"application/msgpack;argus/status/1.0"}
