@@ -21,6 +21,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "up": ("deploy.up", "start a whole stack from a launch file"),
     "demo": ("deploy.demo", "run the full demo on the embedded simulated world"),
     "query": ("deploy.query", "query or watch the scene graph as a consumer"),
+    "goal": ("deploy.goal", "send one goal to a robot and print its answer"),
     "explore": ("bench.explore", "closed-loop exploration run in the simulator, per-step JSON"),
     "sim": ("sim.cli", "the embedded world: generate, export, load, render, view scenes"),
     "bench": ("bench.cli", "performance and quality benchmarks (JSON + Markdown)"),

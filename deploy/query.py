@@ -28,17 +28,8 @@ from protocol.codec import DecodeError, decode, peek_kind
 from protocol.keys import Keys
 from protocol.messages import GraphDelta, GraphEdge, GraphNode, GraphSnapshot
 from protocol.query import GraphQuery
-from protocol.session import (
-    DEFAULT_ENDPOINT,
-    DEFAULT_SITE,
-    ENV_CONNECT,
-    ENV_SITE,
-    ZenohSettings,
-    ZenohUnavailable,
-    default_endpoints,
-    default_site,
-    open_session,
-)
+from protocol.session import ZenohUnavailable, open_session
+from protocol.tomlconfig import add_consumer_flags, consumer_values
 
 
 class QueryError(RuntimeError):
@@ -237,9 +228,7 @@ def main(argv: list[str] | None = None) -> int:
         epilog="examples: argus query nodes --label chair --near 1,2,0 --radius 2 | "
         "argus query snapshot --json | argus query watch",
     )
-    p.add_argument("--connect", action="append", default=None,
-                   help=f"router endpoint (repeatable; default ${ENV_CONNECT} or {DEFAULT_ENDPOINT})")
-    p.add_argument("--site", default=None, help=f"Argus site name (default ${ENV_SITE} or {DEFAULT_SITE})")
+    add_consumer_flags(p)
     p.add_argument("--timeout", type=float, default=5.0, help="seconds to wait for answers")
     sub = p.add_subparsers(dest="what", required=True)
     pn = sub.add_parser("nodes", help="nodes selected by label / position / id")
@@ -258,7 +247,8 @@ def main(argv: list[str] | None = None) -> int:
     a = p.parse_args(argv)
 
     try:
-        keys = Keys(a.site or default_site())
+        settings, site = consumer_values(a)
+        keys = Keys(site)
         query = None
         if a.what == "nodes":
             near = None
@@ -276,7 +266,7 @@ def main(argv: list[str] | None = None) -> int:
 
     stop = install_stop_handlers()
     try:
-        with open_session(ZenohSettings(mode="client", connect=a.connect or default_endpoints())) as session:
+        with open_session(settings) as session:
             if a.what == "nodes":
                 assert query is not None
                 return run_nodes(session, keys, query, a.json, a.timeout)

@@ -200,7 +200,7 @@ class EdgeCamera:
             token = session.liveliness().declare_token(self.keys.alive(ROLE, cid))
             frame_pub = declare_frame_publisher(session, self.keys.cam_frame(cid))
             oracle_pub = (
-                declare_message_publisher(session, self.keys.oracle("fixed", cid), important=False)
+                declare_message_publisher(session, self.keys.oracle("fixed", cid), important=False, message=OracleFrame)
                 if getattr(self.config.source, "oracle", False)
                 else None
             )

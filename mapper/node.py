@@ -5,7 +5,8 @@ always works on fresh frames) and, when an ORACLE backend is configured, to the 
 the JPEGs; feeds the core; publishes each GraphDelta, each changed node under ``graph/node/<id>``
 (deleting removed ones), a GraphSnapshot and the PointMap at bounded rates; answers queries on
 ``graph/**`` (``graph/snapshot``, ``graph/nodes?label=..;near=..;radius=..;id=..;since_version=..``,
-``graph/node/<id>``); reports status; persists the graph atomically so a restart resumes it.
+``graph/node/<id>``) and, as JSON, on ``graph/json/**`` (the same keys below ``graph/json/``);
+reports status; persists the graph atomically so a restart resumes it.
 
 Each frame's pose is checked on arrival (:func:`protocol.poses.check_pose`): a nearly rigid one is
 projected onto SO(3) (counter ``poses_projected``); any other is dropped with its frame (counter
@@ -30,7 +31,7 @@ from mapper.geometry.contract import OracleData, View
 from protocol.codec import DecodeError, encode
 from protocol.jpeg import JpegError, decode_jpeg
 from protocol.keys import Keys
-from protocol.messages import GraphDelta, GraphSnapshot, OracleFrame
+from protocol.messages import GraphDelta, GraphNode, GraphSnapshot, Message, OracleFrame, PointMap
 from protocol.oracle import decode_u16_png, png_to_depth
 from protocol.poses import PoseError, check_pose
 from protocol.query import GraphQuery
@@ -44,6 +45,7 @@ from protocol.transport import (
     declare_message_publisher,
     decode_frame_sample,
     decode_message_sample,
+    message_encoding,
 )
 
 if TYPE_CHECKING:
@@ -215,8 +217,14 @@ class MapperNode:
                 self._oracle.popitem(last=False)
 
     def _on_query(self, query: zenoh.Query) -> None:
+        self._guarded_answer(query, json_view=False)
+
+    def _on_json_query(self, query: zenoh.Query) -> None:
+        self._guarded_answer(query, json_view=True)
+
+    def _guarded_answer(self, query: zenoh.Query, json_view: bool) -> None:
         try:
-            self._answer(query)
+            self._answer(query, json_view)
         except Exception as e:  # noqa: BLE001 - a bad query gets an error reply, never a crash
             self.counters.add("query_errors")
             try:
@@ -224,41 +232,54 @@ class MapperNode:
             except Exception:  # noqa: BLE001 - the querier may be gone
                 pass
 
-    def _answer(self, query: zenoh.Query) -> None:
+    def _answer(self, query: zenoh.Query, json_view: bool = False) -> None:
+        """Reply with msgpack envelopes, or (``json_view``, keys under ``graph/json/``) with JSON objects."""
         import zenoh
 
         t0 = time.perf_counter()
-        self.counters.add("queries")
         key = str(query.key_expr)
-        params = str(query.parameters)
+        if json_view:
+            if not zenoh.KeyExpr(self.keys.graph_json_all).includes(zenoh.KeyExpr(key)):
+                return  # e.g. graph/**: the msgpack queryable answers that; formats never mix in one reply set
+            self.counters.add("json_queries")
+            for reply_key, msg in self._select(self.keys.from_graph_json(key), str(query.parameters)):
+                query.reply(self.keys.graph_json(reply_key), msg.model_dump_json(),
+                            encoding=message_encoding(type(msg), "application/json"))
+        else:
+            self.counters.add("queries")
+            for reply_key, msg in self._select(key, str(query.parameters)):
+                query.reply(reply_key, encode(msg), encoding=message_encoding(type(msg)))
+        self.counters.set("last_query_ms", (time.perf_counter() - t0) * 1e3)
+
+    def _select(self, key: str, params: str) -> list[tuple[str, Message]]:
+        """What a query on ``key`` (under ``graph/``) answers: ``(reply key, message)`` pairs."""
+        import zenoh
+
         if key == self.keys.graph_snapshot:
-            query.reply(key, encode(self.core.snapshot()))
-        elif key == self.keys.graph_nodes:
+            return [(key, self.core.snapshot())]
+        if key == self.keys.graph_nodes:
             q = GraphQuery.from_parameters(params)
             nodes = self.core.query(q)
             ids = {n.node_id for n in nodes}
             snap = self.core.snapshot()
             edges = [e for e in snap.edges if e.subject_id in ids and e.object_id in ids]
-            sel = GraphSnapshot(version=snap.version, stamp_ns=snap.stamp_ns, nodes=nodes, edges=edges)
-            query.reply(key, encode(sel))
-        else:
-            asked = zenoh.KeyExpr(key)
-            try:
-                node_id = self.keys.parse_node(key)
-            except ValueError:
-                node_id = None
-            if node_id is not None:
-                for n in self.core.query(GraphQuery(id=node_id)):
-                    query.reply(key, encode(n))
-            else:
-                # A wildcard such as graph/**: answer with everything it covers, each under its own key.
-                if asked.intersects(zenoh.KeyExpr(self.keys.graph_snapshot)):
-                    query.reply(self.keys.graph_snapshot, encode(self.core.snapshot()))
-                for n in self.core.nodes():
-                    nk = self.keys.graph_node(n.node_id)
-                    if asked.intersects(zenoh.KeyExpr(nk)):
-                        query.reply(nk, encode(n))
-        self.counters.set("last_query_ms", (time.perf_counter() - t0) * 1e3)
+            return [(key, GraphSnapshot(version=snap.version, stamp_ns=snap.stamp_ns, nodes=nodes, edges=edges))]
+        try:
+            node_id = self.keys.parse_node(key)
+        except ValueError:
+            node_id = None
+        if node_id is not None:
+            return [(key, n) for n in self.core.query(GraphQuery(id=node_id))]
+        # A wildcard such as graph/**: answer with everything it covers, each under its own key.
+        asked = zenoh.KeyExpr(key)
+        out: list[tuple[str, Message]] = []
+        if asked.intersects(zenoh.KeyExpr(self.keys.graph_snapshot)):
+            out.append((self.keys.graph_snapshot, self.core.snapshot()))
+        for n in self.core.nodes():
+            nk = self.keys.graph_node(n.node_id)
+            if asked.intersects(zenoh.KeyExpr(nk)):
+                out.append((nk, n))
+        return out
 
     # -- frames -> views -----------------------------------------------------------------------------
     def _take_oracle(self, frame: Frame) -> OracleFrame | None:
@@ -331,7 +352,7 @@ class MapperNode:
     def _publish_delta(self, session: zenoh.Session, pubs: dict[str, Any], delta: GraphDelta) -> None:
         pubs["delta"].put(encode(delta))
         for n in delta.upserted:
-            session.put(self.keys.graph_node(n.node_id), encode(n))
+            session.put(self.keys.graph_node(n.node_id), encode(n), encoding=message_encoding(GraphNode))
         for node_id in delta.removed:
             session.delete(self.keys.graph_node(node_id))
         self.counters.add("deltas")
@@ -375,15 +396,18 @@ class MapperNode:
             self._session = session
             token = session.liveliness().declare_token(self.keys.alive(ROLE, cfg.id))
             pubs = {
-                "delta": declare_message_publisher(session, self.keys.graph_delta, important=True),
-                "snapshot": declare_message_publisher(session, self.keys.graph_snapshot, important=True),
+                "delta": declare_message_publisher(session, self.keys.graph_delta, important=True, message=GraphDelta),
+                "snapshot": declare_message_publisher(
+                    session, self.keys.graph_snapshot, important=True, message=GraphSnapshot),
                 # the point map answers queries with its newest value (late joiners)
-                "map": LatestValue(session, declare_message_publisher(session, self.keys.map_points, important=False)),
+                "map": LatestValue(session, declare_message_publisher(
+                    session, self.keys.map_points, important=False, message=PointMap)),
             }
             subs = [session.declare_subscriber(self.keys.all_frames, self._on_frame)]
             if self.needs_oracle:
                 subs.append(session.declare_subscriber(self.keys.all_oracle, self._on_oracle))
             queryable = session.declare_queryable(self.keys.graph_all, self._on_query)
+            json_queryable = session.declare_queryable(self.keys.graph_json_all, self._on_json_query)
             reporter = StatusReporter(
                 session, self.keys.status(ROLE, cfg.id), ROLE, cfg.id, self.counters, cfg.status_period_s,
                 extra=self._extra_counters,
@@ -402,6 +426,7 @@ class MapperNode:
             finally:
                 self.save(force=True)
                 queryable.undeclare()
+                json_queryable.undeclare()
                 for s in subs:
                     s.undeclare()
                 token.undeclare()

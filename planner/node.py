@@ -22,7 +22,7 @@ from planner.core import Planner
 from protocol.codec import DecodeError, decode, encode
 from protocol.graph import GraphVersionError, apply_delta
 from protocol.keys import Keys
-from protocol.messages import GraphDelta, GraphSnapshot, PointMap, RobotState, ViewpointSet
+from protocol.messages import GraphDelta, GraphSnapshot, NbvGoal, PointMap, RobotState, ViewpointSet
 from protocol.session import open_session_retrying
 from protocol.transport import Counters, StatusReporter, declare_message_publisher
 
@@ -313,7 +313,7 @@ class PlannerNode:
         pub = self._pubs.get(goal.robot_id)
         if pub is None and self._session is not None:
             pub = self._pubs[goal.robot_id] = declare_message_publisher(
-                self._session, self.keys.robot_goal(goal.robot_id), important=True
+                self._session, self.keys.robot_goal(goal.robot_id), important=True, message=NbvGoal
             )
         if pub is None:
             return

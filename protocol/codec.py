@@ -1,7 +1,9 @@
 """The msgpack envelope every non-frame message travels in.
 
 Layout: a msgpack array ``[MAGIC, kind, major, minor, body]`` where ``body`` is the message's field
-map. numpy arrays inside the body are msgpack ext type 1 holding ``[dtype, shape, raw bytes]``.
+map. numpy arrays inside the body are plain maps ``{"dtype", "shape", "data"}`` (see
+:mod:`protocol.arrays`; the legacy ext type 1 form is still decoded). docs/WIRE.md is the contract for
+readers without Argus; :func:`content_type` names a message's schema for the Zenoh encoding.
 
 ``decode`` raises :class:`DecodeError` for anything wrong (random or truncated bytes, wrong magic,
 unknown major version, wrong kind, schema violation, oversized arrays) and nothing else, so a
@@ -16,15 +18,13 @@ import msgpack
 import numpy as np
 from pydantic import ValidationError
 
+from protocol import arrays
 from protocol.messages import ALL_MESSAGES, Message
 
 MAGIC = "ARG1"
 MAX_MESSAGE_BYTES = 64 * 1024 * 1024
-"""Largest envelope decode() accepts."""
-MAX_ARRAY_ELEMENTS = 8 * 1024 * 1024
-"""Largest array (element count) decode() accepts."""
-_EXT_NDARRAY = 1
-_ALLOWED_DTYPES = frozenset({"|u1", "|i1", "<u2", "<i2", "<u4", "<i4", "<u8", "<i8", "<f2", "<f4", "<f8", "|b1"})
+"""Largest envelope decode() accepts. (The array cap is :data:`protocol.arrays.MAX_ARRAY_ELEMENTS`.)"""
+MSGPACK_MIME = "application/msgpack"
 
 M = TypeVar("M", bound=Message)
 
@@ -43,14 +43,15 @@ def register(cls: type[Message]) -> type[Message]:
     return cls
 
 
+def content_type(cls: type[Message], mime: str = MSGPACK_MIME) -> str:
+    """The Zenoh encoding string naming ``cls``'s schema: ``application/msgpack;argus/<kind>/<major>.<minor>``."""
+    major, minor = cls.SCHEMA
+    return f"{mime};argus/{cls.KIND}/{major}.{minor}"
+
+
 def _default(obj: Any) -> Any:
     if isinstance(obj, np.ndarray):
-        a = np.ascontiguousarray(obj)
-        dt = a.dtype.newbyteorder("<") if a.dtype.byteorder == ">" else a.dtype
-        a = a.astype(dt, copy=False)
-        return msgpack.ExtType(
-            _EXT_NDARRAY, msgpack.packb([a.dtype.str, list(a.shape), a.tobytes()], use_bin_type=True)
-        )
+        return arrays.to_wire(obj)
     if isinstance(obj, np.generic):
         return obj.item()
     if isinstance(obj, tuple):
@@ -59,23 +60,12 @@ def _default(obj: Any) -> Any:
 
 
 def _ext_hook(code: int, data: bytes) -> Any:
-    if code != _EXT_NDARRAY:
+    if code != arrays.EXT_NDARRAY:
         raise DecodeError(f"unknown msgpack ext type {code}")
     try:
-        dtype_str, shape, raw = msgpack.unpackb(data, raw=False)
-    except Exception as e:  # noqa: BLE001 - any failure inside is a decode failure
-        raise DecodeError(f"bad array: {e}") from None
-    if dtype_str not in _ALLOWED_DTYPES:
-        raise DecodeError(f"array dtype {dtype_str!r} not allowed")
-    if not isinstance(shape, list) or len(shape) > 8 or not all(isinstance(s, int) and s >= 0 for s in shape):
-        raise DecodeError("bad array shape")
-    n = int(np.prod(shape, dtype=np.int64)) if shape else 1
-    if n > MAX_ARRAY_ELEMENTS:
-        raise DecodeError(f"array of {n} elements exceeds the cap of {MAX_ARRAY_ELEMENTS}")
-    dt = np.dtype(dtype_str)
-    if not isinstance(raw, bytes) or len(raw) != n * dt.itemsize:
-        raise DecodeError("array byte length does not match its shape")
-    return np.frombuffer(raw, dtype=dt).reshape(shape).copy()
+        return arrays.from_ext(data)
+    except arrays.ArrayError as e:
+        raise DecodeError(str(e)) from None
 
 
 def encode(msg: Message) -> bytes:
@@ -144,6 +134,10 @@ def decode(data: bytes | bytearray | memoryview, expected: type[M] | None = None
     try:
         return cls.model_validate(body)  # type: ignore[return-value]
     except ValidationError as e:
-        raise DecodeError(f"{kind} failed validation: {e.error_count()} error(s): {e.errors()[0]['msg']}") from None
+        first = e.errors()[0]
+        where = ".".join(str(p) for p in first["loc"])
+        raise DecodeError(
+            f"{kind} failed validation: {e.error_count()} error(s): {where + ': ' if where else ''}{first['msg']}"
+        ) from None
     except Exception as e:  # noqa: BLE001 - validators may raise anything on hostile data
         raise DecodeError(f"{kind} failed validation: {type(e).__name__}: {e}") from None

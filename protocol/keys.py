@@ -6,12 +6,15 @@ Layout (``prefix`` and ``site`` configurable)::
     <prefix>/<site>/robot/<robot_id>/frame         robot-camera JPEG frames
     <prefix>/<site>/{cam,robot}/<id>/oracle        OracleFrame (simulated sources only: ground truth)
     <prefix>/<site>/robot/<robot_id>/state         RobotState
-    <prefix>/<site>/robot/<robot_id>/goal          NbvGoal
+    <prefix>/<site>/robot/<robot_id>/goal          NbvGoal (or a plain JSON/msgpack goal, see docs/WIRE.md)
+    <prefix>/<site>/robot/<robot_id>/goal/status   GoalStatus (the robot's answer to each goal payload)
+    <prefix>/<site>/robot/<robot_id>/goal/status/json   the same GoalStatus as JSON
     <prefix>/<site>/robot/<robot_id>/viewpoints    ViewpointSet
     <prefix>/<site>/graph/snapshot                 GraphSnapshot (latest full graph)
     <prefix>/<site>/graph/delta                    GraphDelta
     <prefix>/<site>/graph/node/<node_id>           GraphNode (plain key/value, storable)
     <prefix>/<site>/graph/nodes                    query target: selected nodes (?label=..;near=..)
+    <prefix>/<site>/graph/json/...                 JSON view (query only): json/snapshot, json/nodes, json/node/<id>
     <prefix>/<site>/map/points                     PointMap
     <prefix>/<site>/alive/<role>/<id>              liveliness tokens
     <prefix>/<site>/status/<role>/<id>             Status
@@ -97,6 +100,14 @@ class Keys:
     def robot_goal(self, robot_id: str) -> str:
         return f"{self.root}/robot/{validate_id(robot_id, 'robot id')}/goal"
 
+    def robot_goal_status(self, robot_id: str) -> str:
+        """GoalStatus (msgpack envelope) of each goal payload the robot received."""
+        return f"{self.robot_goal(robot_id)}/status"
+
+    def robot_goal_status_json(self, robot_id: str) -> str:
+        """The same GoalStatus as a JSON object."""
+        return f"{self.robot_goal(robot_id)}/status/json"
+
     def robot_viewpoints(self, robot_id: str) -> str:
         return f"{self.root}/robot/{validate_id(robot_id, 'robot id')}/viewpoints"
 
@@ -133,6 +144,25 @@ class Keys:
     def graph_all(self) -> str:
         """Everything under graph/ (the mapper's queryable)."""
         return f"{self.root}/graph/**"
+
+    @property
+    def graph_json_all(self) -> str:
+        """The JSON view: ``graph/json/<k>`` answers like ``graph/<k>``, as JSON (the mapper's second queryable)."""
+        return f"{self.root}/graph/json/**"
+
+    def graph_json(self, key: str) -> str:
+        """The JSON-view twin of a graph key: ``graph/<k>`` -> ``graph/json/<k>``."""
+        head = f"{self.root}/graph/"
+        if not key.startswith(head) or key.startswith(head + "json/"):
+            raise ValueError(f"{key!r} is not a graph key outside the JSON view")
+        return head + "json/" + key[len(head) :]
+
+    def from_graph_json(self, key: str) -> str:
+        """The graph key a JSON-view key stands for: ``graph/json/<k>`` -> ``graph/<k>``."""
+        head = f"{self.root}/graph/json/"
+        if not key.startswith(head) or len(key) == len(head):
+            raise ValueError(f"{key!r} is not a key of the JSON view")
+        return f"{self.root}/graph/" + key[len(head) :]
 
     # --- map ------------------------------------------------------------------------------
     @property

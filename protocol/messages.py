@@ -4,8 +4,10 @@ Poses follow the conventions of :mod:`protocol.poses`: ``T_world_cam`` is a 4x4 
 mapping camera-frame points (OpenCV axes: x right, y down, z forward) into the world frame (metres,
 z up). Times are integer nanoseconds since the Unix epoch (``time.time_ns()``).
 
-Arrays travel compactly (dtype, shape, raw bytes) through :mod:`protocol.codec`; in Python they are
-numpy arrays. Messages compare equal field by field, arrays included.
+Arrays travel as plain msgpack maps ``{"dtype", "shape", "data"}`` (:mod:`protocol.arrays`) through
+:mod:`protocol.codec` and as nested lists in JSON; in Python they are numpy arrays. Messages compare
+equal field by field, arrays included. docs/WIRE.md documents every message for non-Python readers
+(its field tables and protocol/schema/*.json are generated from these classes by ``python -m protocol.wire``).
 """
 
 from __future__ import annotations
@@ -14,22 +16,55 @@ import math
 from typing import Annotated, Any, ClassVar, Literal
 
 import numpy as np
-from pydantic import BaseModel, BeforeValidator, ConfigDict, Field, PlainSerializer, field_validator, model_validator
+from pydantic import (
+    AliasChoices,
+    BaseModel,
+    BeforeValidator,
+    ConfigDict,
+    Field,
+    PlainSerializer,
+    WithJsonSchema,
+    field_validator,
+    model_validator,
+)
+
+from protocol import arrays
 
 
 def _to_ndarray(v: Any) -> np.ndarray:
     if isinstance(v, np.ndarray):
         return v
+    if arrays.is_wire_array(v):
+        return arrays.from_wire(v)  # the msgpack map form; ArrayError is a ValueError
     if isinstance(v, (list, tuple)):
         return np.asarray(v)
     raise ValueError(f"expected an array, got {type(v).__name__}")
 
 
+NDARRAY_JSON_SCHEMA: dict[str, Any] = {
+    "description": "numpy array. msgpack: a map {dtype: numpy type string such as '<f4', shape: [int], "
+    "data: bin, the raw little-endian C-order bytes}; JSON: nested lists of numbers",
+    "anyOf": [
+        {
+            "type": "object",
+            "properties": {
+                "dtype": {"type": "string", "enum": sorted(arrays.ALLOWED_DTYPES)},
+                "shape": {"type": "array", "items": {"type": "integer", "minimum": 0}, "maxItems": arrays.MAX_DIMS},
+                "data": {"description": "msgpack bin: prod(shape) * itemsize bytes"},
+            },
+            "required": ["dtype", "shape", "data"],
+            "additionalProperties": False,
+        },
+        {"type": "array"},
+    ],
+}
+
 NDArray = Annotated[
     np.ndarray,
     BeforeValidator(_to_ndarray),
-    # JSON dumps (model_dump_json, --json outputs) get nested lists; msgpack keeps the ndarray.
+    # JSON dumps (model_dump_json, the JSON view, --json outputs) get nested lists; msgpack keeps the ndarray.
     PlainSerializer(lambda a: a.tolist(), when_used="json"),
+    WithJsonSchema(NDARRAY_JSON_SCHEMA),
 ]
 
 
@@ -45,10 +80,16 @@ def _to_mat(n: int, m: int) -> Any:
     return BeforeValidator(check)
 
 
-Mat4 = Annotated[list[list[float]], _to_mat(4, 4)]
+def _mat_schema(n: int, m: int) -> WithJsonSchema:
+    row = {"type": "array", "items": {"type": "number"}, "minItems": m, "maxItems": m}
+    return WithJsonSchema({"type": "array", "items": row, "minItems": n, "maxItems": n,
+                           "description": f"{n}x{m} matrix as {n} rows of {m} finite numbers"})
+
+
+Mat4 = Annotated[list[list[float]], _to_mat(4, 4), _mat_schema(4, 4)]
 """A 4x4 pose (rows), see :mod:`protocol.poses`. ``np.asarray(msg.T_world_cam)`` gives the matrix."""
-Mat3 = Annotated[list[list[float]], _to_mat(3, 3)]
-Mat6 = Annotated[list[list[float]], _to_mat(6, 6)]
+Mat3 = Annotated[list[list[float]], _to_mat(3, 3), _mat_schema(3, 3)]
+Mat6 = Annotated[list[list[float]], _to_mat(6, 6), _mat_schema(6, 6)]
 Vec3 = Annotated[tuple[float, float, float], Field(description="x, y, z in metres")]
 
 
@@ -132,8 +173,8 @@ class FrameHeader(Message):
     source_kind: SourceKind = Field(description="fixed infrastructure camera or robot camera")
     seq: int = Field(ge=0, description="per-source sequence number, +1 per frame sent")
     stamp_ns: int = Field(ge=0, description="capture time, ns since the epoch")
-    width: int = Field(gt=0, le=16384)
-    height: int = Field(gt=0, le=16384)
+    width: int = Field(gt=0, le=16384, description="JPEG width in pixels")
+    height: int = Field(gt=0, le=16384, description="JPEG height in pixels")
     intrinsics: Intrinsics | None = Field(default=None, description="calibration, if known")
     T_world_cam: Mat4 | None = Field(default=None, description="camera pose, if known (odometry/calibration)")
     pose_covariance: Mat6 | None = Field(
@@ -155,10 +196,10 @@ class RobotState(Message):
     SCHEMA: ClassVar[tuple[int, int]] = (1, 1)
     robot_id: str = Field(min_length=1, max_length=128)
     stamp_ns: int = Field(ge=0)
-    status: RobotStatus
+    status: RobotStatus = Field(description="what the robot is doing; refused/failed/budget_exhausted come with reason")
     x: float = Field(description="base position x, metres (odometry)")
     y: float = Field(description="base position y, metres (odometry)")
-    yaw_rad: float = Field(description="base heading (odometry)")
+    yaw_rad: float = Field(description="base heading, radians from world +x, counter-clockwise (odometry)")
     T_world_cam: Mat4 = Field(description="camera pose from odometry")
     goal_id: str | None = Field(default=None, description="the goal being pursued or last finished")
     reason: str | None = Field(default=None, description="why a goal was refused or failed")
@@ -187,10 +228,10 @@ class Viewpoint(Message):
     """One navigable viewpoint: a base pose whose camera pose follows from the set's mount."""
 
     KIND: ClassVar[str] = "viewpoint"
-    vp_id: int = Field(ge=0)
-    x: float
-    y: float
-    yaw_rad: float
+    vp_id: int = Field(ge=0, description="viewpoint id, unique within its ViewpointSet")
+    x: float = Field(description="base position x, metres (world frame)")
+    y: float = Field(description="base position y, metres (world frame)")
+    yaw_rad: float = Field(description="base heading, radians from world +x, counter-clockwise")
     room: str | None = Field(default=None, description="room name, if known")
 
 
@@ -199,28 +240,28 @@ class ViewpointSet(Message):
 
     KIND: ClassVar[str] = "viewpoint_set"
     robot_id: str = Field(min_length=1, max_length=128)
-    camera_height_m: float = Field(gt=0.0)
-    camera_pitch_deg: float = 0.0
-    intrinsics: Intrinsics
+    camera_height_m: float = Field(gt=0.0, description="camera height above the floor, metres")
+    camera_pitch_deg: float = Field(default=0.0, description="camera tilt, degrees (negative: looking down)")
+    intrinsics: Intrinsics = Field(description="the robot camera's calibration")
     max_range_m: float = Field(default=6.0, gt=0.0, description="useful sensing range")
-    viewpoints: list[Viewpoint]
+    viewpoints: list[Viewpoint] = Field(description="where the robot can stand; camera pose follows from the mount")
 
 
 class NbvGoal(Message):
     """A next-best-view goal for one robot."""
 
     KIND: ClassVar[str] = "nbv_goal"
-    goal_id: str = Field(min_length=1, max_length=128)
+    goal_id: str = Field(min_length=1, max_length=128, description="sender-chosen id, echoed in GoalStatus")
     robot_id: str = Field(min_length=1, max_length=128)
     stamp_ns: int = Field(ge=0)
-    x: float
-    y: float
-    yaw_rad: float
+    x: float = Field(description="goal base position x, metres (world frame)")
+    y: float = Field(description="goal base position y, metres (world frame)")
+    yaw_rad: float = Field(description="goal heading, radians from world +x, counter-clockwise")
     vp_id: int | None = Field(default=None, description="the viewpoint chosen, if from the robot's set")
     strategy: str = Field(default="", description="planner strategy (see, asp, ...)")
     expected_gain: float = Field(default=0.0, description="score of the goal (bits for asp)")
     reason: str = Field(default="", description="why this goal")
-    graph_version: int = Field(default=0, ge=0)
+    graph_version: int = Field(default=0, ge=0, description="graph version the goal was planned on")
 
 
 class OrientedBox(Message):
@@ -229,7 +270,7 @@ class OrientedBox(Message):
     KIND: ClassVar[str] = "oriented_box"
     center: Vec3
     extent: Vec3 = Field(description="full side lengths along the box's x, y, z axes, metres")
-    yaw_rad: float = 0.0
+    yaw_rad: float = Field(default=0.0, description="rotation about world z, radians")
 
     @field_validator("extent")
     @classmethod
@@ -241,25 +282,25 @@ class OrientedBox(Message):
 
 class LabelScore(Message):
     KIND: ClassVar[str] = "label_score"
-    label: str
-    score: float
+    label: str = Field(description="a candidate label")
+    score: float = Field(description="its score (0..1 for the built-in labelers)")
 
 
 class GraphNode(Message):
     """One object node of the scene graph."""
 
     KIND: ClassVar[str] = "graph_node"
-    node_id: str = Field(min_length=1, max_length=64)
-    label: str
-    label_confidence: float = Field(ge=0.0, le=1.0)
-    label_alternatives: list[LabelScore] = Field(default_factory=list)
-    centroid: Vec3
-    box: OrientedBox
-    point_count: int = Field(ge=0)
-    observation_count: int = Field(ge=0)
+    node_id: str = Field(min_length=1, max_length=64, description="stable id of the object (a single key chunk)")
+    label: str = Field(description="best label, e.g. chair")
+    label_confidence: float = Field(ge=0.0, le=1.0, description="confidence of the label, 0..1")
+    label_alternatives: list[LabelScore] = Field(default_factory=list, description="runner-up labels")
+    centroid: Vec3 = Field(description="centre of the object's points, x, y, z in metres (world frame)")
+    box: OrientedBox = Field(description="bounding box (world frame, metres)")
+    point_count: int = Field(ge=0, description="3D points fused into the object")
+    observation_count: int = Field(ge=0, description="frames that observed it")
     sources: list[str] = Field(default_factory=list, description="source ids that observed it")
-    first_seen_ns: int = Field(ge=0)
-    last_seen_ns: int = Field(ge=0)
+    first_seen_ns: int = Field(ge=0, description="capture time of the first observation, ns since the epoch")
+    last_seen_ns: int = Field(ge=0, description="capture time of the latest observation, ns since the epoch")
     embedding: NDArray | None = Field(default=None, description="region descriptor (float32), optional")
 
     @field_validator("embedding")
@@ -278,9 +319,9 @@ class GraphEdge(Message):
     """A relation ``subject predicate object``, e.g. cup on_top_of table."""
 
     KIND: ClassVar[str] = "graph_edge"
-    subject_id: str
-    predicate: Predicate
-    object_id: str
+    subject_id: str = Field(description="node id of the subject (e.g. the cup)")
+    predicate: Predicate = Field(description="the spatial relation")
+    object_id: str = Field(description="node id of the object (e.g. the table)")
 
 
 class GraphSnapshot(Message):
@@ -322,7 +363,7 @@ class PointMap(Message):
     KIND: ClassVar[str] = "point_map"
     version: int = Field(ge=0)
     stamp_ns: int = Field(ge=0)
-    voxel_m: float = Field(gt=0.0)
+    voxel_m: float = Field(gt=0.0, description="voxel size of the downsampling, metres")
     points: NDArray = Field(description="(N, 3) float32 world points")
     counts: NDArray | None = Field(default=None, description="(N,) observations per voxel")
     colors: NDArray | None = Field(default=None, description="(N, 3) uint8")
@@ -346,12 +387,12 @@ class Status(Message):
     """Heartbeat and counters of one process, published at a low rate."""
 
     KIND: ClassVar[str] = "status"
-    role: str
-    node_id: str
+    role: str = Field(description="process role: mapper, planner, robot-agent, edge-camera, ...")
+    node_id: str = Field(description="process id within its role")
     stamp_ns: int = Field(ge=0)
     state: str = Field(default="ok", description="ok / degraded / error / starting / stopping / no_link")
-    counters: dict[str, float] = Field(default_factory=dict)
-    last_error: str | None = None
+    counters: dict[str, float] = Field(default_factory=dict, description="named counters and gauges")
+    last_error: str | None = Field(default=None, description="the latest error, if any")
 
 
 Heartbeat = Status
@@ -366,8 +407,8 @@ class OracleFrame(Message):
     """
 
     KIND: ClassVar[str] = "oracle_frame"
-    source_id: str = Field(min_length=1, max_length=128)
-    seq: int = Field(ge=0)
+    source_id: str = Field(min_length=1, max_length=128, description="the simulated camera or robot")
+    seq: int = Field(ge=0, description="seq of the frame this ground truth belongs to")
     stamp_ns: int = Field(ge=0)
     T_world_cam_true: Mat4 = Field(description="true camera pose")
     ids_png: bytes | None = Field(
@@ -375,6 +416,46 @@ class OracleFrame(Message):
     )
     depth_png: bytes | None = Field(default=None, description="16-bit PNG of z-depth in millimetres (0 = none)")
     labels: dict[str, str] = Field(default_factory=dict, description="str(object id) -> label")
+
+class GoalStatus(Message):
+    """A robot's answer to one goal message it received: accepted, or refused with the reason.
+
+    Published on ``robot/<id>/goal/status`` (and as JSON on ``robot/<id>/goal/status/json``) for every
+    goal payload, undecodable ones included (refusals are rate-limited; ``suppressed`` counts the ones
+    not published since the last published status).
+    """
+
+    KIND: ClassVar[str] = "goal_status"
+    robot_id: str = Field(min_length=1, max_length=128, description="the robot answering")
+    stamp_ns: int = Field(ge=0, description="when the robot decided, ns since the epoch")
+    goal_id: str | None = Field(
+        default=None, description="the goal's id (assigned by the robot for plain goals without one); null when "
+        "the payload was unreadable"
+    )
+    accepted: bool = Field(description="true: the robot is driving to the goal (or already pursues it)")
+    reason: str = Field(default="", description="why the goal was refused (validation error, ...); empty if accepted")
+    received: int = Field(ge=0, description="goal payloads this robot has received so far, this one included")
+    suppressed: int = Field(default=0, ge=0, description="refusals not published (rate limit) since the last status")
+
+
+class PlainGoal(BaseModel):
+    """A goal as a plain JSON object or plain msgpack map (no envelope), for clients without Argus.
+
+    The robot turns it into an :class:`NbvGoal` (``goal_id`` assigned when absent, ``stamp_ns`` = receipt).
+    Not an envelope message: it has no kind and no version.
+    """
+
+    model_config = ConfigDict(extra="forbid")
+    robot_id: str = Field(min_length=1, max_length=128, description="the robot that must drive")
+    x: float = Field(description="goal base position x, metres (world frame)")
+    y: float = Field(description="goal base position y, metres (world frame)")
+    yaw_rad: float = Field(
+        default=0.0, validation_alias=AliasChoices("yaw_rad", "yaw"),
+        description="goal heading, radians from world +x, counter-clockwise (key 'yaw' or 'yaw_rad')",
+    )
+    goal_id: str | None = Field(default=None, min_length=1, max_length=128, description="optional id echoed back")
+    vp_id: int | None = Field(default=None, ge=0, description="viewpoint id, if the goal is one of the robot's")
+
 
 ALL_MESSAGES: tuple[type[Message], ...] = (
     Intrinsics,
@@ -392,4 +473,5 @@ ALL_MESSAGES: tuple[type[Message], ...] = (
     PointMap,
     Status,
     OracleFrame,
+    GoalStatus,
 )

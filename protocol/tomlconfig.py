@@ -20,7 +20,7 @@ from typing import Annotated, Any, Literal, TypeVar, Union, get_args, get_origin
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
 from protocol.keys import validate_id
-from protocol.session import ZenohSettings, default_site
+from protocol.session import ZenohSettings, default_endpoints, default_site
 
 C = TypeVar("C", bound=BaseModel)
 
@@ -148,6 +148,19 @@ def process_values(a: argparse.Namespace, id_field: str = "id") -> dict[str, Any
     if getattr(a, "listen", None) is not None:
         values["zenoh.listen"] = a.listen
     return values
+
+
+def add_consumer_flags(p: argparse.ArgumentParser) -> None:
+    """``--connect`` (repeatable) and ``--site`` of the consumer commands (query, goal); unset, they
+    fall back to ``ARGUS_CONNECT`` / ``ARGUS_SITE``, then to ``tcp/127.0.0.1:7447`` / ``default``."""
+    p.add_argument("--connect", action="append", default=None,
+                   help="router endpoint (repeatable; default $ARGUS_CONNECT or tcp/127.0.0.1:7447)")
+    p.add_argument("--site", default=None, help="Argus site name (default $ARGUS_SITE or default)")
+
+
+def consumer_values(a: argparse.Namespace) -> tuple[ZenohSettings, str]:
+    """The client settings and site of :func:`add_consumer_flags`."""
+    return ZenohSettings(mode="client", connect=a.connect or default_endpoints()), a.site or default_site()
 
 
 class AgentConfig(BaseModel):

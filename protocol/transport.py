@@ -1,7 +1,9 @@
 """Transport helpers: frames as one sample, typed messages, bounded receive buffers, liveliness.
 
 A frame is one Zenoh sample: payload = the JPEG bytes (encoding ``image/jpeg``, so any Zenoh tool
-can show it), attachment = the codec-encoded :class:`~protocol.messages.FrameHeader`.
+can show it), attachment = the codec-encoded :class:`~protocol.messages.FrameHeader`. Every other
+message sample carries the encoding ``application/msgpack;argus/<kind>/<major>.<minor>``
+(:func:`message_encoding`), so a reader knows the schema before it opens the payload.
 """
 
 from __future__ import annotations
@@ -14,7 +16,7 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any, Generic, TypeVar
 
-from protocol.codec import DecodeError, decode, encode
+from protocol.codec import MSGPACK_MIME, DecodeError, content_type, decode, encode
 from protocol.messages import FrameHeader, Message, Status
 
 if TYPE_CHECKING:
@@ -47,13 +49,26 @@ def declare_frame_publisher(session: zenoh.Session, key: str) -> zenoh.Publisher
     )
 
 
-def declare_message_publisher(session: zenoh.Session, key: str, *, important: bool = True) -> zenoh.Publisher:
-    """Publisher for codec messages. ``important`` (goals, deltas): BLOCK and a higher priority."""
+def message_encoding(cls: type[Message] | None = None, mime: str = MSGPACK_MIME) -> zenoh.Encoding:
+    """Zenoh encoding of a ``cls`` sample: ``application/msgpack;argus/<kind>/<major>.<minor>``.
+
+    Without ``cls``: plain ``application/msgpack`` (a publisher of several kinds).
+    """
+    import zenoh
+
+    return zenoh.Encoding(content_type(cls, mime) if cls is not None else mime)
+
+
+def declare_message_publisher(
+    session: zenoh.Session, key: str, *, important: bool = True, message: type[Message] | None = None
+) -> zenoh.Publisher:
+    """Publisher for codec messages of class ``message`` (named in the sample encoding, see
+    :func:`message_encoding`). ``important`` (goals, deltas): BLOCK and a higher priority."""
     import zenoh
 
     return session.declare_publisher(
         key,
-        encoding=zenoh.Encoding.APPLICATION_OCTET_STREAM,
+        encoding=message_encoding(message),
         congestion_control=zenoh.CongestionControl.BLOCK if important else zenoh.CongestionControl.DROP,
         priority=zenoh.Priority.INTERACTIVE_HIGH if important else zenoh.Priority.DATA,
     )
@@ -262,7 +277,7 @@ class StatusReporter:
         period_s: float = 1.0,
         extra: Callable[[], dict[str, Any]] | None = None,
     ) -> None:
-        self._pub = LatestValue(session, declare_message_publisher(session, key, important=False))
+        self._pub = LatestValue(session, declare_message_publisher(session, key, important=False, message=Status))
         self.role, self.node_id, self.counters, self.period_s = role, node_id, counters, period_s
         self.link = LinkWatch(session, counters, f"{role} {node_id}")
         self.state = "ok"

@@ -1,11 +1,19 @@
-"""Pure goal and budget logic of the robot agent (no I/O)."""
+"""Pure goal and budget logic of the robot agent (no I/O): reading goal payloads, judging goals,
+the exploration budget and the rate limit on published refusals."""
 
 from __future__ import annotations
 
+import json
 import math
+import threading
 from dataclasses import dataclass
+from typing import Any
 
-from protocol.messages import NbvGoal
+import msgpack
+from pydantic import ValidationError
+
+from protocol.codec import DecodeError, decode
+from protocol.messages import NbvGoal, PlainGoal
 
 
 def goal_problem(goal: NbvGoal, robot_id: str) -> str | None:
@@ -33,3 +41,104 @@ class Budget:
         if self.max_steps is not None and steps >= self.max_steps:
             return f"step budget of {self.max_steps} goals used"
         return None
+
+
+MAX_GOAL_BYTES = 64 * 1024
+"""Larger goal payloads are refused unread."""
+
+
+class GoalRefused(ValueError):
+    """A goal payload that cannot be read as a goal; ``goal_id`` when one could still be made out."""
+
+    def __init__(self, reason: str, goal_id: str | None = None) -> None:
+        super().__init__(reason)
+        self.reason, self.goal_id = reason, goal_id
+
+
+def _validation_reason(e: ValidationError, limit: int = 4) -> str:
+    errs = e.errors()
+    parts = [f"{'.'.join(str(p) for p in err['loc']) or 'goal'}: {err['msg']}" for err in errs[:limit]]
+    more = f" (+{len(errs) - limit} more)" if len(errs) > limit else ""
+    return "; ".join(parts) + more
+
+
+def _goal_id_of(body: Any) -> str | None:
+    """The ``goal_id`` a refused payload carried, if it is a usable string (to echo it back)."""
+    gid = body.get("goal_id") if isinstance(body, dict) else None
+    return gid if isinstance(gid, str) and 0 < len(gid) <= 128 else None
+
+
+def plain_to_goal(plain: PlainGoal, default_id: str, stamp_ns: int) -> NbvGoal:
+    """The NbvGoal of a plain goal (``default_id`` when it has no ``goal_id``)."""
+    return NbvGoal(
+        goal_id=plain.goal_id or default_id, robot_id=plain.robot_id, stamp_ns=stamp_ns, x=plain.x, y=plain.y,
+        yaw_rad=plain.yaw_rad, vp_id=plain.vp_id, strategy="plain", reason="plain goal",
+    )
+
+
+def parse_goal(data: bytes, default_id: str, stamp_ns: int) -> tuple[NbvGoal, str]:
+    """Read a goal payload: an Argus ``nbv_goal`` envelope, or a plain JSON object / msgpack map.
+
+    Returns ``(goal, form)`` with form ``envelope``, ``json`` or ``msgpack``; raises :class:`GoalRefused`
+    with a one-line reason otherwise. Plain goals are validated as :class:`PlainGoal`.
+    """
+    if len(data) > MAX_GOAL_BYTES:
+        raise GoalRefused(f"goal payload of {len(data)} bytes exceeds {MAX_GOAL_BYTES}")
+    if data.lstrip()[:1] in (b"{", b"["):  # JSON (0x7b and 0x5b are msgpack ints, never a goal)
+        try:
+            body, form = json.loads(data.decode("utf-8")), "json"
+        except (UnicodeDecodeError, ValueError) as e:
+            raise GoalRefused(f"not a JSON object: {e}") from None
+    else:
+        try:
+            body, form = msgpack.unpackb(data, raw=False, strict_map_key=False, max_bin_len=MAX_GOAL_BYTES), "msgpack"
+        except Exception as e:  # noqa: BLE001 - msgpack raises many types on garbage
+            raise GoalRefused(f"neither JSON nor msgpack: {type(e).__name__}: {e}") from None
+        if isinstance(body, list):  # an envelope
+            try:
+                return decode(data, NbvGoal), "envelope"
+            except DecodeError as e:
+                gid = _goal_id_of(body[4]) if len(body) == 5 else None
+                raise GoalRefused(str(e), gid) from None
+    if not isinstance(body, dict):
+        raise GoalRefused(f"a {form} goal must be an object/map, got {type(body).__name__}")
+    try:
+        plain = PlainGoal.model_validate(body)
+    except ValidationError as e:
+        raise GoalRefused(f"{form} goal refused: {_validation_reason(e)}", _goal_id_of(body)) from None
+    return plain_to_goal(plain, default_id, stamp_ns), form
+
+
+class RefusalLimiter:
+    """Token bucket bounding how many refusals are published: ``rate_per_s`` on average, bursts of ``burst``.
+
+    ``allow(now)`` spends a token or counts the refusal as suppressed; ``take_suppressed()`` returns that
+    count and resets it (the next published status carries it). Thread-safe.
+    """
+
+    def __init__(self, rate_per_s: float = 10.0, burst: int = 20) -> None:
+        if rate_per_s <= 0 or burst < 1:
+            raise ValueError("rate_per_s must be > 0 and burst >= 1")
+        self.rate_per_s, self.burst = rate_per_s, burst
+        self._tokens = float(burst)
+        self._last: float | None = None
+        self._suppressed = 0
+        self.suppressed_total = 0
+        self._lock = threading.Lock()
+
+    def allow(self, now: float) -> bool:
+        with self._lock:
+            if self._last is not None:
+                self._tokens = min(float(self.burst), self._tokens + (now - self._last) * self.rate_per_s)
+            self._last = now
+            if self._tokens >= 1.0:
+                self._tokens -= 1.0
+                return True
+            self._suppressed += 1
+            self.suppressed_total += 1
+            return False
+
+    def take_suppressed(self) -> int:
+        with self._lock:
+            n, self._suppressed = self._suppressed, 0
+            return n

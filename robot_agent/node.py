@@ -4,22 +4,30 @@ One control thread owns the body. Zenoh callbacks only decode goals into a one-s
 newest goal wins, so a new goal pre-empts the current one) and answer viewpoint queries from a
 cached encoding. Nothing a peer sends can stop the loop: undecodable goals are counted and dropped,
 bad goals are refused with a reason in the published state.
+
+Every goal payload gets an answer, a :class:`GoalStatus` on ``robot/<id>/goal/status`` (msgpack envelope)
+and ``robot/<id>/goal/status/json`` (JSON): accepted, or refused with the reason (validation error,
+wrong robot, budget, superseded in the mailbox, ...). Goals may be ``nbv_goal`` envelopes or plain
+JSON objects / msgpack maps (:class:`protocol.messages.PlainGoal`). Refusals are rate-limited
+(:class:`robot_agent.goals.RefusalLimiter`); callbacks only queue them (bounded), the control loop publishes.
 """
 
 from __future__ import annotations
 
+import collections
+import itertools
 import logging
 import math
 import threading
 import time
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from protocol.codec import DecodeError, decode, encode
+from protocol.codec import encode
 from protocol.jpeg import encode_jpeg
 from protocol.keys import Keys
-from protocol.messages import FrameHeader, NbvGoal, OracleFrame, RobotState, RobotStatus, ViewpointSet
+from protocol.messages import FrameHeader, GoalStatus, NbvGoal, OracleFrame, RobotState, RobotStatus, ViewpointSet
 from protocol.oracle import depth_to_png, ids_to_png
 from protocol.session import open_session_retrying
 from protocol.transport import (
@@ -28,38 +36,50 @@ from protocol.transport import (
     StatusReporter,
     declare_frame_publisher,
     declare_message_publisher,
+    message_encoding,
     put_frame,
 )
 from robot_agent.bodies import create_body
 from robot_agent.bodies.base import RobotBody
 from robot_agent.config import RobotAgentConfig
-from robot_agent.goals import Budget, goal_problem
+from robot_agent.goals import Budget, GoalRefused, RefusalLimiter, goal_problem, parse_goal
 
 if TYPE_CHECKING:
     import zenoh
 
 log = logging.getLogger("argus.robot_agent")
 ROLE = "robot-agent"
+ACK_QUEUE = 64
+"""Refusals decided in Zenoh callbacks wait here (bounded) for the control loop to publish them."""
 
 
 class GoalMailbox:
-    """One slot, newest wins; ``superseded`` counts goals replaced before the loop took them."""
+    """One slot, newest wins; ``superseded`` counts goals replaced before the loop took them.
+
+    Each goal is held with the receipt number its answer (GoalStatus.received) will carry.
+    """
 
     def __init__(self) -> None:
         self._lock = threading.Lock()
-        self._goal: NbvGoal | None = None
+        self._goal: tuple[NbvGoal, int] | None = None
         self.superseded = 0
 
-    def put(self, goal: NbvGoal) -> None:
+    def put(self, goal: NbvGoal, received: int = 0) -> tuple[NbvGoal, int] | None:
+        """Hold ``goal``; returns the goal (and receipt number) it replaced, if any."""
         with self._lock:
-            if self._goal is not None:
+            old, self._goal = self._goal, (goal, received)
+            if old is not None:
                 self.superseded += 1
-            self._goal = goal
+            return old
+
+    def take_with_receipt(self) -> tuple[NbvGoal, int] | None:
+        with self._lock:
+            item, self._goal = self._goal, None
+            return item
 
     def take(self) -> NbvGoal | None:
-        with self._lock:
-            goal, self._goal = self._goal, None
-            return goal
+        item = self.take_with_receipt()
+        return item[0] if item is not None else None
 
 
 def _ema(counters: Counters, name: str, value: float, alpha: float = 0.2) -> None:
@@ -96,18 +116,59 @@ class RobotAgent:
         self.seq = 0
         self._travel_cost: np.ndarray | None = None
         self._reporter: StatusReporter | None = None
+        self._received = itertools.count(1)
+        self.limiter = RefusalLimiter()
+        self._acks: collections.deque[GoalStatus] = collections.deque(maxlen=ACK_QUEUE)
+        self._ack_pubs: list[tuple[Any, bool]] = []  # (publisher, as JSON), set by declare_publishers
 
     # --- Zenoh callbacks (other threads) -----------------------------------------------------
     def on_goal_bytes(self, data: bytes) -> None:
-        """Decode a goal payload into the mailbox; garbage is counted and dropped."""
+        """Decode a goal payload into the mailbox; garbage is counted, refused (queued answer) and dropped."""
         self.counters.add("goals_received")
+        received = next(self._received)
         try:
-            goal = decode(data, NbvGoal)
-        except DecodeError as e:
+            goal, form = parse_goal(data, f"{self.config.id}-goal-{received}", time.time_ns())
+        except GoalRefused as e:
             self.counters.add("goals_garbage")
-            log.warning("ignoring undecodable goal payload (%d bytes): %s", len(data), e)
+            if self._queue_refusal(e.goal_id, e.reason, received):
+                log.warning("refusing an unreadable goal payload (%d bytes): %s", len(data), e.reason)
             return
-        self.mailbox.put(goal)
+        self.counters.add(f"goals_{form}")
+        old = self.mailbox.put(goal, received)
+        if old is not None:
+            self._queue_refusal(old[0].goal_id, f"superseded by goal {goal.goal_id!r} before it was started", old[1])
+
+    def _queue_refusal(self, goal_id: str | None, reason: str, received: int) -> bool:
+        """Queue a refusal for the control loop to publish; False when the rate limit only counted it."""
+        if not self.limiter.allow(time.monotonic()):
+            return False
+        if len(self._acks) == self._acks.maxlen:
+            self.counters.add("goal_acks_dropped")  # the loop is stalled; the oldest queued answer goes
+        self._acks.append(self._goal_status(goal_id, False, reason, received))
+        return True
+
+    def _goal_status(self, goal_id: str | None, accepted: bool, reason: str, received: int) -> GoalStatus:
+        return GoalStatus(robot_id=self.config.id, stamp_ns=time.time_ns(), goal_id=goal_id, accepted=accepted,
+                          reason=reason, received=received)
+
+    def _answer_goal(self, goal: NbvGoal, accepted: bool, reason: str, received: int) -> None:
+        """Publish a goal's answer now (control thread); refusals go through the rate limit."""
+        if not accepted and not self.limiter.allow(time.monotonic()):
+            return
+        self._publish_goal_status(self._goal_status(goal.goal_id, accepted, reason, received))
+
+    def _publish_goal_status(self, status: GoalStatus) -> None:
+        status = status.model_copy(update={"suppressed": self.limiter.take_suppressed()})
+        for pub, as_json in self._ack_pubs:
+            try:
+                pub.put(status.model_dump_json() if as_json else encode(status))
+            except Exception as e:  # noqa: BLE001 - a closing session must not kill the loop
+                log.warning("goal status publish failed: %s", e)
+        self.counters.add("goal_statuses_sent")
+
+    def _flush_acks(self) -> None:
+        while self._acks:
+            self._publish_goal_status(self._acks.popleft())
 
     def _on_goal_sample(self, sample: zenoh.Sample) -> None:
         try:
@@ -118,7 +179,8 @@ class RobotAgent:
 
     def _on_viewpoints_query(self, query: zenoh.Query) -> None:
         try:
-            query.reply(self.keys.robot_viewpoints(self.config.id), self._viewpoints_bytes)
+            query.reply(self.keys.robot_viewpoints(self.config.id), self._viewpoints_bytes,
+                        encoding=message_encoding(ViewpointSet))
             self.counters.add("viewpoint_queries")
         except Exception as e:  # noqa: BLE001
             log.warning("viewpoint query reply failed: %s", e)
@@ -226,12 +288,14 @@ class RobotAgent:
         return (t1 - t0) * 1e3, (t2 - t1) * 1e3, (t3 - t2) * 1e3
 
     # --- control ----------------------------------------------------------------------------
-    def handle_goal(self, goal: NbvGoal) -> None:
-        """Validate and start a goal (pre-empting any current one), or refuse it with a reason."""
+    def handle_goal(self, goal: NbvGoal, received: int = 0) -> None:
+        """Validate and start a goal (pre-empting any current one), or refuse it with a reason; either way
+        publish its GoalStatus (``received``: the payload's receipt number)."""
         if self.goal is not None and goal.goal_id == self.goal_id and self.status in ("moving", "arrived"):
             # A planner re-sending the goal in progress (or just reached) must not restart it or
             # count another step; it gets the current state again.
             self.counters.add("goals_duplicate")
+            self._answer_goal(goal, True, "", received)
             self._publish_state()
             return
         problem = goal_problem(goal, self.config.id)
@@ -240,6 +304,7 @@ class RobotAgent:
             self.goal_id = goal.goal_id
             self.counters.add("goals_refused")
             log.info("refusing goal %s: %s", goal.goal_id, self.exhausted)
+            self._answer_goal(goal, False, self.exhausted, received)
             self._set("budget_exhausted", self.exhausted)
             return
         if problem is None:
@@ -250,6 +315,7 @@ class RobotAgent:
             self.goal = None
             self.counters.add("goals_refused")
             log.info("refusing goal %s: %s", goal.goal_id, problem)
+            self._answer_goal(goal, False, problem, received)
             self._set("refused", problem)
             return
         if self.status == "moving":
@@ -259,13 +325,15 @@ class RobotAgent:
         self.counters.add("goals_accepted")
         log.info("goal %s: driving to (%.2f, %.2f, %.0f deg)", goal.goal_id, goal.x, goal.y,
                  math.degrees(goal.yaw_rad))
+        self._answer_goal(goal, True, "", received)
         self._set("moving")
 
     def tick(self, dt_wall_s: float) -> None:
         """One control step: take a goal, advance the body, publish what is due."""
-        goal = self.mailbox.take()
-        if goal is not None:
-            self.handle_goal(goal)
+        self._flush_acks()
+        item = self.mailbox.take_with_receipt()
+        if item is not None:
+            self.handle_goal(*item)
         now = time.monotonic()
         if self.status == "moving":
             result = self.body.step(dt_wall_s * self.config.motion.time_scale)
@@ -317,17 +385,25 @@ class RobotAgent:
         )
         self._oracle_pub = (  # sim only; BLOCK so the arrival frame's ORACLE sample is never lost
             session.declare_publisher(
-                self.keys.oracle("robot", rid), encoding=zenoh.Encoding.APPLICATION_OCTET_STREAM,
+                self.keys.oracle("robot", rid), encoding=message_encoding(OracleFrame),
                 congestion_control=zenoh.CongestionControl.BLOCK, priority=zenoh.Priority.DATA,
             )
             if self.body.oracle
             else None
         )
         self._state_pub = LatestValue(session, session.declare_publisher(  # late joiners query the newest state
-            self.keys.robot_state(rid), encoding=zenoh.Encoding.APPLICATION_OCTET_STREAM,
+            self.keys.robot_state(rid), encoding=message_encoding(RobotState),
             congestion_control=zenoh.CongestionControl.BLOCK, priority=zenoh.Priority.DATA,
         ))
-        self._vp_pub = declare_message_publisher(session, self.keys.robot_viewpoints(rid), important=True)
+        self._vp_pub = declare_message_publisher(
+            session, self.keys.robot_viewpoints(rid), important=True, message=ViewpointSet)
+        self._ack_pubs = [
+            (declare_message_publisher(session, self.keys.robot_goal_status(rid), message=GoalStatus), False),
+            (session.declare_publisher(
+                self.keys.robot_goal_status_json(rid), encoding=message_encoding(GoalStatus, "application/json"),
+                congestion_control=zenoh.CongestionControl.BLOCK, priority=zenoh.Priority.INTERACTIVE_HIGH,
+            ), True),
+        ]
 
     def run(self, stop: threading.Event) -> int:
         session = open_session_retrying(self.config.zenoh, stop, log)
@@ -342,7 +418,7 @@ class RobotAgent:
             self._reporter = StatusReporter(
                 session, self.keys.status(ROLE, rid), ROLE, rid, self.counters, self.config.status_period_s,
                 extra=lambda: {"goals_superseded": self.mailbox.superseded, "distance_m": self.body.distance_m(),
-                               "steps": self.steps},
+                               "steps": self.steps, "goal_refusals_suppressed": self.limiter.suppressed_total},
             )
             self._last_frame = self._last_state = self._last_viewpoints = time.monotonic()
             x, y, yaw = self.body.pose_odom()

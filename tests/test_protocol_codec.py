@@ -8,11 +8,12 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from protocol import codec
+from protocol import arrays as wire_arrays
 from protocol.codec import MAGIC, DecodeError, decode, encode
 from protocol.messages import (
     ALL_MESSAGES,
     FrameHeader,
+    GoalStatus,
     GraphDelta,
     GraphEdge,
     GraphNode,
@@ -103,6 +104,9 @@ STRATEGIES = {
     OracleFrame: st.builds(OracleFrame, source_id=ids, seq=st.integers(0, 100), stamp_ns=stamps,
                            T_world_cam_true=poses(), ids_png=st.one_of(st.none(), st.binary(max_size=64)),
                            labels=st.dictionaries(st.from_regex(r"[0-9]{1,4}", fullmatch=True), st.text(max_size=8))),
+    GoalStatus: st.builds(GoalStatus, robot_id=ids, stamp_ns=stamps, goal_id=st.one_of(st.none(), ids),
+                          accepted=st.booleans(), reason=st.text(max_size=40), received=st.integers(0, 10**6),
+                          suppressed=st.integers(0, 10**6)),
 }
 
 
@@ -209,7 +213,7 @@ def test_non_finite_pose_is_refused() -> None:
 def test_oversized_array_is_refused(monkeypatch: pytest.MonkeyPatch) -> None:
     pm = PointMap(version=1, stamp_ns=1, voxel_m=0.1, points=np.zeros((100, 3), np.float32))
     data = encode(pm)
-    monkeypatch.setattr(codec, "MAX_ARRAY_ELEMENTS", 299)
+    monkeypatch.setattr(wire_arrays, "MAX_ARRAY_ELEMENTS", 299)
     with pytest.raises(DecodeError, match="cap"):
         decode(data)
 

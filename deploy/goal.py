@@ -1,0 +1,126 @@
+"""``argus goal``: send one goal to a robot and print its answer (accepted, or refused with the reason).
+
+Examples::
+
+    argus goal --robot robot0 --x 2.0 --y 1.5 --yaw-deg 90
+    argus goal --robot robot0 --x 2 --y 1.5 --json          # the GoalStatus as JSON
+
+The goal is an ``nbv_goal`` envelope put on ``robot/<id>/goal``; the robot answers every goal payload
+with a :class:`~protocol.messages.GoalStatus` on ``robot/<id>/goal/status`` (docs/WIRE.md), which this
+command subscribes to before sending, so the answer cannot be missed.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import queue
+import sys
+import time
+from typing import Any
+
+from protocol.codec import DecodeError, decode, encode
+from protocol.keys import Keys
+from protocol.messages import GoalStatus, NbvGoal
+from protocol.session import ZenohUnavailable, clean_error, open_session
+from protocol.tomlconfig import add_consumer_flags, consumer_values
+
+EXIT_ACCEPTED, EXIT_REFUSED, EXIT_USAGE, EXIT_NO_ANSWER = 0, 1, 2, 4
+
+EPILOG = """examples:
+  argus goal --robot robot0 --x 2.0 --y 1.5 --yaw-deg 90
+  argus goal --robot robot0 --x 2 --y 1.5 --connect tcp/127.0.0.1:7447 --site demo --json
+
+exit status: 0 accepted, 1 refused (the reason is printed), 2 bad arguments, 4 no answer within --timeout
+(is the robot agent running, on this site?)."""
+
+
+def make_goal(robot_id: str, x: float, y: float, yaw_rad: float, goal_id: str | None = None) -> NbvGoal:
+    """The goal this command sends (``goal_id`` defaults to ``cli-<robot>-<ms since epoch>``)."""
+    now = time.time_ns()
+    return NbvGoal(goal_id=goal_id or f"cli-{robot_id}-{now // 1_000_000}", robot_id=robot_id, stamp_ns=now,
+                   x=x, y=y, yaw_rad=yaw_rad, strategy="cli", reason="argus goal")
+
+
+def send_goal(session: Any, keys: Keys, goal: NbvGoal, timeout_s: float = 5.0) -> GoalStatus | None:
+    """Put ``goal`` and wait for the robot's GoalStatus naming it; None after ``timeout_s`` without one."""
+    inbox: queue.Queue[bytes] = queue.Queue(maxsize=64)
+
+    def on_sample(sample: Any) -> None:
+        try:
+            inbox.put_nowait(sample.payload.to_bytes())
+        except queue.Full:
+            pass  # answers to other senders' goals; ours is matched by id below
+
+    sub = session.declare_subscriber(keys.robot_goal_status(goal.robot_id), on_sample)
+    try:
+        session.put(keys.robot_goal(goal.robot_id), encode(goal))
+        deadline = time.monotonic() + timeout_s
+        while (left := deadline - time.monotonic()) > 0:
+            try:
+                status = decode(inbox.get(timeout=left), GoalStatus)
+            except queue.Empty:
+                break
+            except DecodeError:
+                continue
+            if status.goal_id == goal.goal_id:
+                return status
+        return None
+    finally:
+        sub.undeclare()
+
+
+def describe(status: GoalStatus) -> str:
+    if status.accepted:
+        return f"robot {status.robot_id} accepted goal {status.goal_id}"
+    return f"robot {status.robot_id} refused goal {status.goal_id}: {status.reason}"
+
+
+def parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(
+        prog="argus goal", description="Send one goal to a robot and print its answer.", epilog=EPILOG,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument("--robot", required=True, help="robot id (the robot agent's --id)")
+    p.add_argument("--x", type=float, required=True, help="goal x, metres (world frame)")
+    p.add_argument("--y", type=float, required=True, help="goal y, metres (world frame)")
+    yaw = p.add_mutually_exclusive_group()
+    yaw.add_argument("--yaw", type=float, default=None, help="goal heading, radians from +x counter-clockwise")
+    yaw.add_argument("--yaw-deg", type=float, default=None, help="goal heading in degrees (instead of --yaw)")
+    p.add_argument("--goal-id", default=None, help="goal id (default: cli-<robot>-<ms since epoch>)")
+    add_consumer_flags(p)
+    p.add_argument("--timeout", type=float, default=5.0, help="seconds to wait for the robot's answer")
+    p.add_argument("--json", action="store_true", help="print the GoalStatus as JSON")
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    a = parser().parse_args(argv)
+    yaw = math.radians(a.yaw_deg) if a.yaw_deg is not None else (a.yaw or 0.0)
+    try:
+        settings, site = consumer_values(a)
+        keys = Keys(site)
+        goal = make_goal(a.robot, a.x, a.y, yaw, a.goal_id)
+        keys.robot_goal(goal.robot_id)
+    except ValueError as e:
+        print(f"argus goal: {e}", file=sys.stderr)
+        return EXIT_USAGE
+    try:
+        with open_session(settings) as session:
+            status = send_goal(session, keys, goal, a.timeout)
+    except ZenohUnavailable as e:
+        print(f"argus goal: {e}", file=sys.stderr)
+        return EXIT_NO_ANSWER
+    except Exception as e:  # noqa: BLE001 - anything else: a message, not a traceback
+        print(f"argus goal: {type(e).__name__}: {clean_error(e)}", file=sys.stderr)
+        return EXIT_NO_ANSWER
+    if status is None:
+        print(f"argus goal: no answer from robot {goal.robot_id!r} on site {site!r} within {a.timeout:g} s "
+              f"(is its robot agent running and connected to {', '.join(settings.connect)}?)", file=sys.stderr)
+        return EXIT_NO_ANSWER
+    print(status.model_dump_json() if a.json else describe(status))
+    return EXIT_ACCEPTED if status.accepted else EXIT_REFUSED
+
+
+if __name__ == "__main__":
+    sys.exit(main())
