@@ -29,7 +29,7 @@ EXIT_ACCEPTED, EXIT_REFUSED, EXIT_USAGE, EXIT_NO_ANSWER = 0, 1, 2, 4
 
 EPILOG = """examples:
   argus goal --robot robot0 --x 2.0 --y 1.5 --yaw-deg 90
-  argus goal --robot robot0 --x 2 --y 1.5 --connect tcp/127.0.0.1:7447 --site demo --json
+  argus goal --robot robot0 --x 2 --y 1.5 --connect tcp/127.0.0.1:7447 --json
 
 exit status: 0 accepted, 1 refused (the reason is printed), 2 bad arguments, 4 no answer within --timeout
 (is the robot agent running, on this site?)."""
