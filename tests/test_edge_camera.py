@@ -237,3 +237,67 @@ def test_video_end_without_loop_keeps_process_up_and_router_may_come_later(tmp_p
     assert proc.alive()
     proc.signal(signal.SIGTERM)
     assert proc.wait(timeout=15) == 0
+
+
+class MjpegServer:
+    """An HTTP MJPEG stream on 127.0.0.1 (multipart/x-mixed-replace), like an IP camera's; stop() drops it."""
+
+    def __init__(self, port: int) -> None:
+        import threading
+        import time
+        from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+
+        jpg = cv2.imencode(".jpg", np.full((48, 64, 3), 120, np.uint8))[1].tobytes()
+        part = b"--frame\r\nContent-Type: image/jpeg\r\nContent-Length: %d\r\n\r\n" % len(jpg) + jpg + b"\r\n"
+        self.alive = True
+        server = self
+
+        class Handler(BaseHTTPRequestHandler):
+            def log_message(self, *args: object) -> None:
+                pass
+
+            def do_GET(self) -> None:  # noqa: N802 - http.server's name
+                self.send_response(200)
+                self.send_header("Content-Type", "multipart/x-mixed-replace; boundary=frame")
+                self.end_headers()
+                try:
+                    while server.alive:
+                        self.wfile.write(part)
+                        time.sleep(0.05)
+                except OSError:
+                    pass
+
+        self.httpd = ThreadingHTTPServer(("127.0.0.1", port), Handler)
+        self.httpd.daemon_threads = True
+        threading.Thread(target=self.httpd.serve_forever, daemon=True).start()
+
+    def stop(self) -> None:
+        self.alive = False
+        self.httpd.shutdown()
+        self.httpd.server_close()
+
+
+def test_stream_that_goes_away_and_comes_back_recovers_without_a_restart(tmp_path, router, procs, listener_factory):
+    from tests.procs import free_port
+
+    port = free_port()
+    server = MjpegServer(port)
+    source = (f'type = "stream"\nurl = "http://127.0.0.1:{port}/stream.mjpg"\nopen_timeout_s = 2.0\n'
+              'read_timeout_s = 2.0\n')
+    cfg = write_config(tmp_path / "cam.toml", router, source)
+    lst = listener_factory(router, "cam_t")
+    proc = Proc(["edge-camera", "--config", str(cfg)])
+    procs.append(proc)
+    try:
+        wait_for(lambda: lst.n_frames() >= 3, timeout=30, what=f"first frames; output:\n{proc.output}")
+        server.stop()  # the camera's stream goes away
+        wait_for(lambda: any(s.state == "degraded" and s.counters.get("source_errors", 0) >= 1
+                             for s in list(lst.statuses)), timeout=30, what=f"degraded Status:\n{proc.output}")
+        n_before = lst.n_frames()
+        server = MjpegServer(port)  # back on the same URL
+        wait_for(lambda: lst.n_frames() >= n_before + 3, timeout=30, what=f"frames again:\n{proc.output}")
+        wait_for(lambda: any(s.counters.get("reconnects", 0) >= 1 and s.state == "ok" for s in list(lst.statuses)),
+                 timeout=10, what="Status ok after reconnecting")
+        assert proc.alive()
+    finally:
+        server.stop()
