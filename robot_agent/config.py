@@ -23,6 +23,12 @@ class FramesConfig(BaseModel):
     )
     on_start: bool = Field(default=True, description="publish one frame when the agent starts")
     jpeg_quality: int = Field(default=90, ge=1, le=100, description="JPEG quality 1..100")
+    goal_capture_m: float = Field(
+        default=0.3, ge=0, le=2.0,
+        description="at each goal, first step this far to the left and to the right of it (where the floor is "
+        "free) and publish a frame at each, then return: the stereo baseline RGB-only geometry needs at the "
+        "goal view; the sidesteps count in distance_m and in the time to arrival; 0: off",
+    )
 
 
 class MotionConfig(BaseModel):

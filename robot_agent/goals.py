@@ -27,6 +27,16 @@ def goal_problem(goal: NbvGoal, robot_id: str) -> str | None:
     return None
 
 
+def capture_waypoints(x: float, y: float, yaw_rad: float, lateral_m: float) -> list[tuple[float, float, float]]:
+    """The goal capture: the poses ``lateral_m`` to the left and to the right of a goal, facing the goal's
+    heading (the camera looks along ``yaw_rad``, so a sidestep is a baseline across its view), then the
+    goal itself. Empty when ``lateral_m`` is 0."""
+    if lateral_m <= 0:
+        return []
+    lx, ly = -math.sin(yaw_rad) * lateral_m, math.cos(yaw_rad) * lateral_m
+    return [(x + lx, y + ly, yaw_rad), (x - lx, y - ly, yaw_rad), (x, y, yaw_rad)]
+
+
 @dataclass(frozen=True)
 class Budget:
     """Exploration budget: metres driven and/or goals reached (``None``: unlimited)."""

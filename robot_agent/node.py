@@ -42,7 +42,7 @@ from protocol.transport import (
 from robot_agent.bodies import create_body
 from robot_agent.bodies.base import RobotBody
 from robot_agent.config import RobotAgentConfig
-from robot_agent.goals import Budget, GoalRefused, RefusalLimiter, goal_problem, parse_goal
+from robot_agent.goals import Budget, GoalRefused, RefusalLimiter, capture_waypoints, goal_problem, parse_goal
 
 if TYPE_CHECKING:
     import zenoh
@@ -108,6 +108,9 @@ class RobotAgent:
         self._viewpoints_bytes = encode(self.viewpoint_set)
         self.status: RobotStatus = "idle"
         self.goal: NbvGoal | None = None
+        # goal capture: the legs still to drive and the one being driven, as (x, y, yaw, take a frame there)
+        self._legs: list[tuple[float, float, float, bool]] = []
+        self._leg: tuple[float, float, float, bool] | None = None
         self.goal_id: str | None = None
         self.reason: str | None = None
         self.steps = 0
@@ -320,6 +323,7 @@ class RobotAgent:
             return
         if self.status == "moving":
             self.counters.add("goals_preempted")
+        self._legs, self._leg = [], None
         self.goal = goal
         self.viewpoint_id = None
         self.counters.add("goals_accepted")
@@ -327,6 +331,34 @@ class RobotAgent:
                  math.degrees(goal.yaw_rad))
         self._answer_goal(goal, True, "", received)
         self._set("moving")
+
+    def _capture_step(self, result: str) -> bool:
+        """The goal capture (``frames.goal_capture_m``): on reaching the goal, drive to the poses left and
+        right of it, publishing a frame at each, then back to the goal. True while it goes on (the robot
+        stays ``moving``); False when the goal is finally reached or failed, or there is no capture."""
+        goal, leg = self.goal, self._leg
+        if goal is None:
+            return False
+        if leg is None:  # the goal itself was reached (or failed): start the capture?
+            if result != "arrived" or self.config.frames.goal_capture_m <= 0:
+                return False
+            self._legs = [(*p, True) for p in capture_waypoints(goal.x, goal.y, goal.yaw_rad,
+                                                                 self.config.frames.goal_capture_m)]
+            self._legs[-1] = (*self._legs[-1][:3], False)  # the way back: no frame, the arrival frame follows
+        elif not leg[3]:  # back at the goal after the capture: a normal arrival (or failure) from here
+            self._leg = None
+            return False
+        elif result == "arrived":
+            self.publish_frame(reliable=True)
+            self.counters.add("capture_frames")
+        while self._legs:
+            nxt = self._legs.pop(0)
+            if self.body.drive_to(*nxt[:3]) is None:
+                self._leg = nxt
+                return True
+            self.counters.add("capture_skipped")  # blocked floor on that side (or no way back): skipped
+        self._leg = None
+        return False
 
     def tick(self, dt_wall_s: float) -> None:
         """One control step: take a goal, advance the body, publish what is due."""
@@ -338,7 +370,9 @@ class RobotAgent:
         if self.status == "moving":
             result = self.body.step(dt_wall_s * self.config.motion.time_scale)
             driven_out = Budget(self.budget.max_distance_m).exhausted(self.body.distance_m(), 0)
-            if result == "arrived":
+            if result in ("arrived", "failed") and driven_out is None and self._capture_step(result):
+                self._publish_state()  # the goal capture goes on: still moving
+            elif result == "arrived":
                 self.steps += 1
                 self.counters.add("arrivals")
                 self.viewpoint_id = self.goal.vp_id if self.goal is not None else None

@@ -88,7 +88,8 @@ def wait_arrival_frame(client: RobotClient, arrived: RobotState) -> Frame:
     return frame
 
 
-def kinematic_config(path: Path, router: str, body_extra: str = "", extra: str = "") -> Path:
+def kinematic_config(path: Path, router: str, body_extra: str = "", extra: str = "", capture_m: float = 0.0) -> Path:
+    """A kinematic robot's config (goal capture off unless ``capture_m``: these tests time the drive itself)."""
     path.write_text(
         f"""id = "{RID}"
 state_period_s = 0.5
@@ -108,6 +109,7 @@ odom_yaw_sigma = 0.005
 {body_extra}
 [frames]
 moving_rate_hz = 5.0
+goal_capture_m = {capture_m}
 [motion]
 tick_hz = 50.0
 time_scale = 4.0
@@ -236,6 +238,7 @@ odom_rot_std_deg_per_m = 0.5
 oracle = true
 [frames]
 moving_rate_hz = 2.0
+goal_capture_m = 0.0
 [motion]
 tick_hz = 50.0
 time_scale = 10.0
@@ -290,3 +293,24 @@ connect = ["{router}"]
     client.send(b"\xc1\xc1 not msgpack")
     wait_for(lambda: client.counter("goals_garbage") >= 1, timeout=20, what="garbage counted")
     assert proc.alive()
+
+
+def test_goal_capture_frames_left_and_right_of_the_goal_before_the_arrival(tmp_path, router, procs, client_factory):
+    proc, client = start_agent(tmp_path, router, procs, client_factory, capture_m=0.4)
+    client.goal("g1", 1.5, 3.0, 0.0)  # facing +x: the sidesteps are along y
+    wait_for(lambda: client.state_where(lambda s: s.status == "arrived" and s.goal_id == "g1") is not None,
+             timeout=30, what=f"arrival; output:\n{proc.output}")
+    arrived = client.state_where(lambda s: s.status == "arrived" and s.goal_id == "g1")
+    wait_arrival_frame(client, arrived)
+    with client._lock:
+        xy = [tuple(np.asarray(f.header.T_world_cam)[:2, 3]) for f in client.frames
+              if f.header.stamp_ns <= arrived.stamp_ns]
+
+    def first_near(x: float, y: float) -> int:
+        return next(i for i, p in enumerate(xy) if math.hypot(p[0] - x, p[1] - y) < 0.05)
+
+    # a frame 0.4 m left of the goal, then one 0.4 m right of it, then the arrival frame at the goal
+    assert first_near(1.5, 3.4) < first_near(1.5, 2.6) < len(xy) - 1
+    assert math.hypot(xy[-1][0] - 1.5, xy[-1][1] - 3.0) < 0.05
+    assert math.hypot(arrived.x - 1.5, arrived.y - 3.0) < 0.08
+    wait_for(lambda: client.counter("capture_frames") == 2, timeout=10, what="the capture counted in status")

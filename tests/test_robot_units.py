@@ -157,8 +157,46 @@ def test_agent_tick_drives_publishes_arrival_frame_then_state_and_counts_garbage
         if agent.status != "moving":
             break
     assert agent.status == "arrived" and agent.steps == 1 and agent.viewpoint_id == 7
-    assert len(agent._arrival_pub.puts) == 1
+    # the default goal capture: a frame 0.3 m left and right of the goal, then the arrival frame at the goal
+    assert len(agent._arrival_pub.puts) == 3 and agent.counters.get("capture_frames") == 2
     assert agent.state().travel_cost_m is not None
+    x, y, yaw = agent.body.pose_odom()
+    assert (x, y) == pytest.approx((2.0, 1.0), abs=0.02)
+    assert agent.body.distance_m() == pytest.approx(1.0 + 0.3 + 0.6 + 0.3, abs=0.05)  # sidesteps counted
+
+
+def test_goal_capture_off_and_blocked_sides() -> None:
+    agent = agent_with_fakes(frames={"goal_capture_m": 0.0})
+    agent.handle_goal(goal(robot_id="r", x=2.0, y=1.0))
+    for _ in range(100):
+        agent.tick(0.1)
+        if agent.status != "moving":
+            break
+    assert agent.status == "arrived" and len(agent._arrival_pub.puts) == 1
+    assert agent.body.distance_m() == pytest.approx(1.0, abs=0.02)
+    # a goal by the room's edge (bounds 0..6 x 0..4 m): the side outside is skipped, the other captured
+    agent = agent_with_fakes()
+    agent.handle_goal(goal(robot_id="r", x=2.0, y=0.4, yaw_rad=0.0))  # right side (y 0.1) is off the floor
+    for _ in range(200):
+        agent.tick(0.1)
+        if agent.status != "moving":
+            break
+    assert agent.status == "arrived"
+    assert agent.counters.get("capture_frames") == 1 and agent.counters.get("capture_skipped") == 1
+
+
+def test_a_new_goal_during_the_capture_preempts_it() -> None:
+    agent = agent_with_fakes()
+    agent.handle_goal(goal(robot_id="r", x=2.0, y=1.0, goal_id="g1"))
+    while agent.counters.get("capture_frames") < 1:
+        agent.tick(0.05)
+    agent.handle_goal(goal(robot_id="r", x=1.0, y=1.5, goal_id="g2"))
+    for _ in range(200):
+        agent.tick(0.1)
+        if agent.status != "moving":
+            break
+    assert agent.status == "arrived" and agent.goal_id == "g2"
+    assert agent.counters.get("capture_frames") == 3  # one of g1, two of g2
 
 
 def test_agent_distance_budget_stops_the_robot():
