@@ -13,6 +13,7 @@ import pytest
 
 import mapper.persistence as persistence
 from mapper.config import GeometryConfig, MapperConfig, PerceptionConfig
+from mapper.geometry.contract import OracleData, View
 from mapper.node import MapperNode
 from mapper.persistence import Lease, read_lease, remove_stale_temps, resume, state_path, write_lease
 from planner.config import PlannerNodeConfig
@@ -20,7 +21,6 @@ from planner.node import PlannerNode
 from protocol.codec import MAGIC, decode, encode
 from protocol.graph import RESYNC_AFTER, GraphFollower, GraphVersionError, apply_delta
 from protocol.messages import GraphDelta, GraphNode, GraphSnapshot, OrientedBox
-from mapper.geometry.contract import OracleData, View
 from protocol.poses import look_at
 from tests.test_fusion import INTR, raycast
 from tests.test_mapper_core import BOXES, EYES, view
