@@ -374,7 +374,8 @@ class PlannerNode:
                 self.config.node_id,
                 self.counters,
                 self.config.status_period_s,
-                extra=lambda: {"robots": len(self.states), "graph_nodes": len(self.graph.nodes)},
+                extra=lambda: {"robots": len(self.states), "graph_nodes": len(self.graph.nodes),
+                               "graph_version": self.graph.version},
             )
             log.info(
                 "planner %s up: strategy %s, sampler %s",
