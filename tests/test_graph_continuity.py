@@ -6,6 +6,7 @@ from __future__ import annotations
 import errno
 import os
 from pathlib import Path
+from typing import Any
 
 import msgpack
 import numpy as np
@@ -22,6 +23,7 @@ from protocol.codec import MAGIC, decode, encode
 from protocol.graph import RESYNC_AFTER, GraphFollower, GraphVersionError, apply_delta
 from protocol.messages import GraphDelta, GraphNode, GraphSnapshot, OrientedBox
 from protocol.poses import look_at
+from tests.procs import wait_for
 from tests.test_fusion import INTR, raycast
 from tests.test_mapper_core import BOXES, EYES, view
 
@@ -318,3 +320,47 @@ def test_a_state_dir_that_cannot_exist_still_serves(tmp_path: Path) -> None:
     assert deltas and m.keeper.failing and m.counters.get("lease_errors") >= 1
     m.save(force=True)
     assert m.counters.get("save_errors") == 1 and len(m.core.snapshot().nodes) >= 2
+
+
+# --- argus query watch --------------------------------------------------------------------------------------
+class _Sample:
+    def __init__(self, data: bytes) -> None:
+        self.payload = self
+        self._data = data
+
+    def to_bytes(self) -> bytes:
+        return self._data
+
+
+class _Session:
+    """Just enough of a zenoh session for run_watch: the test pushes the samples."""
+
+    def __init__(self) -> None:
+        self.callback: Any = None
+
+    def declare_subscriber(self, _key: str, callback: Any) -> _Session:
+        self.callback = callback
+        return self
+
+    def undeclare(self) -> None:
+        pass
+
+
+def test_watch_says_new_epoch_not_gap(capsys: pytest.CaptureFixture[str]) -> None:
+    import threading
+
+    from deploy.query import run_watch
+    from protocol.keys import Keys
+
+    session = _Session()
+    deltas = [GraphDelta(epoch="A", version=v, stamp_ns=0) for v in (5, 6, 8)] + [GraphDelta(epoch="B", version=1,
+                                                                                             stamp_ns=0)]
+    done = threading.Thread(target=run_watch, args=(session, Keys("s"), False, threading.Event(), len(deltas), 5.0))
+    done.start()
+    wait_for(lambda: session.callback is not None, timeout=10, what="watch subscribed")
+    for d in deltas:
+        session.callback(_Sample(encode(d)))
+    done.join(timeout=10)
+    lines = capsys.readouterr().out.splitlines()
+    assert ["gap" in x for x in lines] == [False, False, True, False]
+    assert "new mapper epoch 'B'" in lines[3]
