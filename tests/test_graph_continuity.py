@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import errno
 import os
+import types
 from pathlib import Path
 from typing import Any
 
@@ -266,7 +267,9 @@ def test_failed_saves_keep_the_last_good_state_and_are_retried(tmp_path: Path,
 
     monkeypatch.setattr(persistence.os, "fsync", disk_full)
     feed(m, EYES[1:3], 1)
+    m._reporter = reporter = types.SimpleNamespace(state="ok", last_error=None)  # type: ignore[assignment]
     m.save(force=True)
+    assert reporter.state == "degraded" and "No space left" in reporter.last_error
     assert state_path(tmp_path).read_bytes() == good  # untouched
     assert not list(tmp_path.glob(".mapper_state.*.tmp"))  # no partial file left behind
     assert m.counters.get("save_errors") == 1 and m.keeper.failing
@@ -278,7 +281,7 @@ def test_failed_saves_keep_the_last_good_state_and_are_retried(tmp_path: Path,
 
     monkeypatch.setattr(persistence.os, "fsync", real_fsync)
     m.save(force=True)
-    assert not m.keeper.failing and m.counters.get("state_failing") == 0
+    assert not m.keeper.failing and m.counters.get("state_failing") == 0 and reporter.state == "ok"
     assert decode(persistence.load_state(tmp_path)["store"]["snapshot"], GraphSnapshot) == m.core.snapshot()
 
 
