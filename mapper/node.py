@@ -130,6 +130,7 @@ class MapperNode:
         self._last_snapshot: tuple[tuple[str, int], float] = (("", -1), 0.0)
         self._last_map = (-1, 0.0)
         self._reporter: StatusReporter | None = None
+        self._state_shown: tuple[bool, str | None] = (False, None)  # the keeper's health last put in the status
         self.keeper = StateKeeper(config.state_dir, config.save_period_s, self.counters)
         log.info("mapper %s: %s", config.id, self.keeper.start(self.core))
         self.core.reserve = lambda version, next_id: self.keeper.reserve(version, next_id, self.core)
@@ -138,9 +139,12 @@ class MapperNode:
     def save(self, force: bool = False) -> None:
         """Save the state when due (:class:`StateKeeper`); a failure shows in the status, the mapper goes on."""
         self.keeper.save(self.core, force)
-        if self._reporter is not None:
-            self._reporter.state = "degraded" if self.keeper.failing else "ok"
-            self._reporter.last_error = self.keeper.last_error
+        rep, failing = self._reporter, self.keeper.failing
+        if rep is not None and (failing, self.keeper.last_error) != self._state_shown:
+            # Only on a change, so a status another part of the mapper set is not overwritten every step.
+            rep.state = "degraded" if failing else "ok"
+            rep.last_error = self.keeper.last_error or rep.last_error
+            self._state_shown = (failing, self.keeper.last_error)
 
     # -- subscriptions (Zenoh threads) -------------------------------------------------------------
     def _on_frame(self, sample: zenoh.Sample) -> None:

@@ -174,12 +174,17 @@ class PlannerNode:
             deltas = list(self._deltas)
             self._deltas.clear()
         f = self.follower
+        adopted = False
         for snap in snaps:
             held = f.graph.version
-            if f.offer_snapshot(snap) == "resynced":
+            outcome = f.offer_snapshot(snap)
+            adopted = adopted or outcome != "stale"
+            if outcome == "resynced":
                 log.warning("%d snapshots in a row were older than the graph held (v%d): following v%d of epoch %s",
                             f.resync_after, held, f.graph.version, f.graph.epoch or "''")
         for d in sorted(deltas, key=lambda d: d.version):
+            if adopted and d.epoch == f.graph.epoch and d.version <= f.graph.version:
+                continue  # covered by the snapshot just adopted: not a sign of a stale graph
             if f.offer_delta(d) in ("gap", "other_epoch"):
                 break
         for name, value in f.counters.items():

@@ -367,3 +367,12 @@ def test_watch_says_new_epoch_not_gap(capsys: pytest.CaptureFixture[str]) -> Non
     lines = capsys.readouterr().out.splitlines()
     assert ["gap" in x for x in lines] == [False, False, True, False]
     assert "new mapper epoch 'B'" in lines[3]
+
+
+def test_planner_does_not_requery_for_deltas_its_new_snapshot_covers() -> None:
+    planner = PlannerNode(PlannerNodeConfig())
+    _follow(planner, snap("E", 5))
+    planner.offer_snapshot(snap("E", 10, "n1"))
+    planner._deltas.extend(GraphDelta(epoch="E", version=v, stamp_ns=1) for v in (7, 8, 9, 10, 11))
+    planner._follow_graph()
+    assert planner.graph.version == 11 and not planner._need_snapshot
