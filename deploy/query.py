@@ -159,7 +159,8 @@ def run_snapshot(session: Any, keys: Keys, as_json: bool, timeout_s: float) -> i
     if as_json:
         print(snap.model_dump_json(exclude={"nodes": {"__all__": {"embedding"}}}))
         return 0
-    print(f"graph version {snap.version}: {len(snap.nodes)} nodes, {len(snap.edges)} edges")
+    print(f"graph version {snap.version}: {len(snap.nodes)} nodes, {len(snap.edges)} edges"
+          + (f" (mapper epoch {snap.epoch})" if snap.epoch else ""))
     print(format_nodes(snap.nodes))
     if snap.edges:
         print("edges:")
@@ -183,7 +184,7 @@ def run_watch(
 
     sub = session.declare_subscriber(keys.graph_delta, on_sample)
     print(f"watching {keys.graph_delta} (Ctrl-C to stop)", file=sys.stderr, flush=True)
-    seen, bad, last_version = 0, 0, None
+    seen, bad, last = 0, 0, None
     last_at = time.monotonic()
     try:
         while not stop.is_set() and (count is None or seen < count):
@@ -202,12 +203,15 @@ def run_watch(
                 print(f"undecodable delta ({bad} so far): {e}", file=sys.stderr)
                 continue
             seen += 1
-            gap = last_version is not None and d.version != last_version + 1
-            last_version = d.version
+            new_epoch = last is not None and d.epoch != last[0]
+            gap = last is not None and not new_epoch and d.version != last[1] + 1
+            last = (d.epoch, d.version)
             if as_json:
                 print(d.model_dump_json(exclude={"upserted": {"__all__": {"embedding"}}}), flush=True)
             else:
                 note = "  (gap: missed deltas, re-query the snapshot)" if gap else ""
+                if new_epoch:
+                    note = f"  (new mapper epoch {d.epoch!r}: versions restart, re-query the snapshot)"
                 print(format_delta(d) + note, flush=True)
     finally:
         sub.undeclare()

@@ -36,7 +36,9 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--geometry", default=None, help="reconstructor: mvs, oracle, mapanything")
     p.add_argument("--segmenter", default=None, help="segmenter: classical, sim (ORACLE), sam")
     p.add_argument("--embedder", default=None, help="embedder: classical, sim (ORACLE), clip")
-    p.add_argument("--state-dir", type=Path, default=None, help="persist the graph here and resume from it")
+    p.add_argument("--state-dir", type=Path, default=None,
+                   help="persist the graph here and resume from it; versions and node ids are leased ahead of use, "
+                   "so a restart, even after a kill, never reuses one (without it each start is a new graph epoch)")
     p.add_argument("--rerun", type=Path, default=None, metavar="FILE.rrd", help="record a Rerun file")
     p.add_argument("--rerun-serve", action="store_true",
                    help="serve a live Rerun stream on 127.0.0.1 only (rerun --connect rerun+http://127.0.0.1:9876/proxy)")

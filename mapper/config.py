@@ -230,7 +230,11 @@ class MapperConfig(MapperCoreConfig):
     key_prefix: str = Field(default="argus", description="key expression prefix")
     zenoh: ZenohSettings = Field(default_factory=ZenohSettings, description="how to join Zenoh")
     publish: PublishConfig = Field(default_factory=PublishConfig, description="publishing rates")
-    state_dir: Path | None = Field(default=None, description="persist the graph here; a restart resumes it")
+    state_dir: Path | None = Field(
+        default=None,
+        description="persist the graph and the version lease here; a restart resumes it and never reuses a "
+        "version or node id (README: graph versions, epochs and mapper restarts)",
+    )
     save_period_s: float = Field(default=5.0, ge=0.0, description="at most one save per period (0: each update)")
     ring_depth: int = Field(default=2, ge=1, le=64, description="frames buffered per source (newest kept)")
     max_sources: int = Field(default=64, ge=1, description="sources accepted (memory bound)")

@@ -16,6 +16,7 @@ import dataclasses
 import logging
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any, cast
 
@@ -91,6 +92,9 @@ class MapperCore:
         self.counters: dict[str, float] = {}
         self.last: KeyframeResult | None = None
         self.update_times_s: list[float] = []
+        # Called before every commit with the version it may create and the next node id number; the mapper
+        # process persists a lease covering both there (mapper.persistence), before anyone can see them.
+        self.reserve: Callable[[int, int], None] | None = None
         # Keyframes that had no neighbour to reconstruct with (a fixed camera's first frame before any robot
         # view): retried, one per later keyframe, once neighbours exist. Bounded.
         self._deferred: collections.deque[View] = collections.deque(maxlen=cfg.keyframes.max_deferred)
@@ -152,6 +156,7 @@ class MapperCore:
         processing failed is not marked (the graph stays exactly as it was)."""
         if self._failed_key == view.key:
             return None
+        self._reserve()
         with self.lock:
             return self.store.commit_frames({view.source_id: view.seq}, view.stamp_ns or time.time_ns())
 
@@ -163,11 +168,16 @@ class MapperCore:
         clouds = {i: n.points for i, n in self.objects.nodes.items()}
         edges = refine_with_points(edges, boxes, clouds, self.config.relations)
         ups = self.objects.messages(sorted(changed), with_embedding=self.config.node_embeddings)
+        self._reserve()
         with self.lock:
             delta = self.store.commit(ups, removed, edges, stamp_ns, frames)
         if self.last is not None:
             self.last.timings_s["edges"] = time.perf_counter() - t
         return delta
+
+    def _reserve(self) -> None:
+        if self.reserve is not None:
+            self.reserve(self.store.version + 1, self.objects.next_id)
 
     def _window(self, view: View) -> tuple[list[View], int]:
         nbrs = self.keyframes.neighbours(view, self.selector.scene_depth(view.source_id))
@@ -335,6 +345,10 @@ class MapperCore:
     def version(self) -> int:
         return self.store.version
 
+    @property
+    def epoch(self) -> str:
+        return self.store.epoch
+
     def snapshot(self) -> GraphSnapshot:
         with self.lock:
             return self.store.snapshot()
@@ -373,3 +387,14 @@ class MapperCore:
                 self.voxels.load_state(state["voxels"])
             except (KeyError, TypeError) as e:
                 raise ValueError(f"malformed state: {e!r}") from None
+
+    def restart_at(self, epoch: str, version: int, next_id: int) -> None:
+        """Go on as ``version`` of ``epoch`` with node ids from ``next_id`` on (a restarted mapper)."""
+        with self.lock:
+            self.store.restart_at(epoch, version)
+            self.objects.next_id = max(self.objects.next_id, next_id)
+
+    def switch_epoch(self, epoch: str) -> None:
+        """Go on in another epoch from the current version (the old one's lease could not be extended)."""
+        with self.lock:
+            self.store.epoch = epoch

@@ -12,9 +12,13 @@ from protocol.query import GraphQuery
 
 
 class GraphStore:
-    """Holds the published graph; every change becomes one :class:`GraphDelta` (version + 1)."""
+    """Holds the published graph; every change becomes one :class:`GraphDelta` (version + 1).
 
-    def __init__(self) -> None:
+    ``epoch`` names the version sequence (see :mod:`mapper.persistence`); every snapshot and delta carries it.
+    """
+
+    def __init__(self, epoch: str = "") -> None:
+        self.epoch = epoch
         self.version = 0
         self.stamp_ns = 0
         self.nodes: dict[str, GraphNode] = {}
@@ -59,6 +63,7 @@ class GraphStore:
             self.changed_at[n.node_id] = self.version
         self.edges = new_edges
         return GraphDelta(
+            epoch=self.epoch,
             version=self.version,
             stamp_ns=stamp_ns,
             upserted=list(ups),
@@ -81,11 +86,12 @@ class GraphStore:
             return None
         self.version += 1
         self.stamp_ns = stamp_ns
-        return GraphDelta(version=self.version, stamp_ns=stamp_ns, frames=advanced)
+        return GraphDelta(epoch=self.epoch, version=self.version, stamp_ns=stamp_ns, frames=advanced)
 
     def snapshot(self) -> GraphSnapshot:
         """The whole graph at the current version (nodes by id, edges by triple)."""
         return GraphSnapshot(
+            epoch=self.epoch,
             version=self.version,
             stamp_ns=self.stamp_ns,
             nodes=[self.nodes[k] for k in sorted(self.nodes)],
@@ -110,9 +116,17 @@ class GraphStore:
 
     def load_state(self, state: dict[str, Any]) -> None:
         snap = decode(state["snapshot"], GraphSnapshot)
+        self.epoch = snap.epoch
         self.version = snap.version
         self.stamp_ns = snap.stamp_ns
         self.nodes = {n.node_id: n for n in snap.nodes}
         self.edges = {edge_key(e): e for e in snap.edges}
         self.frames = dict(snap.frames)
         self.changed_at = {str(k): int(v) for k, v in state.get("changed_at", {}).items() if k in self.nodes}
+
+    def restart_at(self, epoch: str, version: int) -> None:
+        """Go on as ``version`` of ``epoch`` (a resumed mapper). When that is not the saved version, every
+        node counts as changed at it: a ``since_version`` consumer gets the whole resumed graph again."""
+        if version != self.version:
+            self.changed_at = dict.fromkeys(self.nodes, version)
+        self.epoch, self.version = epoch, version

@@ -6,7 +6,8 @@ the JPEGs; feeds the core; publishes each GraphDelta, each changed node under ``
 (deleting removed ones), a GraphSnapshot and the PointMap at bounded rates; answers queries on
 ``graph/**`` (``graph/snapshot``, ``graph/nodes?label=..;near=..;radius=..;id=..;since_version=..``,
 ``graph/node/<id>``) and, as JSON, on ``graph/json/**`` (the same keys below ``graph/json/``);
-reports status; persists the graph atomically so a restart resumes it.
+reports status; persists the graph atomically so a restart resumes it, with versions and node ids
+leased ahead of use so a restart never reuses one (:mod:`mapper.keeper`).
 
 Each frame's pose is checked on arrival (:func:`protocol.poses.check_pose`): a nearly rigid one is
 projected onto SO(3) (counter ``poses_projected``); any other is dropped with its frame (counter
@@ -28,6 +29,7 @@ import numpy as np
 from mapper.config import MapperConfig
 from mapper.core import MapperCore
 from mapper.geometry.contract import OracleData, View
+from mapper.keeper import StateKeeper
 from protocol.codec import DecodeError, encode
 from protocol.jpeg import JpegError, decode_jpeg
 from protocol.keys import Keys
@@ -128,44 +130,24 @@ class MapperNode:
         self._session: zenoh.Session | None = None
         self._rerun: Any = None
         self._bad_pose_log = PerSourceLog(log, BAD_POSE_LOG_PERIOD_S, max_sources=4 * config.max_sources)
-        self._last_snapshot = (-1, 0.0)
+        self._last_snapshot: tuple[tuple[str, int], float] = (("", -1), 0.0)
         self._last_map = (-1, 0.0)
-        self._last_save = (-1, 0.0)
-        self._restore()
+        self._reporter: StatusReporter | None = None
+        self._state_shown: tuple[bool, str | None] = (False, None)  # the keeper's health last put in the status
+        self.keeper = StateKeeper(config.state_dir, config.save_period_s, self.counters)
+        log.info("mapper %s: %s", config.id, self.keeper.start(self.core))
+        self.core.reserve = lambda version, next_id: self.keeper.reserve(version, next_id, self.core)
 
     # -- persistence -----------------------------------------------------------------------------
-    def _restore(self) -> None:
-        if self.config.state_dir is None:
-            return
-        from mapper.persistence import load_state
-
-        state = load_state(self.config.state_dir)
-        if state is None:
-            return
-        try:
-            self.core.load_state(state)
-        except ValueError as e:
-            log.error("cannot resume from %s: %s; starting empty", self.config.state_dir, e)
-            return
-        self._last_save = (self.core.version, time.monotonic())
-        log.info("resumed graph version %d with %d nodes", self.core.version, len(self.core.store.nodes))
-
     def save(self, force: bool = False) -> None:
-        if self.config.state_dir is None:
-            return
-        version, when = self._last_save
-        now = time.monotonic()
-        if self.core.version == version or (not force and now - when < self.config.save_period_s):
-            return
-        from mapper.persistence import save_state
-
-        try:
-            save_state(self.config.state_dir, self.core.state())
-            self._last_save = (self.core.version, now)
-            self.counters.add("saves")
-        except OSError as e:
-            self.counters.add("save_errors")
-            log.error("saving the graph to %s failed: %s", self.config.state_dir, e)
+        """Save the state when due (:class:`StateKeeper`); a failure shows in the status, the mapper goes on."""
+        self.keeper.save(self.core, force)
+        rep, failing = self._reporter, self.keeper.failing
+        if rep is not None and (failing, self.keeper.last_error) != self._state_shown:
+            # Only on a change, so a status another part of the mapper set is not overwritten every step.
+            rep.state = "degraded" if failing else "ok"
+            rep.last_error = self.keeper.last_error or rep.last_error
+            self._state_shown = (failing, self.keeper.last_error)
 
     # -- subscriptions (Zenoh threads) -------------------------------------------------------------
     def _on_frame(self, sample: zenoh.Sample) -> None:
@@ -263,7 +245,8 @@ class MapperNode:
             ids = {n.node_id for n in nodes}
             snap = self.core.snapshot()
             edges = [e for e in snap.edges if e.subject_id in ids and e.object_id in ids]
-            return [(key, GraphSnapshot(version=snap.version, stamp_ns=snap.stamp_ns, nodes=nodes, edges=edges))]
+            return [(key, GraphSnapshot(epoch=snap.epoch, version=snap.version, stamp_ns=snap.stamp_ns,
+                                        nodes=nodes, edges=edges))]
         try:
             node_id = self.keys.parse_node(key)
         except ValueError:
@@ -361,10 +344,11 @@ class MapperNode:
         now = time.monotonic()
         version = self.core.version
         pc = self.config.publish
-        v, when = self._last_snapshot
-        if version != v and (force or now - when >= pc.snapshot_period_s):
-            pubs["snapshot"].put(encode(self.core.snapshot()))
-            self._last_snapshot = (version, now)
+        seen, when = self._last_snapshot
+        if (self.core.epoch, version) != seen and (force or now - when >= pc.snapshot_period_s):
+            snap = self.core.snapshot()
+            pubs["snapshot"].put(encode(snap))
+            self._last_snapshot = ((snap.epoch, snap.version), now)
             self.counters.add("snapshots")
         v, when = self._last_map
         if version != v and (force or now - when >= pc.point_map_period_s) and len(self.core.voxels):
@@ -408,15 +392,15 @@ class MapperNode:
                 subs.append(session.declare_subscriber(self.keys.all_oracle, self._on_oracle))
             queryable = session.declare_queryable(self.keys.graph_all, self._on_query)
             json_queryable = session.declare_queryable(self.keys.graph_json_all, self._on_json_query)
-            reporter = StatusReporter(
+            reporter = self._reporter = StatusReporter(
                 session, self.keys.status(ROLE, cfg.id), ROLE, cfg.id, self.counters, cfg.status_period_s,
                 extra=self._extra_counters,
             )
             self._open_rerun()
             log.info(
-                "mapper %s: geometry=%s segmenter=%s embedder=%s%s, graph version %d",
+                "mapper %s: geometry=%s segmenter=%s embedder=%s%s, graph epoch %s version %d",
                 cfg.id, cfg.geometry.backend, cfg.perception.segmenter, cfg.perception.embedder,
-                " (ORACLE inputs)" if self.needs_oracle else "", self.core.version,
+                " (ORACLE inputs)" if self.needs_oracle else "", self.core.epoch, self.core.version,
             )
             try:
                 with reporter:
@@ -424,7 +408,7 @@ class MapperNode:
                     while not stop.is_set():
                         self._step(session, pubs, timeout_s=0.2)
             finally:
-                self.save(force=True)
+                self.keeper.close(self.core)
                 queryable.undeclare()
                 json_queryable.undeclare()
                 for s in subs:

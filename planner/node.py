@@ -1,8 +1,10 @@
 """The I/O shell of ``argus planner``: graph, map, robot states and viewpoints in; one goal per robot out.
 
 Zenoh callbacks only decode into bounded holders (newest map, newest state and viewpoint set per
-robot, a bounded queue of graph deltas) and wake the planning thread. That thread follows the graph
-(snapshot + deltas, re-querying the snapshot after a gap), decides which robots need a goal
+robot, bounded queues of graph snapshots and deltas) and wake the planning thread. That thread follows
+the graph with :class:`protocol.graph.GraphFollower` (snapshot + deltas; a new mapper epoch is adopted
+at once, a gap or another epoch's delta re-queries the snapshot, and a run of stale snapshots from a
+live mapper overrides a forged or lost future version), decides which robots need a goal
 (arrived, failed or refused on their goal; idle; or a large graph change while moving), calls the
 pure :class:`~planner.core.Planner` and publishes :class:`NbvGoal`\\ s with BLOCK and high priority.
 """
@@ -20,7 +22,7 @@ from typing import TYPE_CHECKING, Any
 from planner.config import PlannerNodeConfig
 from planner.core import Planner
 from protocol.codec import DecodeError, decode, encode
-from protocol.graph import GraphVersionError, apply_delta
+from protocol.graph import GraphFollower
 from protocol.keys import Keys
 from protocol.messages import GraphDelta, GraphSnapshot, NbvGoal, PointMap, RobotState, ViewpointSet
 from protocol.session import open_session_retrying
@@ -33,6 +35,7 @@ log = logging.getLogger("argus.planner")
 ROLE = "planner"
 MAX_ROBOTS = 64
 MAX_PENDING_DELTAS = 256
+MAX_PENDING_SNAPSHOTS = 8
 TRIGGER_STATES = ("arrived", "failed", "refused")
 ROBOT_ROLE = "robot-agent"  # the role in a robot agent's liveliness token
 
@@ -55,9 +58,10 @@ class PlannerNode:
         self.counters = Counters()
         self._lock = threading.Lock()
         self._wake = threading.Event()
-        self.graph = GraphSnapshot(version=0, stamp_ns=0)
+        self.follower = GraphFollower()
         self._deltas: collections.deque[GraphDelta] = collections.deque(maxlen=MAX_PENDING_DELTAS)
-        self._snapshot_in: GraphSnapshot | None = None
+        # Every snapshot counts (stale ones in a row resync the follower), so they queue rather than overwrite.
+        self._snapshots: collections.deque[GraphSnapshot] = collections.deque(maxlen=MAX_PENDING_SNAPSHOTS)
         self.point_map: PointMap | None = None
         self.states: dict[str, RobotState] = {}
         # Per robot waiting for its arrival frame to be fused: (that frame's seq, when the wait began).
@@ -65,9 +69,21 @@ class PlannerNode:
         self.viewpoints: dict[str, ViewpointSet] = {}
         self.pending: dict[str, _Pending] = {}
         self._gone: set[str] = set()  # robots whose liveliness token went away (until it comes back)
-        self._need_snapshot = True
         self._pubs: dict[str, Any] = {}
         self._session: zenoh.Session | None = None
+
+    @property
+    def graph(self) -> GraphSnapshot:
+        """The graph followed (see :class:`GraphFollower`)."""
+        return self.follower.graph
+
+    @graph.setter
+    def graph(self, snap: GraphSnapshot) -> None:
+        self.follower.graph = snap
+
+    @property
+    def _need_snapshot(self) -> bool:
+        return self.follower.need_snapshot
 
     # --- callbacks (Zenoh threads) -----------------------------------------------------------
     def _decode(self, sample: zenoh.Sample, cls: type) -> Any:
@@ -88,8 +104,9 @@ class PlannerNode:
 
     def offer_snapshot(self, snap: GraphSnapshot) -> None:
         with self._lock:
-            if self._snapshot_in is None or snap.version >= self._snapshot_in.version:
-                self._snapshot_in = snap
+            if len(self._snapshots) == self._snapshots.maxlen:
+                self.counters.add("snapshots_dropped")
+            self._snapshots.append(snap)
         self.counters.add("snapshots_in")
         self._wake.set()
 
@@ -100,7 +117,7 @@ class PlannerNode:
         with self._lock:
             if len(self._deltas) == self._deltas.maxlen:
                 self.counters.add("deltas_dropped")
-                self._need_snapshot = True
+                self._deltas.clear()  # the follower sees the gap and re-queries the snapshot
             self._deltas.append(delta)
         self.counters.add("deltas_in")
         self._wake.set()
@@ -190,21 +207,26 @@ class PlannerNode:
     # --- planning thread ---------------------------------------------------------------------
     def _follow_graph(self) -> None:
         with self._lock:
-            snap, self._snapshot_in = self._snapshot_in, None
+            snaps = list(self._snapshots)
+            self._snapshots.clear()
             deltas = list(self._deltas)
             self._deltas.clear()
-        if snap is not None and snap.version >= self.graph.version:
-            self.graph = snap
-            self._need_snapshot = False
+        f = self.follower
+        adopted = False
+        for snap in snaps:
+            held = f.graph.version
+            outcome = f.offer_snapshot(snap)
+            adopted = adopted or outcome != "stale"
+            if outcome == "resynced":
+                log.warning("%d snapshots in a row were older than the graph held (v%d): following v%d of epoch %s",
+                            f.resync_after, held, f.graph.version, f.graph.epoch or "''")
         for d in sorted(deltas, key=lambda d: d.version):
-            if d.version <= self.graph.version:
-                continue
-            try:
-                self.graph = apply_delta(self.graph, d)
-            except GraphVersionError:
-                self.counters.add("delta_gaps")
-                self._need_snapshot = True
+            if adopted and d.epoch == f.graph.epoch and d.version <= f.graph.version:
+                continue  # covered by the snapshot just adopted: not a sign of a stale graph
+            if f.offer_delta(d) in ("gap", "other_epoch"):
                 break
+        for name, value in f.counters.items():
+            self.counters.set(name, value)
 
     def robots_to_plan(self, now_s: float) -> dict[str, tuple[RobotState, ViewpointSet]]:
         """Robots that need a (new) goal now, with their state and viewpoints."""
@@ -388,7 +410,8 @@ class PlannerNode:
                 self.config.node_id,
                 self.counters,
                 self.config.status_period_s,
-                extra=lambda: {"robots": len(self.states), "graph_nodes": len(self.graph.nodes)},
+                extra=lambda: {"robots": len(self.states), "graph_nodes": len(self.graph.nodes),
+                               "graph_version": self.graph.version},
             )
             log.info(
                 "planner %s up: strategy %s, sampler %s",

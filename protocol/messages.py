@@ -324,11 +324,21 @@ class GraphEdge(Message):
     object_id: str = Field(description="node id of the object (e.g. the table)")
 
 
+EPOCH_DESCRIPTION = (
+    "the mapper's version/id sequence this message belongs to (schema 1.2; '' from older mappers): within one "
+    "epoch versions only grow, one version is one graph and one node id one object, across mapper restarts "
+    "included; a new epoch (a mapper that started without its state, or lost its version lease) restarts "
+    "both, and a consumer adopts its snapshot whatever the version (see protocol.graph.GraphFollower)"
+)
+MAX_EPOCH_CHARS = 64
+
+
 class GraphSnapshot(Message):
-    """The whole graph at one version."""
+    """The whole graph at one version of one epoch."""
 
     KIND: ClassVar[str] = "graph_snapshot"
-    SCHEMA: ClassVar[tuple[int, int]] = (1, 1)
+    SCHEMA: ClassVar[tuple[int, int]] = (1, 2)
+    epoch: str = Field(default="", max_length=MAX_EPOCH_CHARS, description=EPOCH_DESCRIPTION)
     version: int = Field(ge=0)
     stamp_ns: int = Field(ge=0)
     nodes: list[GraphNode] = Field(default_factory=list)
@@ -340,10 +350,11 @@ class GraphSnapshot(Message):
 
 
 class GraphDelta(Message):
-    """Changes from version ``version - 1`` to ``version`` (versions increase by exactly one)."""
+    """Changes from version ``version - 1`` to ``version`` of one epoch (versions increase by exactly one)."""
 
     KIND: ClassVar[str] = "graph_delta"
-    SCHEMA: ClassVar[tuple[int, int]] = (1, 1)
+    SCHEMA: ClassVar[tuple[int, int]] = (1, 2)
+    epoch: str = Field(default="", max_length=MAX_EPOCH_CHARS, description=EPOCH_DESCRIPTION)
     version: int = Field(ge=1)
     stamp_ns: int = Field(ge=0)
     upserted: list[GraphNode] = Field(default_factory=list)

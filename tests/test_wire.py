@@ -225,6 +225,13 @@ class FakeCore:
                                   edges=[GraphEdge(subject_id="n1", predicate="next_to", object_id="n2")])
         self.version = 7
 
+    @property
+    def epoch(self) -> str:
+        return self.snap.epoch
+
+    def restart_at(self, epoch: str, version: int, next_id: int) -> None:  # what MapperNode's keeper calls
+        self.snap = self.snap.model_copy(update={"epoch": epoch})
+
     def snapshot(self) -> GraphSnapshot:
         return self.snap
 
@@ -261,11 +268,12 @@ def test_json_view_answers_like_the_msgpack_keys(mapper_node) -> None:  # noqa: 
     q = FakeQuery(k.graph_json(k.graph_snapshot))
     mapper_node._on_json_query(q)
     ((key, payload, enc),) = q.replies
-    assert key == "argus/s/graph/json/snapshot" and enc == "application/json;argus/graph_snapshot/1.1"
+    major, minor = GraphSnapshot.SCHEMA
+    assert key == "argus/s/graph/json/snapshot" and enc == f"application/json;argus/graph_snapshot/{major}.{minor}"
     snap = json.loads(payload)
     assert snap["version"] == 7 and [n["node_id"] for n in snap["nodes"]] == ["n1", "n2"]
     assert snap["nodes"][0]["embedding"] == [0.0, 0.25, 0.5, 0.75]  # arrays are lists in JSON
-    assert snap == json.loads(FakeCore().snap.model_dump_json())
+    assert snap == json.loads(mapper_node.core.snap.model_dump_json())
     assert GraphSnapshot.model_validate_json(payload).nodes[1].label == "table"  # JSON validates back too
 
     q = FakeQuery(k.graph_json(k.graph_nodes), "label=chair")
@@ -291,7 +299,7 @@ def test_json_view_refuses_bad_selectors_and_never_answers_msgpack_wildcards(map
     mapper_node._on_json_query(q)
     assert q.replies == [] and q.errors == []
     mapper_node._on_query(q)
-    assert {r[2] for r in q.replies} == {"application/msgpack;argus/graph_snapshot/1.1",
+    assert {r[2] for r in q.replies} == {"application/msgpack;argus/graph_snapshot/1.2",
                                         "application/msgpack;argus/graph_node/1.0"}
     assert decode(q.replies[0][1], GraphSnapshot).version == 7
 
