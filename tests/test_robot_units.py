@@ -123,9 +123,11 @@ class TestKinematicBody:
 class FakePub:
     def __init__(self) -> None:
         self.puts: list[bytes] = []
+        self.attachments: list[bytes | None] = []
 
     def put(self, payload, attachment=None) -> None:  # noqa: ANN001
         self.puts.append(bytes(payload))
+        self.attachments.append(None if attachment is None else bytes(attachment))
 
 
 class FakeReporter:
@@ -229,3 +231,26 @@ def test_agent_ignores_a_resent_goal_in_progress_or_reached():
     assert agent.counters.get("goals_duplicate") == 2
     agent.handle_goal(goal(robot_id="r", goal_id="next", x=1.0, y=1.0))
     assert agent.status == "moving"
+
+
+@pytest.mark.parametrize("depth_m", [1.0, 2.0, 4.0])
+def test_goal_capture_frames_are_sources_the_view_selection_takes(depth_m: float) -> None:
+    """The default capture's frames pass the mapper's view-selection thresholds for the arrival frame at
+    indoor depths (triangulation angle, overlap, rotation), and both are chosen (distinct directions)."""
+    from mapper.geometry.viewselect import Candidate, select_sources
+    from protocol.codec import decode
+    from protocol.messages import FrameHeader
+
+    agent = agent_with_fakes()
+    agent.handle_goal(goal(robot_id="r", x=3.0, y=2.0, yaw_rad=0.5))
+    for _ in range(200):
+        agent.tick(0.1)
+        if agent.status != "moving":
+            break
+    headers = [decode(a, FrameHeader) for a in agent._arrival_pub.attachments if a is not None]
+    assert agent.status == "arrived" and len(headers) == 3
+    *capture, arrival = headers
+    cands = [Candidate(i, np.asarray(h.T_world_cam), h.intrinsics) for i, h in enumerate(capture)]
+    chosen = select_sources(np.asarray(arrival.T_world_cam), arrival.intrinsics, depth_m, cands, k=2)
+    assert sorted(s.index for s in chosen) == [0, 1]
+    assert all(s.baseline_m == pytest.approx(0.3, abs=0.02) for s in chosen)
