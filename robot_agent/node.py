@@ -21,6 +21,7 @@ from protocol.jpeg import encode_jpeg
 from protocol.keys import Keys
 from protocol.messages import FrameHeader, NbvGoal, OracleFrame, RobotState, RobotStatus, ViewpointSet
 from protocol.oracle import depth_to_png, ids_to_png
+from protocol.ratelog import RateLimitedLog
 from protocol.session import open_session
 from protocol.transport import Counters, StatusReporter, declare_frame_publisher, declare_message_publisher, put_frame
 from robot_agent.bodies import create_body
@@ -69,6 +70,8 @@ class RobotAgent:
         self.body: RobotBody = body if body is not None else create_body(config.body)
         self.budget = Budget(config.budget.max_distance_m, config.budget.max_steps)
         self.counters = Counters()
+        self.bad_input = RateLimitedLog(log)  # bad-input warnings: first per reason, then a summary per period
+        self.refusals = RateLimitedLog(log, level=logging.INFO)  # refused goals: a stranger may send thousands
         self.mailbox = GoalMailbox()
         self.viewpoint_set = ViewpointSet(
             robot_id=config.id,
@@ -98,7 +101,7 @@ class RobotAgent:
             goal = decode(data, NbvGoal)
         except DecodeError as e:
             self.counters.add("goals_garbage")
-            log.warning("ignoring undecodable goal payload (%d bytes): %s", len(data), e)
+            self.bad_input.warning("goals_garbage", "ignoring undecodable goal payload (%d bytes): %s", len(data), e)
             return
         self.mailbox.put(goal)
 
@@ -107,7 +110,7 @@ class RobotAgent:
             self.on_goal_bytes(sample.payload.to_bytes())
         except Exception as e:  # noqa: BLE001 - a callback must never raise into zenoh
             self.counters.add("goals_garbage")
-            log.warning("goal callback failed: %s", e)
+            self.bad_input.warning("goals_garbage", "goal callback failed: %s", e)
 
     def _on_viewpoints_query(self, query: zenoh.Query) -> None:
         try:
@@ -242,7 +245,7 @@ class RobotAgent:
             self.body.stop()
             self.goal = None
             self.counters.add("goals_refused")
-            log.info("refusing goal %s: %s", goal.goal_id, problem)
+            self.refusals.warning("goals_refused", "refusing goal %s: %s", goal.goal_id, problem)
             self._set("refused", problem)
             return
         if self.status == "moving":
@@ -256,6 +259,8 @@ class RobotAgent:
 
     def tick(self, dt_wall_s: float) -> None:
         """One control step: take a goal, advance the body, publish what is due."""
+        self.bad_input.flush()
+        self.refusals.flush()
         goal = self.mailbox.take()
         if goal is not None:
             self.handle_goal(goal)
