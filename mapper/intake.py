@@ -10,7 +10,8 @@ the pose against the site's bounds. ``view_problem`` runs the checks that apply 
 at :meth:`mapper.core.MapperCore.ingest` (benchmarks and the explorer feed the core directly).
 
 Counter names (the ``reason`` returned): ``frames_too_large``, ``frames_size_mismatch``, ``frames_implausible_jpeg``,
-``frames_corrupt_jpeg``, ``frames_bad_intrinsics``, ``frames_outside_site``.
+``frames_corrupt_jpeg``, ``frames_bad_intrinsics``, ``frames_outside_site``. The first four (:data:`IMAGE_REASONS`:
+the image itself is refused) also count as ``decode_errors``, like a JPEG that fails to decode.
 """
 
 from __future__ import annotations
@@ -36,6 +37,10 @@ _JPEG_REASONS = {
     "jpeg_implausible": "frames_implausible_jpeg",
     "jpeg_corrupt": "frames_corrupt_jpeg",
 }
+
+
+IMAGE_REASONS = frozenset(_JPEG_REASONS.values())
+"""Reasons that refuse a frame's image (counted as ``decode_errors`` too)."""
 
 
 class InputLimits(BaseModel):
@@ -73,12 +78,16 @@ class InputLimits(BaseModel):
     )
     min_hfov_deg: float = Field(
         default=5.0, gt=0.0, lt=180.0,
-        description="narrowest horizontal (and vertical) field of view accepted from a frame's intrinsics "
+        description="narrowest horizontal field of view accepted from a frame's intrinsics "
         "(frames_bad_intrinsics): a focal length longer than this implies is no camera in a room",
     )
     max_hfov_deg: float = Field(
         default=175.0, gt=0.0, lt=180.0,
-        description="widest field of view accepted (a pinhole model cannot describe 180 deg; fx=1e-300 is ~180)",
+        description="widest horizontal or vertical field of view accepted (a pinhole model cannot describe "
+        "180 deg; fx=1e-300 is ~180)",
+    )
+    max_pixel_aspect: float = Field(
+        default=4.0, ge=1.0, description="largest fx/fy (or fy/fx) accepted: square pixels are 1"
     )
     principal_point_margin: float = Field(
         default=0.25, ge=0.0,
@@ -122,13 +131,19 @@ def intrinsics_problem(intr: Intrinsics, width: int, height: int, limits: InputL
         return "frames_bad_intrinsics", f"intrinsics are for {intr.width}x{intr.height}, frame is {width}x{height}"
     if intr.fx <= 0 or intr.fy <= 0:
         return "frames_bad_intrinsics", f"focal lengths must be > 0: fx={intr.fx:g}, fy={intr.fy:g}"
-    for axis, f, size in (("horizontal", intr.fx, width), ("vertical", intr.fy, height)):
-        fov = _fov_deg(f, size)
-        if not limits.min_hfov_deg <= fov <= limits.max_hfov_deg:
-            return "frames_bad_intrinsics", (
-                f"{axis} field of view {fov:.3g} deg (focal {f:g} px over {size} px) is outside "
-                f"[{limits.min_hfov_deg:g}, {limits.max_hfov_deg:g}] deg"
-            )
+    hfov, vfov = _fov_deg(intr.fx, width), _fov_deg(intr.fy, height)
+    if not limits.min_hfov_deg <= hfov <= limits.max_hfov_deg:
+        return "frames_bad_intrinsics", (
+            f"horizontal field of view {hfov:.3g} deg (fx {intr.fx:g} px over {width} px) is outside "
+            f"[{limits.min_hfov_deg:g}, {limits.max_hfov_deg:g}] deg"
+        )
+    if vfov > limits.max_hfov_deg:
+        return "frames_bad_intrinsics", (
+            f"vertical field of view {vfov:.3g} deg (fy {intr.fy:g} px over {height} px) is over "
+            f"{limits.max_hfov_deg:g} deg"
+        )
+    if not 1.0 / limits.max_pixel_aspect <= intr.fx / intr.fy <= limits.max_pixel_aspect:
+        return "frames_bad_intrinsics", f"pixel aspect fx/fy = {intr.fx / intr.fy:.3g} is implausible"
     m = limits.principal_point_margin
     if not (-m * width <= intr.cx <= (1 + m) * width and -m * height <= intr.cy <= (1 + m) * height):
         return "frames_bad_intrinsics", f"principal point ({intr.cx:g}, {intr.cy:g}) is far outside the image"

@@ -36,7 +36,7 @@ import numpy as np
 from mapper.config import MapperConfig
 from mapper.core import MapperCore
 from mapper.geometry.contract import OracleData, View
-from mapper.intake import frame_problem
+from mapper.intake import IMAGE_REASONS, frame_problem
 from protocol.codec import DecodeError, encode
 from protocol.jpeg import JpegError, decode_jpeg
 from protocol.keys import Keys
@@ -176,8 +176,11 @@ class MapperNode:
 
     # -- subscriptions (Zenoh threads) -------------------------------------------------------------
     def _refuse(self, reason: str, msg: str, *args: object) -> None:
-        """Count a refused input under ``reason`` and log it (rate-limited)."""
+        """Count a refused input under ``reason`` (and ``decode_errors`` when its image was refused unread) and
+        log it (rate-limited)."""
         self.counters.add(reason)
+        if reason in IMAGE_REASONS:
+            self.counters.add("decode_errors")
         self.bad_input.warning(reason, msg, *args)
 
     def _on_frame(self, sample: zenoh.Sample) -> None:
