@@ -384,3 +384,23 @@ def test_core_refuses_impossible_views_and_creates_no_node() -> None:
     assert core.counters["frames_outside_site"] == 1 and core.counters["frames_bad_intrinsics"] == 2
     assert core.counters.get("keyframes", 0) == 0 and len(core.store.nodes) == 0 and core.version == 0
     assert core.ingest(v) is not None and len(core.store.nodes) > 0
+
+
+@pytest.mark.parametrize("launch", ["demo", "demo-oracle", "demo-rgb-only"])
+def test_the_demo_stacks_refuse_a_frame_shifted_50_m(launch: str) -> None:
+    """Issue 19: a replayed frame shifted 50 m created 6 ghost nodes in the demo; its mapper now knows the site."""
+    from pathlib import Path
+
+    from deploy.up import load_launch
+
+    spec = next(p for p in load_launch(Path(f"deploy/launch/{launch}.toml")).process if p.name == "mapper")
+    settings = {k: v for k, v in (spec.settings or {}).items() if k not in ("site", "zenoh")}
+    limits = MapperConfig.model_validate(settings).limits
+    T = np.eye(4)
+    for xyz in ((0.0, 0.0, 0.0), (12.0, 9.0, 3.0), (5.0, 4.0, 1.2)):  # the simulated worlds' extent
+        T[:3, 3] = xyz
+        assert pose_problem(T, limits) is None
+        for axis in range(2):
+            T2 = T.copy()
+            T2[axis, 3] += 50.0
+            assert pose_problem(T2, limits) is not None
