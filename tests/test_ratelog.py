@@ -111,3 +111,45 @@ def test_bad_arguments_are_refused() -> None:
         RateLimitedLog(logging.getLogger("x"), period_s=0)
     with pytest.raises(ValueError):
         RateLimitedLog(logging.getLogger("x"), max_reasons=0)
+
+
+# --- the processes use it: issue 19 counted 3,207 WARNING lines for 3,207 bad goals ---------------------------
+class _Payload:
+    def __init__(self, data: bytes) -> None:
+        self.data = data
+
+    def to_bytes(self) -> bytes:
+        return self.data
+
+
+class _Sample:
+    def __init__(self, key: str, data: bytes) -> None:
+        self.key_expr, self.payload = key, _Payload(data)
+
+
+def test_the_robot_logs_one_line_for_3207_garbage_goals(caplog: pytest.LogCaptureFixture) -> None:
+    from tests.test_robot_units import agent_with_fakes
+
+    agent = agent_with_fakes()
+    with caplog.at_level(logging.WARNING, logger="argus.robot_agent"):
+        for i in range(3207):
+            agent.on_goal_bytes(b"junk %d" % i)
+        agent.tick(0.0)
+    assert agent.counters.get("goals_garbage") == 3207
+    assert len(lines(caplog)) == 1 and lines(caplog)[0].startswith("ignoring undecodable goal payload")
+    assert agent.bad_input.held() == {"goals_garbage": 3206}  # summarised on a tick once 10 s have passed
+    assert agent.bad_input.flush(force=True)
+    assert lines(caplog)[-1].startswith("3206 more bad inputs")
+
+
+def test_the_planner_logs_one_line_per_reason_for_a_flood(caplog: pytest.LogCaptureFixture) -> None:
+    from planner.config import PlannerNodeConfig
+    from planner.node import PlannerNode
+
+    node = PlannerNode(PlannerNodeConfig())
+    with caplog.at_level(logging.WARNING, logger="argus.planner"):
+        for i in range(3207):
+            node.on_delta(_Sample("argus/default/graph/delta", b"\x93junk%d" % i))  # type: ignore[arg-type]
+            node.on_snapshot(_Sample("argus/default/graph/snapshot", b""))  # type: ignore[arg-type]
+    assert node.counters.get("decode_errors") == 2 * 3207
+    assert len(lines(caplog)) == 1 and lines(caplog)[0].startswith("dropping bad graph_delta")
