@@ -79,7 +79,7 @@ class InputLimits(BaseModel):
     min_hfov_deg: float = Field(
         default=5.0, gt=0.0, lt=180.0,
         description="narrowest horizontal field of view accepted from a frame's intrinsics "
-        "(frames_bad_intrinsics): a focal length longer than this implies is no camera in a room",
+        "(frames_bad_intrinsics): a narrower view (a longer focal length) is no camera watching a room",
     )
     max_hfov_deg: float = Field(
         default=175.0, gt=0.0, lt=180.0,
