@@ -9,6 +9,7 @@ from typing import TYPE_CHECKING, Any, Literal
 from pydantic import BaseModel, ConfigDict, Field
 
 from mapper.fusion import FusionConfig
+from mapper.intake import InputLimits
 from mapper.relations import RelationConfig
 from protocol.keys import SiteName
 from protocol.session import ZenohSettings, default_site
@@ -182,6 +183,11 @@ class MapperCoreConfig(BaseModel):
     )
     single_view: SingleViewConfig = Field(
         default_factory=SingleViewConfig, description="single-view floor geometry for views without stereo partners"
+    )
+    limits: InputLimits = Field(
+        default_factory=InputLimits,
+        description="what peers may send: frame bytes and pixels, JPEG plausibility, decode budget, intrinsics, "
+        "the site's box",
     )
     node_embeddings: bool = Field(default=True, description="publish each node's descriptor")
     torch_threads: int = Field(default=2, ge=1, le=64, description="torch CPU threads")

@@ -31,12 +31,14 @@ from mapper.geometry.features import Features, LruCache, extract_features
 from mapper.geometry.posecheck import rotation_between
 from mapper.geometry.singleview import SeenView, depth_to_world, layout_depth, place_objects
 from mapper.graph_store import GraphStore
+from mapper.intake import view_problem
 from mapper.keyframes import KeyframeSelector, KeyframeStore, intrinsics_of
 from mapper.perception.base import Embedder, Mask2D, Segmenter, ViewGeometry
 from mapper.pointmap import VoxelMap
 from mapper.relations import compute_edges, refine_with_points
 from protocol.messages import GraphDelta, GraphNode, GraphSnapshot, PointMap
 from protocol.query import GraphQuery
+from protocol.ratelog import RateLimitedLog
 
 log = logging.getLogger(__name__)
 
@@ -103,14 +105,26 @@ class MapperCore:
         # Each calibrated camera's first keyframe's features: a later one that turned away flags the camera.
         self._pose_refs = LruCache(cfg.keyframes.max_keyframes)  # source id -> Features
         self._failed_key: tuple[str, int] | None = None  # the last view whose processing raised
+        self._bad_input = RateLimitedLog(log)
 
     def _count(self, name: str, value: float = 1.0) -> None:
         self.counters[name] = self.counters.get(name, 0.0) + value
 
     # -- pipeline --------------------------------------------------------------------------------
     def ingest(self, view: View, force_keyframe: bool = False) -> GraphDelta | None:
-        """Process one view; returns the graph delta it caused, if any. Bad views are counted, not raised."""
+        """Process one view; returns the graph delta it caused, if any. Bad views are counted, not raised.
+
+        A physically impossible view (``config.limits``: absurd intrinsics, a camera outside the site's box,
+        too many pixels) is refused first, counted under its reason and ``views_refused``."""
         self._count("views_in")
+        problem = view_problem(view, self.config.limits)
+        if problem is not None:
+            reason, detail = problem
+            self._count(reason)
+            self._count("views_refused")
+            self._failed_key = view.key
+            self._bad_input.warning(reason, "refused a view from %s#%d: %s", view.source_id, view.seq, detail)
+            return None
         if not (self.selector.consider(view) or force_keyframe):
             self._count("views_not_keyframe")
             return None

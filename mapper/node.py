@@ -9,10 +9,19 @@ the JPEGs; feeds the core; publishes each GraphDelta, each changed node under ``
 reports status; persists the graph atomically so a restart resumes it, with versions and node ids
 leased ahead of use so a restart never reuses one (:mod:`mapper.keeper`).
 
-Each frame's pose is checked on arrival (:func:`protocol.poses.check_pose`): a nearly rigid one is
-projected onto SO(3) (counter ``poses_projected``); any other is dropped with its frame (counter
-``frames_bad_pose``, one warning per source per ``BAD_POSE_LOG_PERIOD_S``). A pose that is not a
-finite 4x4 never decodes (``header_errors``).
+Each frame is checked on arrival, before it takes a ring slot (``config.limits``,
+:mod:`mapper.intake`): compressed size, pixel count, the JPEG's own size against its header, compressed
+bytes per pixel, intrinsics and the camera position against the site's box; a refused frame is counted
+under its reason and never decoded. Its pose is checked too (:func:`protocol.poses.check_pose`): a
+nearly rigid one is projected onto SO(3) (counter ``poses_projected``); any other is dropped with its
+frame (``frames_bad_pose``). A header that does not decode (a non-finite pose or intrinsics, a wrong
+shape) counts as ``header_errors``. Every kind of bad input is logged as a WARNING, rate-limited
+(:class:`protocol.ratelog.RateLimitedLog`: the first of each reason, then one summary line per
+``BAD_INPUT_LOG_PERIOD_S`` with counts).
+
+Memory of the frame path is bounded (README, "Memory bound"): compressed frames buffered stay under
+``limits.max_buffered_frame_bytes`` (rings) plus the same for frames waiting for an ORACLE sample, and
+frames are decoded one at a time, just before processing, under ``limits.decode_budget_pixels``.
 """
 
 from __future__ import annotations
@@ -29,6 +38,7 @@ import numpy as np
 from mapper.config import MapperConfig
 from mapper.core import MapperCore
 from mapper.geometry.contract import OracleData, View
+from mapper.intake import IMAGE_REASONS, frame_problem
 from mapper.keeper import StateKeeper
 from protocol.codec import DecodeError, encode
 from protocol.jpeg import JpegError, decode_jpeg
@@ -37,6 +47,7 @@ from protocol.messages import GraphDelta, GraphNode, GraphSnapshot, Message, Ora
 from protocol.oracle import decode_u16_png, png_to_depth
 from protocol.poses import PoseError, check_pose
 from protocol.query import GraphQuery
+from protocol.ratelog import RateLimitedLog
 from protocol.session import open_session_retrying
 from protocol.transport import (
     Counters,
@@ -55,8 +66,8 @@ if TYPE_CHECKING:
 
 log = logging.getLogger(__name__)
 ROLE = "mapper"
-BAD_POSE_LOG_PERIOD_S = 10.0
-"""At most one warning per source per this many seconds about frames dropped for a bad pose."""
+BAD_INPUT_LOG_PERIOD_S = 10.0
+"""Bad-input warnings: each reason at most once per this many seconds, then one summary line with counts."""
 
 
 def needs_oracle(config: MapperConfig) -> bool:
@@ -84,32 +95,27 @@ def oracle_data(msg: OracleFrame) -> OracleData:
     )
 
 
-class PerSourceLog:
-    """Logs at most one warning per source per ``period_s`` and says how many were held back since.
+class DecodeBudget:
+    """Decoded pixels in flight across all sources: a frame is decoded only when its pixels fit."""
 
-    Thread-safe (Zenoh callbacks); remembers at most ``max_sources`` sources, so made-up source ids
-    cannot grow it without bound (a forgotten source may just be reported again sooner).
-    """
-
-    def __init__(self, logger: logging.Logger, period_s: float, max_sources: int = 1024) -> None:
-        self._log, self.period_s, self.max_sources = logger, period_s, max_sources
+    def __init__(self, max_pixels: int) -> None:
+        self.max_pixels = max_pixels
+        self.in_flight = 0
+        self.peak = 0
         self._lock = threading.Lock()
-        self._last: collections.OrderedDict[str, tuple[float, int]] = collections.OrderedDict()
 
-    def warning(self, source: str, message: str) -> bool:
-        """Log ``message`` unless ``source`` was reported less than ``period_s`` ago; True when logged."""
-        now = time.monotonic()
+    def acquire(self, pixels: int) -> bool:
+        """Reserve ``pixels``; False (nothing reserved) when they do not fit in the budget."""
         with self._lock:
-            last, held = self._last.get(source, (-float("inf"), 0))
-            logged = now - last >= self.period_s
-            self._last[source] = (now, 0) if logged else (last, held + 1)
-            self._last.move_to_end(source)
-            while len(self._last) > self.max_sources:
-                self._last.popitem(last=False)
-        if logged:
-            more = f" ({held} more from {source} held back since the last report)" if held else ""
-            self._log.warning("%s%s", message, more)
-        return logged
+            if self.in_flight + pixels > self.max_pixels:
+                return False
+            self.in_flight += pixels
+            self.peak = max(self.peak, self.in_flight)
+            return True
+
+    def release(self, pixels: int) -> None:
+        with self._lock:
+            self.in_flight = max(0, self.in_flight - pixels)
 
 
 class MapperNode:
@@ -120,16 +126,20 @@ class MapperNode:
         self.keys = Keys(config.site, config.key_prefix)
         self.core = core or MapperCore(config)
         self.counters = Counters()
-        self.slots: LatestSlots[Frame] = LatestSlots(depth=config.ring_depth, max_keys=config.max_sources)
+        lim = config.limits
+        self.slots: LatestSlots[Frame] = LatestSlots(
+            depth=config.ring_depth, max_keys=config.max_sources, max_bytes=lim.max_buffered_frame_bytes,
+            size=lambda f: len(f.jpeg),
+        )
         self.needs_oracle = needs_oracle(config)
         self._oracle: collections.OrderedDict[tuple[str, int], OracleFrame] = collections.OrderedDict()
         self._oracle_lock = threading.Lock()
-        self._pending: collections.deque[tuple[Frame, np.ndarray, float]] = collections.deque(
-            maxlen=2 * config.max_sources
-        )
+        # Frames (still compressed) waiting for their ORACLE sample, with their deadline; bounded in count and bytes.
+        self._pending: collections.deque[tuple[Frame, float]] = collections.deque(maxlen=2 * config.max_sources)
+        self.decode_budget = DecodeBudget(lim.decode_budget_pixels)
         self._session: zenoh.Session | None = None
         self._rerun: Any = None
-        self._bad_pose_log = PerSourceLog(log, BAD_POSE_LOG_PERIOD_S, max_sources=4 * config.max_sources)
+        self.bad_input = RateLimitedLog(log, BAD_INPUT_LOG_PERIOD_S)
         self._last_snapshot: tuple[tuple[str, int], float] = (("", -1), 0.0)
         self._last_map = (-1, 0.0)
         self._reporter: StatusReporter | None = None
@@ -150,16 +160,41 @@ class MapperNode:
             self._state_shown = (failing, self.keeper.last_error)
 
     # -- subscriptions (Zenoh threads) -------------------------------------------------------------
+    def _refuse(self, reason: str, msg: str, *args: object) -> None:
+        """Count a refused input under ``reason`` (and ``decode_errors`` when its image was refused unread) and
+        log it (rate-limited)."""
+        self.counters.add(reason)
+        if reason in IMAGE_REASONS:
+            self.counters.add("decode_errors")
+        self.bad_input.warning(reason, msg, *args)
+
     def _on_frame(self, sample: zenoh.Sample) -> None:
         self.counters.add("frames_in")
+        try:
+            self._admit(sample)
+        except Exception as e:  # noqa: BLE001 - a callback must never raise into zenoh
+            self._refuse("frame_errors", "frame on %s failed: %s: %s", sample.key_expr, type(e).__name__, e)
+
+    def _admit(self, sample: zenoh.Sample) -> None:
+        """Check a frame sample as it arrives; only an acceptable frame takes a ring slot."""
+        lim = self.config.limits
+        size = len(sample.payload)
+        if size > lim.max_frame_bytes:  # refused before the payload is copied out of Zenoh
+            self._refuse("frames_too_large", "refused a %d-byte frame on %s (limits.max_frame_bytes = %d)",
+                         size, sample.key_expr, lim.max_frame_bytes)
+            return
         try:
             frame = decode_frame_sample(sample)
             kind, source_id = self.keys.parse_frame(frame.key)
             if source_id != frame.header.source_id or kind != frame.header.source_kind:
                 raise DecodeError(f"header names {frame.header.source_id!r}, key {frame.key!r}")
         except (DecodeError, ValueError) as e:
-            self.counters.add("header_errors")
-            log.debug("bad frame sample on %s: %s", sample.key_expr, e)
+            self._refuse("header_errors", "bad frame sample on %s: %s", sample.key_expr, e)
+            return
+        h = frame.header
+        problem = frame_problem(h, frame.jpeg, lim)
+        if problem is not None:
+            self._refuse(problem[0], "refused a frame from %s#%d: %s", h.source_id, h.seq, problem[1])
             return
         # Checked on arrival: a bad-pose frame never takes a ring slot from its source's good frames.
         checked = self._checked_pose(frame)
@@ -178,8 +213,7 @@ class MapperNode:
         try:
             checked = check_pose(h.T_world_cam, source=f"{h.source_id} frame {h.seq} pose")
         except PoseError as e:
-            self.counters.add("frames_bad_pose")
-            self._bad_pose_log.warning(h.source_id, f"dropped a frame: {e}")
+            self._refuse("frames_bad_pose", "dropped a frame: %s", e)
             return None
         if not checked.projected:
             return frame
@@ -190,8 +224,7 @@ class MapperNode:
         try:
             msg = decode_message_sample(sample, OracleFrame)
         except DecodeError as e:
-            self.counters.add("oracle_errors")
-            log.debug("bad oracle sample on %s: %s", sample.key_expr, e)
+            self._refuse("oracle_errors", "bad oracle sample on %s: %s", sample.key_expr, e)
             return
         with self._oracle_lock:
             self._oracle[(msg.source_id, msg.seq)] = msg
@@ -208,7 +241,8 @@ class MapperNode:
         try:
             self._answer(query, json_view)
         except Exception as e:  # noqa: BLE001 - a bad query gets an error reply, never a crash
-            self.counters.add("query_errors")
+            self._refuse("query_errors", "bad query %s?%s: %s: %s", query.key_expr, query.parameters,
+                         type(e).__name__, e)
             try:
                 query.reply_err(f"{type(e).__name__}: {e}")
             except Exception:  # noqa: BLE001 - the querier may be gone
@@ -270,19 +304,27 @@ class MapperNode:
             return self._oracle.pop((frame.header.source_id, frame.header.seq), None)
 
     def _decode(self, frame: Frame) -> np.ndarray | None:
+        """The frame's RGB image (its pixels are held in ``decode_budget`` until :meth:`_release`), or None."""
         h = frame.header
+        lim = self.config.limits
+        if not self.decode_budget.acquire(h.width * h.height):
+            self._refuse("frames_over_decode_budget", "no decode budget for %s#%d (%dx%d)",
+                         h.source_id, h.seq, h.width, h.height)
+            return None
         try:
             # The size is checked against the header before any pixel is decoded (no memory bombs).
-            rgb = decode_jpeg(frame.jpeg, expected_size=(h.width, h.height))
+            rgb = decode_jpeg(frame.jpeg, expected_size=(h.width, h.height), max_pixels=lim.max_frame_pixels,
+                              min_bytes_per_mpixel=lim.min_jpeg_bytes_per_mpixel)
+            if rgb.shape[:2] != (h.height, h.width):
+                raise JpegError(f"JPEG is {rgb.shape}, header says {h.width}x{h.height}")
         except JpegError as e:
-            self.counters.add("decode_errors")
-            log.debug("bad JPEG from %s#%d: %s", h.source_id, h.seq, e)
-            return None
-        if rgb.shape[:2] != (h.height, h.width):
-            self.counters.add("decode_errors")
-            log.debug("JPEG from %s is %s, header says %dx%d", h.source_id, rgb.shape, h.width, h.height)
+            self._release(frame)
+            self._refuse("decode_errors", "bad JPEG from %s#%d: %s", h.source_id, h.seq, e)
             return None
         return rgb
+
+    def _release(self, frame: Frame) -> None:
+        self.decode_budget.release(frame.header.width * frame.header.height)
 
     def _to_view(self, frame: Frame, rgb: np.ndarray, oracle: OracleFrame | None) -> View | None:
         h = frame.header
@@ -299,35 +341,36 @@ class MapperNode:
                 oracle=od,
             )
         except (ValueError, JpegError) as e:
-            self.counters.add("decode_errors")
-            log.debug("unusable frame from %s#%d: %s", h.source_id, h.seq, e)
+            self._refuse("decode_errors", "unusable frame from %s#%d: %s", h.source_id, h.seq, e)
             return None
 
-    def _ready_frames(self, timeout_s: float) -> list[tuple[Frame, np.ndarray, OracleFrame | None]]:
-        """Decoded frames ready to process (with their ORACLE sample when one is needed)."""
-        fresh = []
-        for _, f in self.slots.take_all(timeout=timeout_s):
-            rgb = self._decode(f)
-            if rgb is not None:
-                fresh.append((f, rgb))
+    def _ready_frames(self, timeout_s: float) -> list[tuple[Frame, OracleFrame | None]]:
+        """Frames ready to process, still compressed (with their ORACLE sample when one is needed)."""
+        fresh = [f for _, f in self.slots.take_all(timeout=timeout_s)]
         if not self.needs_oracle:
-            return [(f, rgb, None) for f, rgb in fresh]
+            return [(f, None) for f in fresh]
         now = time.monotonic()
-        for f, rgb in fresh:
+        for f in fresh:
             if len(self._pending) == self._pending.maxlen:
                 self.counters.add("frames_dropped")
-            self._pending.append((f, rgb, now + self.config.oracle_wait_s))
+            self._pending.append((f, now + self.config.oracle_wait_s))
+        # The frames waiting have the same byte bound as the receive rings: the oldest go first.
+        held = sum(len(f.jpeg) for f, _ in self._pending)
+        while held > self.config.limits.max_buffered_frame_bytes:
+            f, _ = self._pending.popleft()
+            held -= len(f.jpeg)
+            self.counters.add("frames_dropped")
         ready = []
-        waiting: collections.deque[tuple[Frame, np.ndarray, float]] = collections.deque(maxlen=self._pending.maxlen)
+        waiting: collections.deque[tuple[Frame, float]] = collections.deque(maxlen=self._pending.maxlen)
         while self._pending:
-            f, rgb, deadline = self._pending.popleft()
+            f, deadline = self._pending.popleft()
             o = self._take_oracle(f)
             if o is not None:
-                ready.append((f, rgb, o))
+                ready.append((f, o))
             elif now >= deadline:
                 self.counters.add("frames_without_oracle")
             else:
-                waiting.append((f, rgb, deadline))
+                waiting.append((f, deadline))
         self._pending = waiting
         return ready
 
@@ -362,6 +405,9 @@ class MapperNode:
         out["frames_dropped"] = self.counters.get("frames_dropped") + self.slots.dropped
         out["sources_refused"] = self.slots.refused_keys
         out["sources_evicted"] = self.slots.evicted_keys
+        out["frame_bytes_buffered"] = self.slots.bytes
+        out["decoded_pixels_in_flight"] = self.decode_budget.in_flight
+        out["decoded_pixels_peak"] = self.decode_budget.peak
         out["graph_version"] = self.core.version
         out["nodes"] = len(self.core.store.nodes)
         out["edges"] = len(self.core.store.edges)
@@ -419,20 +465,32 @@ class MapperNode:
         return 0
 
     def _step(self, session: zenoh.Session, pubs: dict[str, Any], timeout_s: float) -> None:
-        for frame, rgb, oracle in self._ready_frames(timeout_s):
-            view = self._to_view(frame, rgb, oracle)
-            if view is None:
+        for frame, oracle in self._ready_frames(timeout_s):
+            # Decoded one at a time, just before processing: decoded pixels in flight stay in the budget.
+            rgb = self._decode(frame)
+            if rgb is None:
                 continue
-            self.counters.add("frames_processed")
-            delta = self.core.ingest(view)
-            if self.core.last is not None and self.core.last.view is view:
-                self._log_rerun()
-            if delta is None and frame.header.source_kind == "robot":
-                delta = self.core.mark_processed(view)  # a planner may be waiting for this frame
+            try:
+                delta = self._process(frame, rgb, oracle)
+            finally:
+                self._release(frame)
             if delta is not None:
                 self._publish_delta(session, pubs, delta)
         self._publish_periodic(pubs)
+        self.bad_input.flush()
         self.save()
+
+    def _process(self, frame: Frame, rgb: np.ndarray, oracle: OracleFrame | None) -> GraphDelta | None:
+        view = self._to_view(frame, rgb, oracle)
+        if view is None:
+            return None
+        self.counters.add("frames_processed")
+        delta = self.core.ingest(view)
+        if self.core.last is not None and self.core.last.view is view:
+            self._log_rerun()
+        if delta is None and frame.header.source_kind == "robot":
+            delta = self.core.mark_processed(view)  # a planner may be waiting for this frame
+        return delta
 
     # -- Rerun -----------------------------------------------------------------------------------------
     def _open_rerun(self) -> None:

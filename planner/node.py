@@ -25,6 +25,7 @@ from protocol.codec import DecodeError, decode, encode
 from protocol.graph import GraphFollower
 from protocol.keys import Keys
 from protocol.messages import GraphDelta, GraphSnapshot, NbvGoal, PointMap, RobotState, ViewpointSet
+from protocol.ratelog import RateLimitedLog
 from protocol.session import open_session_retrying
 from protocol.transport import Counters, StatusReporter, declare_message_publisher
 
@@ -56,6 +57,7 @@ class PlannerNode:
         self.keys = Keys(config.site, config.prefix)
         self.planner = planner or Planner(config.planner)
         self.counters = Counters()
+        self.bad_input = RateLimitedLog(log)  # bad-input warnings: first per reason, then a summary per period
         self._lock = threading.Lock()
         self._wake = threading.Event()
         self.follower = GraphFollower()
@@ -91,10 +93,10 @@ class PlannerNode:
             return decode(sample.payload.to_bytes(), cls)
         except DecodeError as e:
             self.counters.add("decode_errors")
-            log.warning("dropping bad %s on %s: %s", cls.KIND, sample.key_expr, e)
+            self.bad_input.warning("decode_errors", "dropping bad %s on %s: %s", cls.KIND, sample.key_expr, e)
         except Exception as e:  # noqa: BLE001 - a callback must never raise into zenoh
             self.counters.add("decode_errors")
-            log.warning("dropping %s on %s: %s", cls.KIND, sample.key_expr, e)
+            self.bad_input.warning("decode_errors", "dropping %s on %s: %s", cls.KIND, sample.key_expr, e)
         return None
 
     def on_snapshot(self, sample: zenoh.Sample) -> None:
@@ -143,7 +145,7 @@ class PlannerNode:
             return
         if st.robot_id != rid:
             self.counters.add("decode_errors")
-            log.warning("state on %s names robot %r; ignored", sample.key_expr, st.robot_id)
+            self.bad_input.warning("wrong_robot", "state on %s names robot %r; ignored", sample.key_expr, st.robot_id)
             return
         with self._lock:
             if rid in self._gone:
@@ -162,7 +164,8 @@ class PlannerNode:
             return
         if vps.robot_id != rid:
             self.counters.add("decode_errors")
-            log.warning("viewpoints on %s name robot %r; ignored", sample.key_expr, vps.robot_id)
+            self.bad_input.warning("wrong_robot", "viewpoints on %s name robot %r; ignored", sample.key_expr,
+                                   vps.robot_id)
             return
         with self._lock:
             if rid not in self.viewpoints and len(self.viewpoints) >= MAX_ROBOTS:
@@ -372,7 +375,7 @@ class PlannerNode:
                     out.append(decode(reply.ok.payload.to_bytes(), cls))
                 except DecodeError as e:
                     self.counters.add("decode_errors")
-                    log.warning("bad %s reply: %s", cls.KIND, e)
+                    self.bad_input.warning("bad_replies", "bad %s reply: %s", cls.KIND, e)
         except Exception as e:  # noqa: BLE001 - nobody answering is normal at start-up
             log.debug("query %s failed: %s", key, e)
         return out
@@ -439,6 +442,7 @@ class PlannerNode:
         while not stop.is_set():
             self._wake.wait(0.25)
             self._wake.clear()
+            self.bad_input.flush()
             if self._need_snapshot and time.monotonic() - last_query > 2.0:
                 last_query = time.monotonic()
                 self.counters.add("snapshot_queries")

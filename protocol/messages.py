@@ -129,15 +129,20 @@ class Message(BaseModel):
 
 
 class Intrinsics(Message):
-    """Pinhole intrinsics in pixels for an image of ``width`` x ``height``."""
+    """Pinhole intrinsics in pixels for an image of ``width`` x ``height``.
+
+    Every value must be finite (a NaN or infinite one fails validation, so such a frame header never
+    decodes). Whether they describe a plausible camera (field of view, principal point) is the
+    receiver's check: :func:`mapper.intake.intrinsics_problem`.
+    """
 
     KIND: ClassVar[str] = "intrinsics"
     width: int = Field(gt=0, le=16384, description="image width in pixels")
     height: int = Field(gt=0, le=16384, description="image height in pixels")
-    fx: float = Field(gt=0, description="focal length along u, pixels")
-    fy: float = Field(gt=0, description="focal length along v, pixels")
-    cx: float = Field(description="principal point u, pixels")
-    cy: float = Field(description="principal point v, pixels")
+    fx: float = Field(gt=0, allow_inf_nan=False, description="focal length along u, pixels (finite)")
+    fy: float = Field(gt=0, allow_inf_nan=False, description="focal length along v, pixels (finite)")
+    cx: float = Field(allow_inf_nan=False, description="principal point u, pixels (finite)")
+    cy: float = Field(allow_inf_nan=False, description="principal point v, pixels (finite)")
 
     @classmethod
     def from_fov(cls, width: int, height: int, hfov_deg: float) -> Intrinsics:

@@ -38,6 +38,8 @@ def load_toml(path: Path) -> dict[str, Any]:
         raise ConfigError(f"cannot read config file {path}: {e.strerror or e}") from None
     except tomllib.TOMLDecodeError as e:
         raise ConfigError(f"config file {path} is not valid TOML: {e}") from None
+    except UnicodeDecodeError as e:  # found by tests/test_fuzz.py: tomllib decodes before parsing
+        raise ConfigError(f"config file {path} is not UTF-8 text: {e}") from None
 
 
 def parse_value(text: str) -> Any:

@@ -23,6 +23,8 @@ if TYPE_CHECKING:
     import zenoh
 
 log = logging.getLogger(__name__)
+MAX_HEADER_BYTES = 64 * 1024
+"""Largest frame-header attachment decode_frame_sample accepts (a real one is well under 2 KiB)."""
 T = TypeVar("T")
 M = TypeVar("M", bound=Message)
 
@@ -124,13 +126,16 @@ def put_frame(publisher: zenoh.Publisher, header: FrameHeader, jpeg: bytes) -> N
 
 
 def decode_frame_sample(sample: zenoh.Sample) -> Frame:
-    """Decode a frame sample; raises :class:`DecodeError` when the attachment is missing or bad.
+    """Decode a frame sample; raises :class:`DecodeError` when the attachment is missing, over
+    :data:`MAX_HEADER_BYTES` or bad.
 
     The JPEG bytes are not decoded here (that is the receiver's choice and cost).
     """
     att = sample.attachment
     if att is None:
         raise DecodeError("frame sample has no header attachment")
+    if len(att) > MAX_HEADER_BYTES:
+        raise DecodeError(f"frame header attachment of {len(att)} bytes exceeds {MAX_HEADER_BYTES}")
     header = decode(att.to_bytes(), FrameHeader)
     return Frame(header=header, jpeg=sample.payload.to_bytes(), key=str(sample.key_expr), received_ns=time.time_ns())
 
@@ -148,22 +153,39 @@ class LatestSlots(Generic[T]):
     beyond that takes the slot of the least recently active key whose ring is empty (``evicted_keys``);
     only when every slot holds unread items is it refused (``refused_keys``). So made-up source ids
     cannot lock real sources out for good.
+
+    With ``max_bytes`` (and ``size``, an item's byte count), the items buffered across all keys stay
+    under ``max_bytes`` too: the oldest item of the least recently active key is dropped to make room,
+    and an item bigger than ``max_bytes`` on its own is refused (``dropped`` counts both).
     """
 
-    def __init__(self, depth: int = 1, max_keys: int = 256) -> None:
-        if depth < 1 or max_keys < 1:
-            raise ValueError("depth and max_keys must be >= 1")
+    def __init__(self, depth: int = 1, max_keys: int = 256, max_bytes: int | None = None,
+                 size: Callable[[T], int] | None = None) -> None:
+        if depth < 1 or max_keys < 1 or (max_bytes is not None and (max_bytes < 1 or size is None)):
+            raise ValueError("depth and max_keys must be >= 1; max_bytes needs size and must be >= 1")
         self.depth = depth
         self.max_keys = max_keys
+        self.max_bytes = max_bytes
+        self._size = size
         self._rings: collections.OrderedDict[str, collections.deque[T]] = collections.OrderedDict()
         self._cond = threading.Condition()
         self.dropped = 0
         self.refused_keys = 0
         self.evicted_keys = 0
+        self.bytes = 0
+        """Bytes buffered now (with ``max_bytes``)."""
+
+    def _bytes_of(self, item: T) -> int:
+        return self._size(item) if self._size is not None else 0
 
     def put(self, key: str, item: T) -> bool:
-        """Buffer ``item`` under ``key``; False when the key was refused (all slots busy)."""
+        """Buffer ``item`` under ``key``; False when the key was refused (all slots busy) or the item alone
+        exceeds ``max_bytes``."""
+        n = self._bytes_of(item)
         with self._cond:
+            if self.max_bytes is not None and n > self.max_bytes:
+                self.dropped += 1
+                return False
             ring = self._rings.get(key)
             if ring is None:
                 if len(self._rings) >= self.max_keys and not self._evict_idle():
@@ -173,9 +195,21 @@ class LatestSlots(Generic[T]):
             self._rings.move_to_end(key)  # most recently active last
             if len(ring) == self.depth:
                 self.dropped += 1
+                self.bytes -= self._bytes_of(ring[0])
             ring.append(item)
+            self.bytes += n
+            if self.max_bytes is not None:
+                self._make_room()
             self._cond.notify_all()
             return True
+
+    def _make_room(self) -> None:
+        assert self.max_bytes is not None
+        while self.bytes > self.max_bytes:
+            # Oldest item of the least recently active key (the newest item, just put, is last of all).
+            ring = next(r for r in self._rings.values() if r)
+            self.bytes -= self._bytes_of(ring.popleft())
+            self.dropped += 1
 
     def _evict_idle(self) -> bool:
         for k, ring in self._rings.items():  # least recently active first
@@ -193,6 +227,7 @@ class LatestSlots(Generic[T]):
             out = [(k, item) for k, ring in self._rings.items() for item in ring]
             for ring in self._rings.values():
                 ring.clear()
+            self.bytes = 0
             return out
 
     def __len__(self) -> int:

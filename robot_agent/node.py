@@ -29,6 +29,7 @@ from protocol.jpeg import encode_jpeg
 from protocol.keys import Keys
 from protocol.messages import FrameHeader, GoalStatus, NbvGoal, OracleFrame, RobotState, RobotStatus, ViewpointSet
 from protocol.oracle import depth_to_png, ids_to_png
+from protocol.ratelog import RateLimitedLog
 from protocol.session import open_session_retrying
 from protocol.transport import (
     Counters,
@@ -96,6 +97,8 @@ class RobotAgent:
         self.body: RobotBody = body if body is not None else create_body(config.body)
         self.budget = Budget(config.budget.max_distance_m, config.budget.max_steps)
         self.counters = Counters()
+        self.bad_input = RateLimitedLog(log)  # bad-input warnings: first per reason, then a summary per period
+        self.refusals = RateLimitedLog(log, level=logging.INFO)  # refused goals: a stranger may send thousands
         self.mailbox = GoalMailbox()
         self.viewpoint_set = ViewpointSet(
             robot_id=config.id,
@@ -133,8 +136,9 @@ class RobotAgent:
             goal, form = parse_goal(data, f"{self.config.id}-goal-{received}", time.time_ns())
         except GoalRefused as e:
             self.counters.add("goals_garbage")
-            if self._queue_refusal(e.goal_id, e.reason, received):
-                log.warning("refusing an unreadable goal payload (%d bytes): %s", len(data), e.reason)
+            self._queue_refusal(e.goal_id, e.reason, received)  # answered (rate-limited) on goal/status
+            self.bad_input.warning("goals_garbage", "refusing an unreadable goal payload (%d bytes): %s",
+                                   len(data), e.reason)
             return
         self.counters.add(f"goals_{form}")
         old = self.mailbox.put(goal, received)
@@ -178,7 +182,7 @@ class RobotAgent:
             self.on_goal_bytes(sample.payload.to_bytes())
         except Exception as e:  # noqa: BLE001 - a callback must never raise into zenoh
             self.counters.add("goals_garbage")
-            log.warning("goal callback failed: %s", e)
+            self.bad_input.warning("goals_garbage", "goal callback failed: %s", e)
 
     def _on_viewpoints_query(self, query: zenoh.Query) -> None:
         try:
@@ -317,7 +321,7 @@ class RobotAgent:
             self.body.stop()
             self.goal = None
             self.counters.add("goals_refused")
-            log.info("refusing goal %s: %s", goal.goal_id, problem)
+            self.refusals.warning("goals_refused", "refusing goal %s: %s", goal.goal_id, problem)
             self._answer_goal(goal, False, problem, received)
             self._set("refused", problem)
             return
@@ -362,6 +366,8 @@ class RobotAgent:
 
     def tick(self, dt_wall_s: float) -> None:
         """One control step: take a goal, advance the body, publish what is due."""
+        self.bad_input.flush()
+        self.refusals.flush()
         self._flush_acks()
         item = self.mailbox.take_with_receipt()
         if item is not None:

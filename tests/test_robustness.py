@@ -31,6 +31,7 @@ import msgpack
 import numpy as np
 import pytest
 
+from mapper.geometry.contract import View
 from planner import synthetic as S
 from protocol.codec import DecodeError, decode, encode
 from protocol.jpeg import JpegError, decode_jpeg, encode_jpeg
@@ -279,15 +280,21 @@ class Peer:
     def send_view(self, eye: list[float], seq: int, source: str = SRC, header_pose: np.ndarray | None = None) -> None:
         """A valid frame of the ray-cast scene with its ORACLE sample (sent first); ``header_pose`` replaces
         the header's (true) pose."""
-        v = view(eye, seq, source)
+        v = self.send_oracle(source, seq, eye)
+        T = v.T_world_cam if header_pose is None else header_pose
+        self.put(KEYS.robot_frame(source), encode_jpeg(v.image), encode(header(source, seq, T)))
+
+    def send_oracle(self, source: str, seq: int, eye: list[float] | None = None) -> View:
+        """The ORACLE sample of the ray-cast view from ``eye`` (default EYES[0]) as ``source``'s frame ``seq``; an
+        oracle mapper decodes a frame only once its ORACLE sample is there."""
+        v = view(eye if eye is not None else EYES[0], seq, source)
         assert v.oracle is not None and v.oracle.instance_id is not None
         self.put(KEYS.oracle("robot", source), encode(OracleFrame(
             source_id=source, seq=seq, stamp_ns=v.stamp_ns, T_world_cam_true=v.oracle.T_world_cam_true,
             ids_png=ids_to_png(v.oracle.instance_id), depth_png=depth_to_png(v.oracle.depth_m),
             labels={str(k): lab for k, lab in LABELS.items()},
         )))
-        T = v.T_world_cam if header_pose is None else header_pose
-        self.put(KEYS.robot_frame(source), encode_jpeg(v.image), encode(header(source, seq, T)))
+        return v
 
     def close(self) -> None:
         for s in self.subs:
@@ -422,17 +429,21 @@ def test_mapper_counts_hostile_frames_oracles_and_queries_and_keeps_its_graph(st
     for key, payload, att in bad_header:
         peer.put(key, payload, att)
 
-    # Well-formed headers with bad images, one per source so none is evicted unseen: each must be decoded
-    # and refused. The ORACLE path: valid frames whose ORACLE PNGs are corrupt or of the wrong size.
+    # Well-formed headers with bad images, one per source so none is evicted unseen: each must be refused. Most
+    # are refused on arrival, unread; the two cut short pass those checks and fail when decoded, which happens
+    # once their ORACLE sample is there (sent first). The ORACLE path: valid frames whose ORACLE PNGs are corrupt
+    # or of the wrong size.
+    v = view(EYES[2], 1)
     bad_images = [
         b"", b"\xff\xd8", b"\xff\xd8not a jpeg\xff\xd9", tiny[: len(tiny) // 2], tiny[:-2], b"\x89PNG\r\n\x1a\n",
         encode_jpeg(np.zeros((8, 8, 3), np.uint8)),  # header says 96x72
     ]
     for i, img in enumerate(bad_images):
+        if img in (tiny[: len(tiny) // 2], tiny[:-2]):
+            peer.send_oracle(f"evil_j{i}", 1)
         peer.put(KEYS.robot_frame(f"evil_j{i}"), img, encode(header(f"evil_j{i}", 1)))
     huge = header("evil_j_huge", 1, width=16384, height=16384, intrinsics=None)  # header claims a huge image
     peer.put(KEYS.robot_frame("evil_j_huge"), tiny, encode(huge))
-    v = view(EYES[2], 1)
     bad_oracles = [  # undecodable PNGs: refused before the view is built (decode_errors)
         {"ids_png": b"garbage"},
         {"depth_png": b"\x89PNG\r\n\x1a\n"},
@@ -693,15 +704,36 @@ def test_mapper_refuses_a_jpeg_bigger_than_its_header_without_decoding_it(
     assert vm_mib(pid, "VmHWM") - peak0 < 64, "a 600-byte frame raised the mapper's peak memory"
 
 
+def test_mapper_refuses_forty_bombs_that_match_their_headers_unread(lone_mapper: tuple[Proc, Peer]) -> None:
+    """Issue 19: 40 ~600-byte JPEGs whose JPEG and frame header both claim 6000x6000 took the mapper to 4.6 GB."""
+    mapper, peer = lone_mapper
+    pid = mapper.popen.pid
+    peak0 = vm_mib(pid, "VmHWM")
+    base = peer.counters(MAPPER)
+    for i in range(40):
+        w = h = 6000 if i % 2 == 0 else 3000  # over the pixel cap; under it but far too few bytes for its size
+        peer.put(KEYS.robot_frame(f"bomb{i}"), jpeg_claiming(h, w), encode(header(f"bomb{i}", 1, width=w, height=h,
+                                                                                  intrinsics=None)))
+    expected = {"frames_too_large": 20, "frames_implausible_jpeg": 20, "decode_errors": 40}
+    assert peer.wait_counts(MAPPER, base, expected, proc=mapper) == expected
+    assert peer.counter(MAPPER, "decoded_pixels_peak") == base.get("decoded_pixels_peak", 0.0) == 0.0
+    assert vm_mib(pid, "VmHWM") - peak0 < 64, "small frames raised the mapper's peak memory"
+
+
 @pytest.mark.parametrize("lone_mapper", [("--set", "max_sources=4")], indirect=True)
 def test_mapper_still_ingests_a_new_source_after_made_up_sources(lone_mapper: tuple[Proc, Peer]) -> None:
     mapper, peer = lone_mapper
     base = peer.counters(MAPPER)
-    for i in range(4):  # well-formed headers, broken images: each takes a slot
-        peer.put(KEYS.robot_frame(f"evil{i}"), b"\xff\xd8junk\xff\xd9", encode(header(f"evil{i}", 1)))
+    # Well-formed headers, images whose JPEG header is right but whose data is cut short: they pass the checks on
+    # arrival, so each takes a slot, and fail only when decoded (once their ORACLE sample is there).
+    cut = encode_jpeg(np.zeros((INTR.height, INTR.width, 3), np.uint8))[:-2]
+    for i in range(4):
+        peer.send_oracle(f"evil{i}", 1)
+        peer.put(KEYS.robot_frame(f"evil{i}"), cut, encode(header(f"evil{i}", 1)))
     peer.wait_counts(MAPPER, base, {"decode_errors": 4}, proc=mapper)
     peer.send_view(EYES[0], 1)  # a legitimate new source
-    peer.put(KEYS.robot_frame("evil0"), b"\xff\xd8junk\xff\xd9", encode(header("evil0", 2)))  # a marker after it
+    peer.send_oracle("evil0", 2)
+    peer.put(KEYS.robot_frame("evil0"), cut, encode(header("evil0", 2)))  # a marker after it
     peer.wait_counts(MAPPER, base, {"decode_errors": 5, "frames_in": 6}, proc=mapper)
     wait_for(lambda: peer.counter(MAPPER, "frames_processed") > base.get("frames_processed", 0)
              or peer.counter(MAPPER, "frames_without_oracle") > base.get("frames_without_oracle", 0), timeout=3,
