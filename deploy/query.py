@@ -17,11 +17,13 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import os
 import queue
 import sys
 import threading
 import time
 from collections.abc import Iterable
+from pathlib import Path
 from typing import Any
 
 from protocol.codec import DecodeError, decode, peek_kind
@@ -215,6 +217,13 @@ def run_watch(
     return 0
 
 
+def _silence_stdout() -> None:
+    """Point stdout at /dev/null, so the interpreter's final flush into the closed pipe is silent too."""
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    os.dup2(devnull, sys.stdout.fileno())
+    os.close(devnull)
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(
         prog="argus query",
@@ -224,6 +233,8 @@ def main(argv: list[str] | None = None) -> int:
     )
     p.add_argument("--connect", default=DEFAULT_ENDPOINT, help=f"router endpoint ({DEFAULT_ENDPOINT})")
     p.add_argument("--site", default="default", help="Argus site name")
+    p.add_argument("--zenoh-config", type=Path, default=None, metavar="FILE.json5",
+                   help="Zenoh json5 config applied first (TLS and user/password of a secure site)")
     p.add_argument("--timeout", type=float, default=5.0, help="seconds to wait for answers")
     sub = p.add_subparsers(dest="what", required=True)
     pn = sub.add_parser("nodes", help="nodes selected by label / position / id")
@@ -260,13 +271,17 @@ def main(argv: list[str] | None = None) -> int:
 
     stop = install_stop_handlers()
     try:
-        with open_session(ZenohSettings(mode="client", connect=[a.connect])) as session:
+        settings = ZenohSettings(mode="client", connect=[a.connect], config_file=a.zenoh_config)
+        with open_session(settings) as session:
             if a.what == "nodes":
                 assert query is not None
                 return run_nodes(session, keys, query, a.json, a.timeout)
             if a.what == "snapshot":
                 return run_snapshot(session, keys, a.json, a.timeout)
             return run_watch(session, keys, a.json, stop, a.count, a.idle_timeout)
+    except BrokenPipeError:  # the reader went away (argus query ... | head): not an error
+        _silence_stdout()
+        return 0
     except QueryError as e:
         print(f"argus query: {e}", file=sys.stderr)
         return 1

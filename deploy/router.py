@@ -4,6 +4,9 @@ Example::
 
     argus router --listen tcp/127.0.0.1:7447
     argus router --config deploy/zenoh/router.json5
+    argus router --config router-tls.json5 --listen tls/192.168.1.10:7447     # a LAN: TLS only
+
+Listening on a non-loopback address without TLS is refused unless ``--insecure`` is given.
 """
 
 from __future__ import annotations
@@ -49,13 +52,17 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--connect", action="append", default=[], help="other routers to connect to (repeatable)")
     p.add_argument("--config", type=Path, default=None, help="json5 Zenoh config file (e.g. deploy/zenoh/router.json5)")
     p.add_argument("--site", default="default", help="Argus site name (for the liveliness token)")
+    p.add_argument("--insecure", action="store_true",
+                   help="allow a plaintext listen endpoint on a non-loopback address (logs a warning; "
+                   "refused otherwise, use tls/ endpoints: docs/SECURITY.md)")
     p.add_argument("--ready-file", type=Path, default=None, help="write the router id here once listening")
     p.add_argument("--log-level", default="INFO")
     a = p.parse_args(argv)
     setup_logging("router", a.log_level)
     listen = a.listen if a.listen is not None else ([] if a.config else [DEFAULT_ENDPOINT])
     try:
-        settings = ZenohSettings(mode="router", connect=a.connect, listen=listen, config_file=a.config)
+        settings = ZenohSettings(mode="router", connect=a.connect, listen=listen, config_file=a.config,
+                                 insecure=a.insecure)
         return run(settings, a.site, a.ready_file)
     except Exception as e:  # noqa: BLE001 - configuration errors end the process with a message
         print(f"argus router: {e}", file=sys.stderr)

@@ -40,6 +40,7 @@ import argparse
 import ctypes
 import os
 import shlex
+import shutil
 import signal
 import socket
 import subprocess
@@ -220,6 +221,39 @@ def _set_parent_death_signal() -> None:
     """
     if _PRCTL is not None:
         _PRCTL(_PR_SET_PDEATHSIG, int(signal.SIGKILL))
+
+
+TMP_PREFIX = "argus-up-"
+
+
+def _pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+def sweep_stale_tmp_dirs(root: Path | None = None) -> list[Path]:
+    """Remove the temporary folders (``argus-up-<pid>-*``) of launchers that died without cleaning up.
+
+    A SIGKILLed ``argus up`` cannot remove its folder of generated configs; the next start does, for
+    every folder of this user whose launcher pid is gone. Returns the folders removed.
+    """
+    root = Path(tempfile.gettempdir() if root is None else root)
+    removed: list[Path] = []
+    for d in root.glob(f"{TMP_PREFIX}*-*"):
+        pid = d.name[len(TMP_PREFIX):].split("-", 1)[0]
+        try:
+            mine = d.is_dir() and not d.is_symlink() and d.stat().st_uid == os.getuid()
+        except OSError:
+            continue
+        if mine and pid.isdigit() and not _pid_alive(int(pid)):
+            shutil.rmtree(d, ignore_errors=True)
+            removed.append(d)
+    return removed
 
 
 def _group_alive(pgid: int) -> bool:
@@ -408,7 +442,8 @@ class Stack:
         self.health = Health(self.keys)
         self._session: Any = None
         self._liveliness_sub: Any = None
-        self._tmp = tempfile.TemporaryDirectory(prefix="argus-up-")
+        sweep_stale_tmp_dirs()
+        self._tmp = Path(tempfile.mkdtemp(prefix=f"{TMP_PREFIX}{os.getpid()}-"))
         self.healthy_at: float | None = None
         self.failed: list[str] = []
         self.started_at = time.monotonic()
@@ -438,7 +473,7 @@ class Stack:
             cfg = Path(_expand(str(spec.config), subs))
             argv += ["--config", str(cfg if cfg.is_absolute() else self.launch_dir / cfg)]
         elif spec.settings is not None:
-            path = Path(self._tmp.name) / f"{spec.name}.toml"
+            path = self._tmp / f"{spec.name}.toml"
             path.write_text(dump_toml(_expand(spec.settings, subs)))
             argv += ["--config", str(path)]
         return argv
@@ -602,7 +637,7 @@ class Stack:
         for f in self._log_files.values():
             f.close()
         self._log_files.clear()
-        self._tmp.cleanup()
+        shutil.rmtree(self._tmp, ignore_errors=True)
 
     @staticmethod
     def _wait_groups(children: list[Child], timeout: float) -> None:
@@ -641,6 +676,8 @@ def run(
         return 0
     stop = install_stop_handlers()
     code = 0
+    if ready_file is not None:  # left by a launcher that was killed: it names processes long gone
+        ready_file.unlink(missing_ok=True)
     try:
         stack.start()
         stack.say(f"{len(stack.children)} processes started; waiting for liveliness of "
@@ -671,6 +708,8 @@ def run(
     finally:
         stack.say("stopping all processes")
         stack.stop()
+        if ready_file is not None:
+            ready_file.unlink(missing_ok=True)
         stack.say("all stopped")
     return code
 

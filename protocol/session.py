@@ -4,20 +4,76 @@ Multicast scouting is **off** unless explicitly enabled, and processes find each
 explicit endpoints (``tcp/127.0.0.1:7447`` by default). Processes that connect to a router should run
 in ``client`` mode. Shared memory is off by default (killed processes leave ``/dev/shm`` files and
 the loopback TCP path is fast enough for JPEG frames).
+
+Listening is loopback-only unless encrypted: a router or peer refuses to listen on a non-loopback
+address with a plaintext protocol (``tcp/0.0.0.0:7447``, ``tcp/192.168.1.10:7447``) unless
+``insecure`` is set (``--insecure``; a warning is logged). ``tls/`` and ``quic/`` endpoints may listen
+anywhere. Where no listen endpoint is given at all, Zenoh's own default (every interface) is replaced
+by a loopback one.
 """
 
 from __future__ import annotations
 
+import ipaddress
 import json
+import logging
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 if TYPE_CHECKING:
     import zenoh
 
 DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
+# Where Zenoh would listen on every interface by default, Argus listens on loopback.
+LOOPBACK_LISTEN = {"router": [DEFAULT_ENDPOINT], "peer": ["tcp/127.0.0.1:0"]}
+ENCRYPTED_PROTOCOLS = ("tls", "quic")
+LOCAL_PROTOCOLS = ("unixsock-stream", "unixpipe")
+
+log = logging.getLogger(__name__)
+
+
+class InsecureListenError(ValueError):
+    """A plaintext listen endpoint on a non-loopback address, without ``insecure``."""
+
+
+def endpoint_is_loopback(endpoint: str) -> bool:
+    """True for ``<proto>/127.x.x.x:<port>``, ``<proto>/[::1]:<port>`` and ``<proto>/localhost:<port>``.
+
+    Host names other than ``localhost`` count as non-loopback (they are not resolved here).
+    """
+    _, _, address = endpoint.partition("/")
+    host = address.split("#", 1)[0].split("?", 1)[0].rsplit(":", 1)[0].strip("[]")
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False
+
+
+def exposed_plaintext(endpoints: list[str]) -> list[str]:
+    """The endpoints that would listen unencrypted on a non-loopback address."""
+    out = []
+    for ep in endpoints:
+        proto = ep.split("/", 1)[0].lower()
+        if proto not in ENCRYPTED_PROTOCOLS and proto not in LOCAL_PROTOCOLS and not endpoint_is_loopback(ep):
+            out.append(ep)
+    return out
+
+
+def check_listen(endpoints: list[str], insecure: bool) -> None:
+    """Raise :class:`InsecureListenError` for plaintext non-loopback endpoints (a warning if ``insecure``)."""
+    exposed = exposed_plaintext(endpoints)
+    if not exposed:
+        return
+    if not insecure:
+        raise InsecureListenError(
+            f"refusing to listen on {', '.join(exposed)}: plaintext on a non-loopback address (anyone on that "
+            "network could read every frame and inject goals). Use a tls/ endpoint with certificates "
+            "(argus up --secure sets them up, see docs/SECURITY.md) or pass --insecure to accept the risk")
+    log.warning("INSECURE: listening on %s without TLS or authentication (--insecure)", ", ".join(exposed))
 
 
 class ZenohSettings(BaseModel):
@@ -39,6 +95,17 @@ class ZenohSettings(BaseModel):
     overrides: dict[str, Any] = Field(
         default_factory=dict, description="extra Zenoh config keys (json5 paths such as 'transport/link/tx/lease')"
     )
+    insecure: bool = Field(
+        default=False,
+        description="allow listening on a non-loopback address without TLS (plaintext, no authentication); "
+        "logs a warning. Off: such a listen endpoint is refused",
+    )
+
+    @model_validator(mode="after")
+    def _listen_is_safe(self) -> ZenohSettings:
+        if self.mode != "client" and not self.insecure and exposed_plaintext(self.listen):
+            check_listen(self.listen, insecure=False)
+        return self
 
 
 def build_config(settings: ZenohSettings) -> zenoh.Config:
@@ -55,7 +122,22 @@ def build_config(settings: ZenohSettings) -> zenoh.Config:
     conf.insert_json5("transport/shared_memory/enabled", json.dumps(settings.shared_memory))
     for key, value in settings.overrides.items():
         conf.insert_json5(key, json.dumps(value))
+    if settings.mode != "client":
+        check_listen(_loopback_by_default(conf, settings.mode), settings.insecure)
     return conf
+
+
+def _loopback_by_default(conf: zenoh.Config, mode: str) -> list[str]:
+    """The endpoints ``conf`` listens on; Zenoh's every-interface default becomes a loopback one."""
+    import zenoh
+
+    listen = json.loads(conf.get_json("listen/endpoints"))
+    if listen == json.loads(zenoh.Config().get_json("listen/endpoints")):
+        listen = LOOPBACK_LISTEN[mode]
+        conf.insert_json5("listen/endpoints", json.dumps(listen))
+    elif isinstance(listen, dict):  # a mode-dependent value from a config file
+        listen = listen.get(mode) or []
+    return [str(ep) for ep in listen]
 
 
 def open_session(settings: ZenohSettings) -> zenoh.Session:

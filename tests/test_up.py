@@ -208,3 +208,31 @@ def test_dry_run_prints_commands(tmp_path: Path, capsys: pytest.CaptureFixture[s
     out = capsys.readouterr().out
     assert "[edge]" in out and f"--connect {ep}" in out and "[router]" not in out
     assert main([str(launch), "--only", "nope"]) == 2
+
+
+def test_up_killed_hard_then_started_again_cleans_temp_folder_and_ready_file(tmp_path: Path,
+                                                                           procs: list[Proc]) -> None:
+    """SIGKILL leaves the temp folder and the ready file; the next start removes both (no stale pids)."""
+    launch, _ = _tiny_launch(tmp_path)
+    tmp = tmp_path / "tmp"
+    tmp.mkdir()
+    ready = tmp_path / "ready"
+    env = {"TMPDIR": str(tmp)}
+    up = Proc(["up", str(launch), "--ready-file", str(ready)], env=env)
+    procs.append(up)
+    wait_for(ready.exists, timeout=40, what="stack healthy")
+    old = ready.read_text()
+    (stale,) = list(tmp.glob("argus-up-*"))
+    os.kill(up.popen.pid, signal.SIGKILL)
+    up.wait(10)
+    wait_for(lambda: all(_pid_gone(int(p)) for p in old.split(",")), timeout=20, what="children gone")
+    assert stale.exists() and ready.exists()  # what a SIGKILL leaves behind
+
+    again = Proc(["up", str(launch), "--ready-file", str(ready)], env=env)
+    procs.append(again)
+    wait_for(lambda: not stale.exists(), timeout=20, what="the dead launcher's temp folder removed")
+    wait_for(lambda: ready.exists() and ready.read_text() != old, timeout=40, what="a fresh ready file")
+    os.kill(again.popen.pid, signal.SIGINT)
+    assert again.wait(30) == 0, again.output
+    assert not ready.exists(), "a stopped stack left its ready file"
+    assert not list(tmp.glob("argus-up-*")), "a stopped stack left its temp folder"
