@@ -55,6 +55,7 @@ from typing import Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
+from deploy.secure import SecureSite, SecuritySpec, prepare
 from protocol.keys import Keys, validate_id
 
 # The liveliness role a command declares (``alive/<role>/<id>``) when it differs from the command
@@ -130,6 +131,10 @@ class LaunchFile(BaseModel):
         default=None, description="simulated world, if the stack runs on sim/ (demo scoring uses it)"
     )
     process: list[ProcessSpec] = Field(description="the processes, started in this order")
+    security: SecuritySpec | None = Field(
+        default=None, description="[security]: TLS, a certificate and password per process and an ACL "
+        "(as argus up --secure; docs/SECURITY.md)",
+    )
 
     @model_validator(mode="after")
     def _unique(self) -> LaunchFile:
@@ -392,7 +397,7 @@ class Health:
 
 
 def _tcp_host_port(endpoint: str) -> tuple[str, int] | None:
-    if not endpoint.startswith("tcp/"):
+    if not endpoint.startswith(("tcp/", "tls/")):  # both listen on a TCP port
         return None
     host, _, port = endpoint[4:].rpartition(":")
     try:
@@ -422,6 +427,7 @@ class Stack:
         log_dir: Path | None = None,
         python: str = sys.executable,
         extra_env: dict[str, str] | None = None,
+        secure: SecureSite | None = None,
     ) -> None:
         self.launch = launch
         self.launch_dir = Path(launch_dir).resolve()
@@ -438,6 +444,7 @@ class Stack:
         self.log_dir = log_dir
         self.python = python
         self.extra_env = extra_env or {}
+        self.secure = secure
         self.children: list[Child] = []
         self.health = Health(self.keys)
         self._session: Any = None
@@ -476,6 +483,11 @@ class Stack:
             path = self._tmp / f"{spec.name}.toml"
             path.write_text(dump_toml(_expand(spec.settings, subs)))
             argv += ["--config", str(path)]
+        if self.secure is not None:  # TLS + this process's own login (its Zenoh config file)
+            if spec.command == "router":
+                argv += ["--config", str(self.secure.router_file)]
+            else:
+                argv += ["--zenoh-config", str(self.secure.client_file(spec.name))]
         return argv
 
     def substitutions(self) -> dict[str, str]:
@@ -523,7 +535,8 @@ class Stack:
     def _open_health(self, timeout: float = 20.0) -> None:
         from protocol.session import ZenohSettings, open_session
 
-        settings = ZenohSettings(mode="client", connect=[self.launch.endpoint])
+        settings = ZenohSettings(mode="client", connect=[self.launch.endpoint],
+                                 config_file=None if self.secure is None else self.secure.client_file("launcher"))
         deadline = time.monotonic() + timeout
         last: Exception | None = None
         while time.monotonic() < deadline:
@@ -660,18 +673,27 @@ def run(
     log_dir: Path | None = None,
     ready_file: Path | None = None,
     dry_run: bool = False,
+    secure: bool = False,
+    secure_dir: Path | None = None,
 ) -> int:
-    """Start the stack of ``launch_path`` and keep it up until SIGINT/SIGTERM (or ``duration_s``)."""
+    """Start the stack of ``launch_path`` and keep it up until SIGINT/SIGTERM (or ``duration_s``).
+
+    ``secure`` (or an enabled ``[security]`` table): TLS, per-process logins and an ACL (deploy/secure.py).
+    """
     from protocol.runtime import install_stop_handlers
 
     launch = load_launch(launch_path)
-    stack = Stack(launch, launch_path.parent, only=only, log_dir=log_dir)
+    site = _secure_site(launch, launch_path.parent, only, secure, secure_dir)
+    stack = Stack(launch, launch_path.parent, only=only, log_dir=log_dir, secure=site)
+    if site is not None:
+        stack.say(f"secure: TLS on {launch.endpoint}, one login per process, ACL; material in {site.dir}")
     if dry_run:
         for spec in stack.local:
             argv = stack.argv_for(spec)
             print(f"[{spec.name}] ({spec.host}) {shlex.join(argv)}")
             if spec.settings is not None:  # the generated config file is temporary: show it
-                print("\n".join(f"    | {line}" for line in Path(argv[-1]).read_text().splitlines()))
+                cfg = Path(argv[argv.index("--config") + 1])
+                print("\n".join(f"    | {line}" for line in cfg.read_text().splitlines()))
         stack.stop()
         return 0
     stop = install_stop_handlers()
@@ -714,6 +736,17 @@ def run(
     return code
 
 
+def _secure_site(launch: LaunchFile, launch_dir: Path, only: list[str] | None, secure: bool,
+                 secure_dir: Path | None) -> SecureSite | None:
+    sec = launch.security
+    if sec is None or not sec.enabled:
+        if not secure:
+            return None
+        sec = SecuritySpec()
+    local = [p.name for p in launch.process if not only or p.name in only]
+    return prepare(launch, launch_dir.resolve(), sec, local, secure_dir)
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(
         prog="argus up",
@@ -727,10 +760,15 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--log-dir", type=Path, default=None, help="also write one <name>.log per process here")
     p.add_argument("--ready-file", type=Path, default=None, help="write the pids here once all are healthy")
     p.add_argument("--dry-run", action="store_true", help="print the command lines and exit")
+    p.add_argument("--secure", action="store_true",
+                   help="TLS + a certificate and password per process + an ACL (needs a tls/ endpoint; "
+                   "also a launch file's [security] table); see docs/SECURITY.md")
+    p.add_argument("--secure-dir", type=Path, default=None,
+                   help="folder of the CA, certificates and passwords (default ~/.local/state/argus/secure/<site>)")
     a = p.parse_args(argv)
     only = [s.strip() for s in a.only.split(",") if s.strip()] if a.only else None
     try:
-        return run(a.launch, only, a.duration, a.log_dir, a.ready_file, a.dry_run)
+        return run(a.launch, only, a.duration, a.log_dir, a.ready_file, a.dry_run, a.secure, a.secure_dir)
     except ValueError as e:
         print(f"argus up: {e}", file=sys.stderr)
         return 2
