@@ -131,8 +131,35 @@ def test_access_control_every_role_strictly(tmp_path: Path, procs: list[Proc]) -
         assert goals.count(b"forged goal") == 0, "a camera's goal reached the robot"
         assert graph.count(b"forged delta") == 0, "a consumer wrote into the graph"
         assert not [k for k in consumer.keys if k.endswith("/frame")], "a consumer received camera frames"
+        # The mapper may not send goals, the planner may not write the graph.
+        for _ in range(N_PUTS):
+            mapper.put(keys.robot_goal("robot-01"), b"mapper goal")
+            planner.put(keys.graph_delta, b"planner delta")
+        delta_pub.put(b"delta sentinel 2")
+        wait_for(lambda: consumer.count(b"delta sentinel 2") == 1, 10, what="the mapper's second sentinel")
+        goal_pub.put(b"goal sentinel 2")
+        wait_for(lambda: goals.count(b"goal sentinel 2") == 1, 10, what="the planner's second sentinel")
+        assert goals.count(b"mapper goal") == 0 and consumer.count(b"planner delta") == 0
         for s in subs:
             s.undeclare()
+
+
+def test_a_camera_cannot_impersonate_another_process(tmp_path: Path, procs: list[Proc]) -> None:
+    """Liveliness tokens (what health and the planner trust) only under a login's own role and id."""
+    ep = _acl_router(tmp_path, procs)
+    keys = Keys()
+    alive = _Inbox()
+    with open_session(_user(ep, "monitor")) as monitor, open_session(_user(ep, "cam-01")) as cam:
+        sub = monitor.liveliness().declare_subscriber(keys.all_alive, alive, history=True)
+        forged = [cam.liveliness().declare_token(keys.alive("mapper", "mapper")),
+                  cam.liveliness().declare_token(keys.alive("edge-camera", "cam-02"))]
+        own = cam.liveliness().declare_token(keys.alive("edge-camera", "cam-01"))  # same link, after the forged
+        wait_for(lambda: keys.alive("edge-camera", "cam-01") in alive.keys, 10, what="the camera's own token")
+        assert keys.alive("mapper", "mapper") not in alive.keys, "a camera posed as the mapper"
+        assert keys.alive("edge-camera", "cam-02") not in alive.keys, "a camera posed as another camera"
+        for t in [*forged, own]:
+            t.undeclare()
+        sub.undeclare()
 
 
 def test_real_edge_camera_through_the_shipped_acl(tmp_path: Path, procs: list[Proc]) -> None:
