@@ -177,10 +177,11 @@ def _tls(folder: Path, side: str) -> dict[str, Any]:
 
 
 def client_config(folder: Path, user: str) -> dict[str, Any]:
-    """What one process adds to its Zenoh config: its certificate and its password."""
+    """What one process adds to its Zenoh config: its certificate and its password (and it checks that
+    the router's certificate names the host it connects to)."""
     password = (folder / "password").read_text().strip()
-    return {"transport": {"auth": {"usrpwd": {"user": user, "password": password}},
-                          "link": {"tls": _tls(folder, "connect")}}}
+    tls = {**_tls(folder, "connect"), "verify_name_on_connect": True}
+    return {"transport": {"auth": {"usrpwd": {"user": user, "password": password}}, "link": {"tls": tls}}}
 
 
 @dataclass(frozen=True)

@@ -26,7 +26,7 @@ import pytest
 import zenoh
 
 from deploy.acl import Principal
-from deploy.secure import SecuritySpec, principals
+from deploy.secure import SecuritySpec, make_ca, make_cert, principals
 from deploy.up import LaunchFile, Stack, load_launch
 from protocol.codec import encode
 from protocol.keys import Keys
@@ -230,6 +230,13 @@ def test_secure_stack_allows_the_work_and_denies_everything_else(tmp_path: Path,
     _refused(site, "no client certificate", **{"transport/link/tls/connect_certificate": None,
                                                "transport/link/tls/connect_private_key": None})
     _refused(site, "wrong password", **{"transport/auth/usrpwd/password": "guess"})
+    foreign = tmp_path / "foreign"  # a certificate for the right name from another CA
+    (foreign / "cam_kitchen").mkdir(parents=True)
+    make_ca(foreign, "other-ca", 1)
+    make_cert(foreign, foreign / "cam_kitchen", "cam_kitchen", ["cam_kitchen"], 1)
+    _refused(site, "certificate of another CA", **{
+        "transport/link/tls/connect_certificate": str(foreign / "cam_kitchen" / "cert.pem"),
+        "transport/link/tls/connect_private_key": str(foreign / "cam_kitchen" / "key.pem")})
     with pytest.raises(zenoh.ZError):
         open_session(ZenohSettings(mode="client", connect=[endpoint(port)], overrides={
             "connect/timeout_ms": 3000, "connect/exit_on_failure": True})).close()
@@ -259,3 +266,42 @@ def test_stack_secure_flags_per_process(tmp_path: Path) -> None:
                 assert argv[-2:] == ["--zenoh-config", str(site.client_file(spec.name))]
     finally:
         stack.stop()
+
+
+def test_generated_router_over_tls_lets_a_camera_do_only_its_part(tmp_path: Path, procs: list[Proc]) -> None:
+    """The fast tier's check of the generated material: a router alone, the camera's login over TLS."""
+    from deploy.secure import prepare
+
+    port = free_port()
+    launch = LaunchFile.model_validate_json(json.dumps(_toml(_launch_text(port))))
+    site = prepare(launch, SHIPPED.parent, launch.security or SecuritySpec(), ["router"], tmp_path / "s")
+    procs.append(Proc(["router", "--config", str(site.router_file), "--listen", launch.endpoint], cwd=tmp_path))
+    wait_for(lambda: _port_open(port), 20, what="the TLS router")
+    s, k = Site(site.dir, launch.endpoint, Keys("home")), Keys("home")
+    frames, goals = Inbox(), Inbox()
+    with s.session("mapper") as mapper, s.session("robot0") as robot, s.session("cam_kitchen") as cam:
+        subs = [mapper.declare_subscriber(k.all_frames, frames),
+                robot.declare_subscriber(k.robot_goal("robot0"), goals)]
+        pub = cam.declare_publisher(k.cam_frame("cam_kitchen"))
+        _told_of_subscriber(pub, "camera")
+        for _ in range(N):
+            cam.put(k.robot_goal("robot0"), b"rogue goal")
+            cam.put(k.cam_frame("cam_hall"), b"forged frame")
+            pub.put(b"frame")
+        wait_for(lambda: frames.count(b"frame") == N, 10, what=f"{N} frames over TLS")
+        with s.session("planner") as planner:  # a sentinel on the robot's link, after the rogue goals
+            goal_pub = planner.declare_publisher(k.robot_goal("robot0"))
+            _told_of_subscriber(goal_pub, "planner")
+            goal_pub.put(b"sentinel")
+            wait_for(lambda: goals.count(b"sentinel") == 1, 10, what="the planner's goal")
+        assert frames.count(b"forged frame") == 0 and goals.count(b"rogue goal") == 0
+        for sub in subs:
+            sub.undeclare()
+
+
+def _port_open(port: int) -> bool:
+    import socket
+
+    with socket.socket() as sock:
+        sock.settimeout(0.2)
+        return sock.connect_ex(("127.0.0.1", port)) == 0

@@ -98,8 +98,12 @@ def test_access_control_every_role_strictly(tmp_path: Path, procs: list[Proc]) -
         open_session(_user(ep, "viewer")) as viewer,
         open_session(_user(ep, "cam-01")) as cam,
         open_session(_user(ep, "robot-01")) as robot,
+        open_session(_user(ep, "cam-01")) as cam_reader,  # not `cam`: a session's own puts reach it locally
     ):
-        subs = [mapper.declare_subscriber(keys.all_frames, frames),
+        cam_read = _Inbox()
+        subs = [cam_reader.declare_subscriber(k, cam_read) for k in (keys.all_frames, keys.graph_all,
+                                                                      keys.robot_goal("robot-01"))]
+        subs += [mapper.declare_subscriber(keys.all_frames, frames),
                 mapper.declare_subscriber(keys.graph_all, graph),
                 robot.declare_subscriber(keys.robot_goal("robot-01"), goals),
                 # ACL rules match key expressions, not supersets: consumers subscribe to graph/** itself.
@@ -140,6 +144,7 @@ def test_access_control_every_role_strictly(tmp_path: Path, procs: list[Proc]) -
         goal_pub.put(b"goal sentinel 2")
         wait_for(lambda: goals.count(b"goal sentinel 2") == 1, 10, what="the planner's second sentinel")
         assert goals.count(b"mapper goal") == 0 and consumer.count(b"planner delta") == 0
+        assert cam_read.keys == [], "a camera read frames, graph or goals"
         for s in subs:
             s.undeclare()
 
