@@ -123,6 +123,7 @@ def test_access_control_every_role_strictly(tmp_path: Path, procs: list[Proc]) -
         # robot's link), so the forged ones would have arrived first.
         for _ in range(N_PUTS):
             cam.put(keys.cam_frame("cam-02"), b"forged frame")
+            cam.put(keys.robot_frame("robot-01"), b"forged frame")
             cam.put(keys.robot_goal("robot-01"), b"forged goal")
             viewer.put(keys.graph_delta, b"forged delta")
         cam_pub.put(b"cam sentinel")
