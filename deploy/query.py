@@ -17,6 +17,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import os
 import queue
 import sys
 import threading
@@ -225,6 +226,13 @@ def query_hint(endpoint: str, site: str) -> str:
     return f"argus query --connect {endpoint} --site {site} snapshot"
 
 
+def _silence_stdout() -> None:
+    """Point stdout at /dev/null, so the interpreter's final flush into the closed pipe is silent too."""
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    os.dup2(devnull, sys.stdout.fileno())
+    os.close(devnull)
+
+
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(
         prog="argus query",
@@ -277,6 +285,9 @@ def main(argv: list[str] | None = None) -> int:
             if a.what == "snapshot":
                 return run_snapshot(session, keys, a.json, a.timeout)
             return run_watch(session, keys, a.json, stop, a.count, a.idle_timeout)
+    except BrokenPipeError:  # the reader went away (argus query ... | head): not an error
+        _silence_stdout()
+        return 0
     except (QueryError, ZenohUnavailable) as e:
         print(f"argus query: {e}", file=sys.stderr)
         return 1

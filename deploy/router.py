@@ -4,6 +4,9 @@ Example::
 
     argus router --listen tcp/127.0.0.1:7447
     argus router --config deploy/zenoh/router.json5
+    argus router --config router-tls.json5 --listen tls/192.168.1.10:7447     # a LAN: TLS only
+
+Listening on a non-loopback address without TLS is refused unless ``--insecure`` is given.
 """
 
 from __future__ import annotations
@@ -61,6 +64,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--connect", action="append", default=[], help="other routers to connect to (repeatable)")
     p.add_argument("--config", type=Path, default=None, help="json5 Zenoh config file (e.g. deploy/zenoh/router.json5)")
     p.add_argument("--site", default=None, help=f"site name for the liveliness token (default ${ENV_SITE} or default)")
+    p.add_argument("--insecure", action="store_true",
+                   help="allow a plaintext listen endpoint on a non-loopback address (logs a warning; "
+                   "refused otherwise, use tls/ endpoints: docs/SECURITY.md)")
     p.add_argument("--ready-file", type=Path, default=None, help="write the router id here once listening")
     p.add_argument("--log-level", default="INFO")
     a = p.parse_args(argv)
@@ -73,7 +79,8 @@ def main(argv: list[str] | None = None) -> int:
                 f"{a.config} configures Zenoh plugins ({', '.join(plugins)}), which the Python router cannot load;"
                 " run the zenohd binary for storages, or remove the plugins section"
             )
-        settings = ZenohSettings(mode="router", connect=a.connect, listen=listen, config_file=a.config)
+        settings = ZenohSettings(mode="router", connect=a.connect, listen=listen, config_file=a.config,
+                                 insecure=a.insecure)
         return run(settings, a.site or default_site(), a.ready_file)
     except Exception as e:  # noqa: BLE001 - configuration errors end the process with a message
         print(f"argus router: {e}", file=sys.stderr)

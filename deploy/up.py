@@ -39,6 +39,7 @@ from __future__ import annotations
 import argparse
 import os
 import shlex
+import shutil
 import signal
 import socket
 import subprocess
@@ -54,6 +55,7 @@ from typing import Any, Literal
 from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from deploy.query import query_hint
+from deploy.secure import SecureSite, SecuritySpec, prepare
 from protocol.keys import Keys, validate_id
 from protocol.runtime import kill_with_parent
 
@@ -130,6 +132,10 @@ class LaunchFile(BaseModel):
         default=None, description="simulated world, if the stack runs on sim/ (demo scoring uses it)"
     )
     process: list[ProcessSpec] = Field(description="the processes, started in this order")
+    security: SecuritySpec | None = Field(
+        default=None, description="[security]: TLS, a certificate and password per process and an ACL "
+        "(as argus up --secure; docs/SECURITY.md)",
+    )
 
     @model_validator(mode="after")
     def _unique(self) -> LaunchFile:
@@ -214,6 +220,39 @@ def dump_toml(data: dict[str, Any]) -> str:
 
     table("", data)
     return "\n".join(lines) + "\n"
+
+
+TMP_PREFIX = "argus-up-"
+
+
+def _pid_alive(pid: int) -> bool:
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+def sweep_stale_tmp_dirs(root: Path | None = None) -> list[Path]:
+    """Remove the temporary folders (``argus-up-<pid>-*``) of launchers that died without cleaning up.
+
+    A SIGKILLed ``argus up`` cannot remove its folder of generated configs; the next start does, for
+    every folder of this user whose launcher pid is gone. Returns the folders removed.
+    """
+    root = Path(tempfile.gettempdir() if root is None else root)
+    removed: list[Path] = []
+    for d in root.glob(f"{TMP_PREFIX}*-*"):
+        pid = d.name[len(TMP_PREFIX):].split("-", 1)[0]
+        try:
+            mine = d.is_dir() and not d.is_symlink() and d.stat().st_uid == os.getuid()
+        except OSError:
+            continue
+        if mine and pid.isdigit() and not _pid_alive(int(pid)):
+            shutil.rmtree(d, ignore_errors=True)
+            removed.append(d)
+    return removed
 
 
 def _group_alive(pgid: int) -> bool:
@@ -349,7 +388,7 @@ class Health:
 
 
 def _tcp_host_port(endpoint: str) -> tuple[str, int] | None:
-    if not endpoint.startswith("tcp/"):
+    if not endpoint.startswith(("tcp/", "tls/")):  # both listen on a TCP port
         return None
     host, _, port = endpoint[4:].rpartition(":")
     try:
@@ -379,6 +418,7 @@ class Stack:
         log_dir: Path | None = None,
         python: str = sys.executable,
         extra_env: dict[str, str] | None = None,
+        secure: SecureSite | None = None,
     ) -> None:
         self.launch = launch
         self.launch_dir = Path(launch_dir).resolve()
@@ -395,11 +435,13 @@ class Stack:
         self.log_dir = log_dir
         self.python = python
         self.extra_env = extra_env or {}
+        self.secure = secure
         self.children: list[Child] = []
         self.health = Health(self.keys)
         self._session: Any = None
         self._liveliness_sub: Any = None
-        self._tmp = tempfile.TemporaryDirectory(prefix="argus-up-")
+        sweep_stale_tmp_dirs()
+        self._tmp = Path(tempfile.mkdtemp(prefix=f"{TMP_PREFIX}{os.getpid()}-"))
         self.healthy_at: float | None = None
         self.failed: list[str] = []
         self.started_at = time.monotonic()
@@ -429,9 +471,14 @@ class Stack:
             cfg = Path(_expand(str(spec.config), subs))
             argv += ["--config", str(cfg if cfg.is_absolute() else self.launch_dir / cfg)]
         elif spec.settings is not None:
-            path = Path(self._tmp.name) / f"{spec.name}.toml"
+            path = self._tmp / f"{spec.name}.toml"
             path.write_text(dump_toml(_expand(spec.settings, subs)))
             argv += ["--config", str(path)]
+        if self.secure is not None:  # TLS + this process's own login (its Zenoh config file)
+            if spec.command == "router":
+                argv += ["--config", str(self.secure.router_file)]
+            else:
+                argv += ["--zenoh-config", str(self.secure.client_file(spec.name))]
         return argv
 
     def substitutions(self) -> dict[str, str]:
@@ -479,7 +526,8 @@ class Stack:
     def _open_health(self, timeout: float = 20.0) -> None:
         from protocol.session import ZenohSettings, open_session
 
-        settings = ZenohSettings(mode="client", connect=[self.launch.endpoint])
+        settings = ZenohSettings(mode="client", connect=[self.launch.endpoint],
+                                 config_file=None if self.secure is None else self.secure.client_file("launcher"))
         deadline = time.monotonic() + timeout
         last: Exception | None = None
         while time.monotonic() < deadline:
@@ -594,7 +642,7 @@ class Stack:
         for f in self._log_files.values():
             f.close()
         self._log_files.clear()
-        self._tmp.cleanup()
+        shutil.rmtree(self._tmp, ignore_errors=True)
 
     @staticmethod
     def _wait_groups(children: list[Child], timeout: float) -> None:
@@ -619,25 +667,34 @@ def run(
     dry_run: bool = False,
     endpoint: str | None = None,
     port: int | None = None,
+    secure: bool = False,
+    secure_dir: Path | None = None,
 ) -> int:
     """Start the stack of ``launch_path`` and keep it up until SIGINT/SIGTERM (or ``duration_s``).
 
-    ``endpoint`` replaces the launch file's router endpoint; ``port`` only its port.
+    ``endpoint`` replaces the launch file's router endpoint; ``port`` only its port. ``secure`` (or an
+    enabled ``[security]`` table): TLS, per-process logins and an ACL (deploy/secure.py).
     """
     from protocol.runtime import install_stop_handlers
 
     launch = with_endpoint(load_launch(launch_path), endpoint, port)
-    stack = Stack(launch, launch_path.parent, only=only, log_dir=log_dir)
+    site = _secure_site(launch, launch_path.parent, only, secure, secure_dir)
+    stack = Stack(launch, launch_path.parent, only=only, log_dir=log_dir, secure=site)
+    if site is not None:
+        stack.say(f"secure: TLS on {launch.endpoint}, one login per process, ACL; material in {site.dir}")
     if dry_run:
         for spec in stack.local:
             argv = stack.argv_for(spec)
             print(f"[{spec.name}] ({spec.host}) {shlex.join(argv)}")
             if spec.settings is not None:  # the generated config file is temporary: show it
-                print("\n".join(f"    | {line}" for line in Path(argv[-1]).read_text().splitlines()))
+                cfg = Path(argv[argv.index("--config") + 1])
+                print("\n".join(f"    | {line}" for line in cfg.read_text().splitlines()))
         stack.stop()
         return 0
     stop = install_stop_handlers()
     code = 0
+    if ready_file is not None:  # left by a launcher that was killed: it names processes long gone
+        ready_file.unlink(missing_ok=True)
     try:
         stack.start()
         stack.say(f"{len(stack.children)} processes started; waiting for liveliness of "
@@ -668,8 +725,21 @@ def run(
     finally:
         stack.say("stopping all processes")
         stack.stop()
+        if ready_file is not None:
+            ready_file.unlink(missing_ok=True)
         stack.say("all stopped")
     return code
+
+
+def _secure_site(launch: LaunchFile, launch_dir: Path, only: list[str] | None, secure: bool,
+                 secure_dir: Path | None) -> SecureSite | None:
+    sec = launch.security
+    if sec is None or not sec.enabled:
+        if not secure:
+            return None
+        sec = SecuritySpec()
+    local = [p.name for p in launch.process if not only or p.name in only]
+    return prepare(launch, launch_dir.resolve(), sec, local, secure_dir)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -687,11 +757,16 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--dry-run", action="store_true", help="print the command lines and exit")
     p.add_argument("--endpoint", default=None, help="router endpoint instead of the launch file's ({endpoint})")
     p.add_argument("--port", type=int, default=None, help="the launch file's router endpoint on this port instead")
+    p.add_argument("--secure", action="store_true",
+                   help="TLS + a certificate and password per process + an ACL (needs a tls/ endpoint; "
+                   "also a launch file's [security] table); see docs/SECURITY.md")
+    p.add_argument("--secure-dir", type=Path, default=None,
+                   help="folder of the CA, certificates and passwords (default ~/.local/state/argus/secure/<site>)")
     a = p.parse_args(argv)
     only = [s.strip() for s in a.only.split(",") if s.strip()] if a.only else None
     try:
         return run(a.launch, only, a.duration, a.log_dir, a.ready_file, a.dry_run,
-                   endpoint=a.endpoint, port=a.port)
+                   endpoint=a.endpoint, port=a.port, secure=a.secure, secure_dir=a.secure_dir)
     except ValueError as e:
         print(f"argus up: {e}", file=sys.stderr)
         return 2

@@ -13,6 +13,7 @@ import argparse
 import sys
 from pathlib import Path
 
+from protocol.session import ZenohConfigError
 from protocol.tomlconfig import ConfigError, describe, load_config, process_parser, process_values
 
 EPILOG = """examples:
@@ -85,7 +86,7 @@ def main(argv: list[str] | None = None) -> int:
 
     try:
         return run(config)
-    except (CalibrationError, SourceConfigError) as e:
+    except (CalibrationError, SourceConfigError, ZenohConfigError) as e:
         print(f"argus edge-camera: configuration error: {e}", file=sys.stderr)
         return 2
 

@@ -7,10 +7,17 @@ Precedence everywhere: a command-line flag, then the config file, then the envir
 built-in default. Processes that connect to a router should run
 in ``client`` mode. Shared memory is off by default (killed processes leave ``/dev/shm`` files and
 the loopback TCP path is fast enough for JPEG frames).
+
+Listening is loopback-only unless encrypted: a router or peer refuses to listen on a non-loopback
+address with a plaintext protocol (``tcp/0.0.0.0:7447``, ``tcp/192.168.1.10:7447``) unless
+``insecure`` is set (``--insecure``; a warning is logged). ``tls/`` and ``quic/`` endpoints may listen
+anywhere. Where no listen endpoint is given at all, Zenoh's own default (every interface) is replaced
+by a loopback one.
 """
 
 from __future__ import annotations
 
+import ipaddress
 import json
 import logging
 import os
@@ -20,7 +27,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, model_validator
 
 if TYPE_CHECKING:
     import zenoh
@@ -43,6 +50,60 @@ def default_site() -> str:
     return os.environ.get(ENV_SITE, "").strip() or DEFAULT_SITE
 
 
+# Where Zenoh would listen on every interface by default, Argus listens on loopback.
+LOOPBACK_LISTEN = {"router": [DEFAULT_ENDPOINT], "peer": ["tcp/127.0.0.1:0"]}
+ENCRYPTED_PROTOCOLS = ("tls", "quic")
+LOCAL_PROTOCOLS = ("unixsock-stream", "unixpipe")
+
+log = logging.getLogger(__name__)
+
+
+class ZenohConfigError(ValueError):
+    """A Zenoh configuration that cannot work (a bad config file, an exposed plaintext endpoint): not retried."""
+
+
+class InsecureListenError(ZenohConfigError):
+    """A plaintext listen endpoint on a non-loopback address, without ``insecure``."""
+
+
+def endpoint_is_loopback(endpoint: str) -> bool:
+    """True for ``<proto>/127.x.x.x:<port>``, ``<proto>/[::1]:<port>`` and ``<proto>/localhost:<port>``.
+
+    Host names other than ``localhost`` count as non-loopback (they are not resolved here).
+    """
+    _, _, address = endpoint.partition("/")
+    host = address.split("#", 1)[0].split("?", 1)[0].rsplit(":", 1)[0].strip("[]")
+    if host == "localhost":
+        return True
+    try:
+        return ipaddress.ip_address(host).is_loopback
+    except ValueError:
+        return False
+
+
+def exposed_plaintext(endpoints: list[str]) -> list[str]:
+    """The endpoints that would listen unencrypted on a non-loopback address."""
+    out = []
+    for ep in endpoints:
+        proto = ep.split("/", 1)[0].lower()
+        if proto not in ENCRYPTED_PROTOCOLS and proto not in LOCAL_PROTOCOLS and not endpoint_is_loopback(ep):
+            out.append(ep)
+    return out
+
+
+def check_listen(endpoints: list[str], insecure: bool) -> None:
+    """Raise :class:`InsecureListenError` for plaintext non-loopback endpoints (a warning if ``insecure``)."""
+    exposed = exposed_plaintext(endpoints)
+    if not exposed:
+        return
+    if not insecure:
+        raise InsecureListenError(
+            f"refusing to listen on {', '.join(exposed)}: plaintext on a non-loopback address (anyone on that "
+            "network could read every frame and inject goals). Use a tls/ endpoint with certificates "
+            "(argus up --secure sets them up, see docs/SECURITY.md) or pass --insecure to accept the risk")
+    log.warning("INSECURE: listening on %s without TLS or authentication (--insecure)", ", ".join(exposed))
+
+
 class ZenohSettings(BaseModel):
     """How a process joins the Zenoh network."""
 
@@ -63,6 +124,17 @@ class ZenohSettings(BaseModel):
     overrides: dict[str, Any] = Field(
         default_factory=dict, description="extra Zenoh config keys (json5 paths such as 'transport/link/tx/lease')"
     )
+    insecure: bool = Field(
+        default=False,
+        description="allow listening on a non-loopback address without TLS (plaintext, no authentication); "
+        "logs a warning. Off: such a listen endpoint is refused",
+    )
+
+    @model_validator(mode="after")
+    def _listen_is_safe(self) -> ZenohSettings:
+        if self.mode != "client" and not self.insecure and exposed_plaintext(self.listen):
+            check_listen(self.listen, insecure=False)
+        return self
 
 
 def build_config(settings: ZenohSettings) -> zenoh.Config:
@@ -79,6 +151,8 @@ def build_config(settings: ZenohSettings) -> zenoh.Config:
     conf.insert_json5("transport/shared_memory/enabled", json.dumps(settings.shared_memory))
     for key, value in settings.overrides.items():
         conf.insert_json5(key, json.dumps(value))
+    if settings.mode != "client":
+        check_listen(_loopback_by_default(conf, settings.mode), settings.insecure)
     return conf
 
 
@@ -104,6 +178,19 @@ def describe_endpoints(settings: ZenohSettings) -> str:
     return "; ".join(parts)
 
 
+def _loopback_by_default(conf: zenoh.Config, mode: str) -> list[str]:
+    """The endpoints ``conf`` listens on; Zenoh's every-interface default becomes a loopback one."""
+    import zenoh
+
+    listen = json.loads(conf.get_json("listen/endpoints"))
+    if listen == json.loads(zenoh.Config().get_json("listen/endpoints")):
+        listen = LOOPBACK_LISTEN[mode]
+        conf.insert_json5("listen/endpoints", json.dumps(listen))
+    elif isinstance(listen, dict):  # a mode-dependent value from a config file
+        listen = listen.get(mode) or []
+    return [str(ep) for ep in listen]
+
+
 def open_session(settings: ZenohSettings) -> zenoh.Session:
     """Open a Zenoh session (use it as a context manager: ``with open_session(s) as session:``).
 
@@ -112,10 +199,16 @@ def open_session(settings: ZenohSettings) -> zenoh.Session:
     import zenoh
 
     zenoh.init_log_from_env_or("error")
+    where = describe_endpoints(settings)
     try:
-        return zenoh.open(build_config(settings))
+        conf = build_config(settings)
+    except ZenohConfigError:
+        raise
+    except Exception as e:  # noqa: BLE001 - e.g. a json5 file zenoh cannot read: a config error, not retried
+        raise ZenohConfigError(f"bad Zenoh configuration ({where}): {clean_error(e)}") from None
+    try:
+        return zenoh.open(conf)
     except Exception as e:  # noqa: BLE001 - zenoh raises ZError for everything; one message for the user
-        where = describe_endpoints(settings)
         raise ZenohUnavailable(f"cannot open a Zenoh session ({where}): {clean_error(e)}") from None
 
 

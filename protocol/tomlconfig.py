@@ -119,9 +119,9 @@ def describe(model: type[BaseModel], prefix: str = "") -> list[str]:
 
 def process_parser(prog: str, description: str, epilog: str, *, what: str, config_help: str,
                    set_example: str, listen: bool = False) -> argparse.ArgumentParser:
-    """The flags every Argus process shares: --config --id --site --connect [--listen] --mode --set
-    --describe --log-level. Each process adds its own flags; :func:`process_values` maps the shared
-    ones onto config paths."""
+    """The flags every Argus process shares: --config --id --site --connect [--listen] --mode
+    --zenoh-config --insecure --set --describe --log-level. Each process adds its own flags;
+    :func:`process_values` maps the shared ones onto config paths."""
     p = argparse.ArgumentParser(prog=prog, description=description, epilog=epilog,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--config", type=Path, default=None, help=config_help)
@@ -131,6 +131,10 @@ def process_parser(prog: str, description: str, epilog: str, *, what: str, confi
     if listen:
         p.add_argument("--listen", action="append", default=None, help="Zenoh endpoint to listen on (peer mode)")
     p.add_argument("--mode", choices=["client", "peer"], default=None, help="Zenoh mode (default client)")
+    p.add_argument("--zenoh-config", type=Path, default=None, metavar="FILE.json5",
+                   help="Zenoh json5 config applied first (TLS, user/password: deploy/zenoh/client-tls.json5)")
+    p.add_argument("--insecure", action="store_true",
+                   help="allow a plaintext listen endpoint on a non-loopback address (peer mode; warns)")
     p.add_argument("--set", dest="overrides", action="append", default=[], metavar="PATH=VALUE",
                    help=f"override any config field, e.g. --set {set_example} (repeatable)")
     p.add_argument("--describe", action="store_true", help="print every config field and exit")
@@ -149,6 +153,10 @@ def process_values(a: argparse.Namespace, id_field: str = "id") -> dict[str, Any
     }
     if getattr(a, "listen", None) is not None:
         values["zenoh.listen"] = a.listen
+    if getattr(a, "zenoh_config", None) is not None:
+        values["zenoh.config_file"] = str(a.zenoh_config)
+    if getattr(a, "insecure", False):
+        values["zenoh.insecure"] = True
     return values
 
 
@@ -158,11 +166,14 @@ def add_consumer_flags(p: argparse.ArgumentParser) -> None:
     p.add_argument("--connect", action="append", default=None,
                    help="router endpoint (repeatable; default $ARGUS_CONNECT or tcp/127.0.0.1:7447)")
     p.add_argument("--site", default=None, help="Argus site name (default $ARGUS_SITE or default)")
+    p.add_argument("--zenoh-config", type=Path, default=None, metavar="FILE.json5",
+                   help="Zenoh json5 config applied first (TLS and user/password of a secure site)")
 
 
 def consumer_values(a: argparse.Namespace) -> tuple[ZenohSettings, str]:
     """The client settings and site of :func:`add_consumer_flags`."""
-    return ZenohSettings(mode="client", connect=a.connect or default_endpoints()), a.site or default_site()
+    settings = ZenohSettings(mode="client", connect=a.connect or default_endpoints(), config_file=a.zenoh_config)
+    return settings, a.site or default_site()
 
 
 class AgentConfig(BaseModel):

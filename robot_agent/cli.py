@@ -11,6 +11,7 @@ from __future__ import annotations
 import argparse
 import sys
 
+from protocol.session import ZenohConfigError
 from protocol.tomlconfig import ConfigError, describe, load_config, process_parser, process_values
 
 EPILOG = """examples:
@@ -74,7 +75,7 @@ def main(argv: list[str] | None = None) -> int:
 
     try:
         return run(config)
-    except BodyConfigError as e:
+    except (BodyConfigError, ZenohConfigError) as e:
         print(f"argus robot-agent: configuration error: {e}", file=sys.stderr)
         return 2
 

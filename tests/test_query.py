@@ -268,3 +268,44 @@ def core_config_oracle() -> Any:
     from bench.eval import core_config
 
     return core_config("oracle", "sim", 1)
+
+
+def test_watch_into_a_reader_that_closes_early_exits_quietly(router: str) -> None:
+    """``argus query watch | head -n 1``: once the reader is gone, exit 0 with no BrokenPipeError."""
+    import os
+    import subprocess
+    import sys
+
+    from tests.procs import REPO
+
+    p = subprocess.Popen([sys.executable, "-m", "deploy.cli", "query", "--connect", router, "--site", SITE, "watch"],
+                         cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                         env={**os.environ, "PYTHONUNBUFFERED": "1"})
+    stop = threading.Event()
+
+    def publish() -> None:
+        with open_session(ZenohSettings(mode="client", connect=[router])) as s:
+            pub = s.declare_publisher(Keys(SITE).graph_delta)
+            version = 1
+            while not stop.is_set():
+                pub.put(encode(GraphDelta(version=version, stamp_ns=1)))
+                version += 1
+                time.sleep(0.05)
+
+    t = threading.Thread(target=publish, daemon=True)
+    t.start()
+    try:
+        assert p.stdout is not None and p.stderr is not None
+        first = p.stdout.readline()  # head -n 1
+        p.stdout.close()
+        assert "upserted" in first
+        code = p.wait(30)
+        err = p.stderr.read()
+    finally:
+        stop.set()
+        t.join()
+        if p.poll() is None:
+            p.kill()
+            p.wait()
+    assert "BrokenPipe" not in err and "Traceback" not in err, err
+    assert code == 0, err

@@ -146,7 +146,9 @@ def test_health_counts_roles_and_pinned_ids() -> None:
 
 
 def _port_free(port: int) -> bool:
+    """Nothing listens on the port (SO_REUSEADDR: connections in TIME_WAIT are not a holder)."""
     with socket.socket() as s:
+        s.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
         try:
             s.bind(("127.0.0.1", port))
         except OSError:
@@ -229,3 +231,31 @@ def test_dry_run_prints_commands(tmp_path: Path, capsys: pytest.CaptureFixture[s
     assert main([str(launch), "--dry-run", "--endpoint", "tcp/127.0.0.1:7998"]) == 0
     assert "--listen tcp/127.0.0.1:7998" in capsys.readouterr().out
     assert main([str(launch), "--port", "70000"]) == 2
+
+
+def test_up_killed_hard_then_started_again_cleans_temp_folder_and_ready_file(tmp_path: Path,
+                                                                           procs: list[Proc]) -> None:
+    """SIGKILL leaves the temp folder and the ready file; the next start removes both (no stale pids)."""
+    launch, _ = _tiny_launch(tmp_path)
+    tmp = tmp_path / "tmp"
+    tmp.mkdir()
+    ready = tmp_path / "ready"
+    env = {"TMPDIR": str(tmp)}
+    up = Proc(["up", str(launch), "--ready-file", str(ready)], env=env)
+    procs.append(up)
+    wait_for(ready.exists, timeout=40, what="stack healthy")
+    old = ready.read_text()
+    (stale,) = list(tmp.glob("argus-up-*"))
+    os.kill(up.popen.pid, signal.SIGKILL)
+    up.wait(10)
+    wait_for(lambda: all(_pid_gone(int(p)) for p in old.split(",")), timeout=20, what="children gone")
+    assert stale.exists() and ready.exists()  # what a SIGKILL leaves behind
+
+    again = Proc(["up", str(launch), "--ready-file", str(ready)], env=env)
+    procs.append(again)
+    wait_for(lambda: not stale.exists(), timeout=20, what="the dead launcher's temp folder removed")
+    wait_for(lambda: ready.exists() and ready.read_text() != old, timeout=40, what="a fresh ready file")
+    os.kill(again.popen.pid, signal.SIGINT)
+    assert again.wait(30) == 0, again.output
+    assert not ready.exists(), "a stopped stack left its ready file"
+    assert not list(tmp.glob("argus-up-*")), "a stopped stack left its temp folder"
