@@ -4,8 +4,10 @@
   poses: the paper's CG) against ``mvs`` (RGB-only: the paper's CG-RGB), on the same frames with the
   same 2D perception, mean and std over scenes.
 - ``active`` (paper Fig. 2): ``see`` vs ``asp`` next-best-view exploration, each with and without one
-  overhead external camera, for a number of steps from several start poses: node count and recall per
-  step with std bands (closed loops through ``bench.explore.run_episode``).
+  overhead external camera, for a number of steps from several start poses: node count, recall and
+  metres driven per step with std bands, steps to 50 % / 80 % recall (closed loops through
+  ``bench.explore.run_episode``). RGB-only geometry (``mvs``) with the robot's goal capture by default,
+  true geometry as the reference curves.
 - ``external`` (paper Table II): 1, 2 and 3 fixed cameras and no robot, on both scene families.
 
 Each writes ``<name>.json``, ``<name>.md`` and PNG plots under ``--out``; ``summary.md`` collects the
@@ -96,12 +98,27 @@ class ActiveConfig(BaseModel):
     steps: int = Field(default=30, ge=1, description="exploration steps")
     starts: int = Field(default=3, ge=1, description="start poses (std bands over them)")
     geometry: str = Field(
+        default="mvs",
+        description="reconstructor of the main curves: mvs (RGB-only, the product's default), or oracle",
+    )
+    reference_geometry: str | None = Field(
         default="oracle",
-        description="reconstructor; oracle by default: with one image per reached viewpoint (the paper's "
-        "protocol) the mvs windows rarely find neighbours, see the README",
+        description="also run every curve with this reconstructor as the reference (true geometry); "
+        "none: skip it",
+    )
+    goal_capture_m: float = Field(
+        default=0.3, ge=0.0,
+        description="the robot's goal capture (as the robot agent's frames.goal_capture_m): views this far "
+        "left and right of each goal, the sidesteps counted in the distance; applied in every run alike",
     )
     perception: str = Field(default="sim", description="2D perception")
     options: dict[str, Any] = Field(default_factory=dict, description="extra keyword arguments of run_episode")
+
+    @property
+    def geometries(self) -> list[str]:
+        """The main reconstructor, then the reference (if any and different)."""
+        ref = self.reference_geometry
+        return [self.geometry] + ([ref] if ref and ref != self.geometry else [])
 
 
 class EvalConfig(BaseModel):
@@ -122,7 +139,7 @@ def quick_config(out: Path) -> EvalConfig:
     return EvalConfig(
         out=out,
         static=StaticConfig(seeds=[0], frames=frames),
-        active=ActiveConfig(family="furnished_room", steps=4, starts=1),
+        active=ActiveConfig(family="furnished_room", steps=4, starts=1, reference_geometry=None),
         external=ExternalConfig(families=["furnished_room"], seeds=[0], cameras=[1, 3], width=320, height=240),
         experiments=list(EXPERIMENTS),
     )
@@ -428,47 +445,63 @@ def external_plot(res: dict[str, Any], path: Path) -> None:
 
 # --- active -----------------------------------------------------------------------------------------
 def run_active(cfg: ActiveConfig, torch_threads: int, log: Callable[[str], None]) -> dict[str, Any]:
-    """Fig. 2: per (strategy, external) the per-step node count and recall over ``cfg.starts`` starts."""
+    """Fig. 2: per (geometry, strategy, external) the per-step node count, recall and distance driven
+    over ``cfg.starts`` starts; the reference geometry's curves come after the main ones."""
     from bench.explore import run_episode
 
     curves: list[dict[str, Any]] = []
-    # Multi-view stereo needs baseline: with one image per far-apart viewpoint it maps nothing, so an
-    # RGB-only run also maps two frames taken on the way to each goal (both strategies alike).
-    options: dict[str, Any] = {"move_frames": 2} if cfg.geometry != "oracle" else {}
-    options.update(cfg.options)
-    for strategy in cfg.strategies:
-        for ext in cfg.external:
-            runs = []
-            for start in range(cfg.starts):
-                t0 = time.perf_counter()
-                ep = run_episode(family=cfg.family, seed=cfg.seed, strategy=strategy, external_cameras=int(ext),
-                                 steps=cfg.steps, start_index=start, geometry=cfg.geometry,
-                                 perception=cfg.perception, torch_threads=torch_threads,
-                                 log_fn=lambda m: None, **options)
-                nodes, recall = _episode_curves(ep, cfg.steps)
-                runs.append({"start": start, "nodes": nodes, "recall": recall,
-                             "seconds": round(time.perf_counter() - t0, 1)})
-                log(f"active {strategy}{'+ext' if ext else ''} start {start}: nodes {nodes[0]:.0f} -> "
-                    f"{nodes[-1]:.0f}, recall {recall[0]:.3f} -> {recall[-1]:.3f} ({runs[-1]['seconds']}s)")
-            n = np.array([r["nodes"] for r in runs], float)
-            r = np.array([r["recall"] for r in runs], float)
-            curves.append({"strategy": strategy, "external": ext, "runs": runs,
-                           "nodes_mean": n.mean(0).tolist(), "nodes_std": n.std(0).tolist(),
-                           "recall_mean": r.mean(0).tolist(), "recall_std": r.std(0).tolist()})
+    for geometry in cfg.geometries:
+        # Multi-view stereo needs baseline: an RGB-only run also maps two frames taken on the way to each
+        # goal (both strategies alike); the goal capture applies to every run.
+        options: dict[str, Any] = {"goal_capture_m": cfg.goal_capture_m}
+        if geometry != "oracle":
+            options["move_frames"] = 2
+        options.update(cfg.options)
+        for strategy in cfg.strategies:
+            for ext in cfg.external:
+                runs = []
+                for start in range(cfg.starts):
+                    t0 = time.perf_counter()
+                    ep = run_episode(family=cfg.family, seed=cfg.seed, strategy=strategy,
+                                     external_cameras=int(ext), steps=cfg.steps, start_index=start,
+                                     geometry=geometry, perception=cfg.perception, torch_threads=torch_threads,
+                                     log_fn=lambda m: None, **options)
+                    nodes, recall, dist = _episode_curves(ep, cfg.steps)
+                    runs.append({"start": start, "nodes": nodes, "recall": recall, "distance_m": dist,
+                                 "seconds": round(time.perf_counter() - t0, 1)})
+                    log(f"active {geometry} {strategy}{'+ext' if ext else ''} start {start}: nodes {nodes[0]:.0f} "
+                        f"-> {nodes[-1]:.0f}, recall {recall[0]:.3f} -> {recall[-1]:.3f}, {dist[-1]:.0f} m "
+                        f"({runs[-1]['seconds']}s)")
+                n = np.array([r["nodes"] for r in runs], float)
+                r = np.array([r["recall"] for r in runs], float)
+                d = np.array([r["distance_m"] for r in runs], float)
+                curves.append({"geometry": geometry, "reference": geometry != cfg.geometry, "strategy": strategy,
+                               "external": ext, "runs": runs,
+                               "nodes_mean": n.mean(0).tolist(), "nodes_std": n.std(0).tolist(),
+                               "recall_mean": r.mean(0).tolist(), "recall_std": r.std(0).tolist(),
+                               "distance_mean": d.mean(0).tolist(),
+                               "steps_to": {f"{int(100 * q)}%": steps_to(r.mean(0), q) for q in (0.5, 0.8)}})
     return {"config": cfg.model_dump(mode="json"), "curves": curves, "label": _label(cfg.geometry, cfg.perception)}
 
 
-def _episode_curves(ep: Any, steps: int) -> tuple[list[float], list[float]]:
-    """Node count and recall after each step 0..steps (step 0: before moving), padded with the last."""
+def steps_to(recall: Sequence[float], level: float) -> int | None:
+    """The first step at which ``recall`` reaches ``level`` (None: never)."""
+    return next((i for i, v in enumerate(recall) if v >= level), None)
+
+
+def _episode_curves(ep: Any, steps: int) -> tuple[list[float], list[float], list[float]]:
+    """Node count, recall and metres driven after each step 0..steps (step 0: before moving), padded."""
     records = ep["steps"] if isinstance(ep, dict) else getattr(ep, "steps", ep)
     nodes = [float(_get(s, "n_nodes", "nodes")) for s in records]
     recall = [float(_get(s, "recall")) for s in records]
+    dist = [float(_get(s, "distance_m")) for s in records]
     if not nodes:
-        nodes, recall = [0.0], [0.0]
+        nodes, recall, dist = [0.0], [0.0], [0.0]
     while len(nodes) < steps + 1:
         nodes.append(nodes[-1])
         recall.append(recall[-1])
-    return nodes[: steps + 1], recall[: steps + 1]
+        dist.append(dist[-1])
+    return nodes[: steps + 1], recall[: steps + 1], dist[: steps + 1]
 
 
 def _get(rec: Any, *names: str) -> Any:
@@ -481,7 +514,8 @@ def _get(rec: Any, *names: str) -> Any:
 
 
 def _curve_name(c: dict[str, Any]) -> str:
-    return c["strategy"].upper() + (" + Ext" if c["external"] else "")
+    name = c["strategy"].upper() + (" + Ext" if c["external"] else "")
+    return name + (f" ({c['geometry']} geometry)" if c.get("reference") else "")
 
 
 def active_markdown(res: dict[str, Any]) -> str:
@@ -490,7 +524,13 @@ def active_markdown(res: dict[str, Any]) -> str:
         rows.append({"Method": _curve_name(c), "Nodes@0": f"{c['nodes_mean'][0]:.1f} ± {c['nodes_std'][0]:.1f}",
                      "Nodes@end": f"{c['nodes_mean'][-1]:.1f} ± {c['nodes_std'][-1]:.1f}",
                      "Recall@0": _pm(c["recall_mean"][0], c["recall_std"][0]),
-                     "Recall@end": _pm(c["recall_mean"][-1], c["recall_std"][-1]), "Starts": len(c["runs"])})
+                     "Recall@10": _pm(c["recall_mean"][min(10, len(c["recall_mean"]) - 1)],
+                                      c["recall_std"][min(10, len(c["recall_std"]) - 1)]),
+                     "Recall@end": _pm(c["recall_mean"][-1], c["recall_std"][-1]),
+                     "Steps to 50 %": c.get("steps_to", {}).get("50%"),
+                     "Steps to 80 %": c.get("steps_to", {}).get("80%"),
+                     "Metres": round(c["distance_mean"][-1], 1) if "distance_mean" in c else None,
+                     "Starts": len(c["runs"])})
     cfg = res["config"]
     return (f"## Active exploration (paper Fig. 2)\n\n`{cfg['family']}` seed {cfg['seed']}, {cfg['steps']} steps, "
             f"{cfg['starts']} start poses; {res['label']}. Mean ± std over start poses; curves in active.png.\n\n"
@@ -510,15 +550,18 @@ def active_plot(res: dict[str, Any], path: Path) -> None:
         for ax, key in ((a1, "nodes"), (a2, "recall")):
             m, s = np.array(c[key + "_mean"]), np.array(c[key + "_std"])
             col = colours[c["strategy"]]
-            ax.plot(x, m, "--" if c["external"] else "-", color=col, label=_curve_name(c))
-            ax.fill_between(x, m - s, m + s, color=col, alpha=0.15)
+            ref = bool(c.get("reference"))
+            ax.plot(x, m, "--" if c["external"] else "-", color=col, label=_curve_name(c),
+                    alpha=0.45 if ref else 1.0, linewidth=1.0 if ref else 1.8)
+            if not ref:
+                ax.fill_between(x, m - s, m + s, color=col, alpha=0.15)
             ax.xaxis.get_major_locator().set_params(integer=True)
     a1.set_xlabel("exploration step")
     a1.set_ylabel("predicted nodes")
     a2.set_xlabel("exploration step")
     a2.set_ylabel("recall")
     a2.set_ylim(0, 1)
-    a1.legend()
+    a1.legend(fontsize=7)
     fig.tight_layout()
     fig.savefig(path, dpi=120)
     plt.close(fig)
@@ -579,7 +622,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--starts", type=int, default=None, help="start poses (active)")
     p.add_argument("--steps", type=int, default=None, help="exploration steps (active)")
     p.add_argument("--perception", default=None, help="2D perception for all: sim (ORACLE) or classical")
-    p.add_argument("--active-geometry", default=None, help="reconstructor of the active runs (default oracle)")
+    p.add_argument("--active-geometry", default=None, help="reconstructor of the active runs (default mvs)")
+    p.add_argument("--active-reference", default=None,
+                   help="reference reconstructor of the active runs (default oracle; 'none' skips it)")
     p.add_argument("--threads", type=int, default=2, help="torch CPU threads")
     a = p.parse_args(argv)
     unknown = [e for e in a.experiments if e not in EXPERIMENTS]
@@ -606,6 +651,8 @@ def main(argv: list[str] | None = None) -> int:
             cfg.active.steps = a.steps
         if a.active_geometry is not None:
             cfg.active.geometry = a.active_geometry
+        if a.active_reference is not None:
+            cfg.active.reference_geometry = None if a.active_reference == "none" else a.active_reference
         if a.perception is not None:
             cfg.static.perception = cfg.external.perception = cfg.active.perception = a.perception
     except (ValueError, OSError) as e:

@@ -75,8 +75,33 @@ def test_eval_quick_end_to_end(tmp_path: Path) -> None:
     geos = {s["geometry"]: s for s in res["static"]["summary"]}
     assert set(geos) == {"oracle", "mvs"} and geos["oracle"]["recall"] > 0 and geos["mvs"]["n_pred"] > 0
     curves = res["active"]["curves"]
-    assert {(c["strategy"], c["external"]) for c in curves} == {("see", False), ("see", True), ("asp", False),
-                                                                 ("asp", True)}
+    assert {(c["geometry"], c["strategy"], c["external"]) for c in curves} == {
+        ("mvs", "see", False), ("mvs", "see", True), ("mvs", "asp", False), ("mvs", "asp", True)}
     assert all(c["nodes_mean"][-1] > 0 for c in curves)
     assert all(e["recall"] > 0 for e in res["external"]["summary"] if e["geometry"] == "oracle")
     assert {e["geometry"] for e in res["external"]["summary"]} == {"oracle", "mvs"}
+
+
+def test_active_runs_rgb_only_first_then_the_true_geometry_reference(monkeypatch: pytest.MonkeyPatch) -> None:
+    import bench.explore
+    from bench.eval import ActiveConfig, active_markdown, run_active, steps_to
+
+    calls: list[dict] = []
+
+    def fake_episode(**kw):  # noqa: ANN003, ANN202 - run_episode's keyword interface
+        calls.append(kw)
+        gain = 0.3 if kw["geometry"] == "mvs" else 0.45
+        return {"steps": [{"step": i, "n_nodes": 10 * i, "recall": min(1.0, gain * i), "distance_m": 2.0 * i}
+                          for i in range(kw["steps"] + 1)]}
+
+    monkeypatch.setattr(bench.explore, "run_episode", fake_episode)
+    res = run_active(ActiveConfig(steps=3, starts=2, strategies=["asp"], external=[False]), 1, lambda m: None)
+    assert [(c["geometry"], c["reference"]) for c in res["curves"]] == [("mvs", False), ("oracle", True)]
+    assert all(kw["goal_capture_m"] == 0.3 for kw in calls)  # the robot's capture in every run alike
+    assert [kw.get("move_frames") for kw in calls] == [2, 2, None, None]
+    mvs, ref = res["curves"]
+    assert mvs["steps_to"] == {"50%": 2, "80%": 3} and ref["steps_to"] == {"50%": 2, "80%": 2}
+    assert mvs["distance_mean"] == [0.0, 2.0, 4.0, 6.0]
+    md = active_markdown(res)
+    assert "ASP (oracle geometry)" in md and "Steps to 80 %" in md
+    assert steps_to([0.1, 0.4], 0.5) is None
