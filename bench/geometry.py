@@ -500,7 +500,7 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("--quick", action="store_true", help="one seed per family, fewer keyframes and frames")
     p.add_argument("--families", nargs="+", default=["furnished_room", "apartment"], help="sim scene families")
     p.add_argument("--seeds", nargs="+", type=int, default=None, help="sim seeds (default 1 2 3; quick: 1)")
-    p.add_argument("--backend", default="mvs", help="reconstructor to benchmark (mvs, oracle, mapanything)")
+    p.add_argument("--backend", default="mvs", help="reconstructor to benchmark (mvs, oracle, mapanything, da3)")
     p.add_argument("--opt", action="append", default=[], metavar="KEY=VALUE",
                    help="backend option (JSON value), e.g. --opt sweep_width=224; repeatable")
     p.add_argument("--no-real", action="store_true", help="skip the real label-fusion frames")
@@ -508,6 +508,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("--no-video", action="store_true",
                    help="skip the video-rate scenarios (real sequences in ../shared/data and the sim at 30 fps)")
     p.add_argument("--only-video", action="store_true", help="run only the video-rate scenarios")
+    p.add_argument("--batch-views", nargs="+", type=int, default=None, metavar="N",
+                   help="only time the backend: seconds per batch of N real views (e.g. 8 32; bench/modeltiming.py)")
+    p.add_argument("--random-weights", default=None, metavar="MODEL",
+                   help="with --batch-views and --backend da3: a random-weight model of this size (e.g. da3-base)")
     a = p.parse_args(list(argv) if argv is not None else None)
     seeds = a.seeds or ([1] if a.quick else [1, 2, 3])
     opts: dict[str, Any] = {}
@@ -519,6 +523,15 @@ def main(argv: Sequence[str] | None = None) -> int:
             opts[key] = json.loads(value)
         except json.JSONDecodeError:
             opts[key] = value
+    if a.batch_views:
+        from bench.modeltiming import batch_timing
+
+        timing = batch_timing(a.backend, opts, a.batch_views, a.random_weights)
+        if a.out is not None:
+            a.out.mkdir(parents=True, exist_ok=True)
+            (a.out / "geometry.json").write_text(json.dumps({"batch_timing": timing}, indent=1))
+        print(json.dumps(timing, indent=1))
+        return 0
     if a.only_video:
         a.no_real = True
     report = run(a.out, a.quick, a.families, seeds, a.backend, real=not a.no_real,

@@ -33,9 +33,9 @@ def parser() -> argparse.ArgumentParser:
         "Build the 3D scene graph from all frames and serve it on Zenoh (deltas, snapshots, queries).",
         EPILOG, what="mapper", config_help="TOML config file", set_example="fusion.voxel_m=0.025", listen=True,
     )
-    p.add_argument("--geometry", default=None, help="reconstructor: mvs, oracle, mapanything")
-    p.add_argument("--segmenter", default=None, help="segmenter: classical, sim (ORACLE), sam")
-    p.add_argument("--embedder", default=None, help="embedder: classical, sim (ORACLE), clip")
+    p.add_argument("--geometry", default=None, help="reconstructor: mvs, oracle, mapanything, da3")
+    p.add_argument("--segmenter", default=None, help="segmenter: classical, detector, sim (ORACLE), sam")
+    p.add_argument("--embedder", default=None, help="embedder: classical, detector, sim (ORACLE), clip")
     p.add_argument("--state-dir", type=Path, default=None,
                    help="persist the graph here and resume from it; versions and node ids are leased ahead of use, "
                    "so a restart, even after a kill, never reuses one (without it each start is a new graph epoch)")

@@ -22,7 +22,7 @@ class GeometryConfig(BaseModel):
     """Which reconstructor turns views into metric geometry."""
 
     model_config = ConfigDict(extra="forbid")
-    backend: str = Field(default="mvs", description="reconstructor: mvs (RGB only), oracle (sim truth), mapanything")
+    backend: str = Field(default="mvs", description="reconstructor: mvs (RGB only), oracle (sim), mapanything, da3")
     options: dict[str, Any] = Field(default_factory=dict, description="backend options (see its config)")
 
 
@@ -31,11 +31,11 @@ class PerceptionConfig(BaseModel):
 
     model_config = ConfigDict(extra="forbid")
     segmenter: str = Field(
-        default="classical", description="masks: classical (no weights), sim (ORACLE semantic camera), sam"
+        default="classical", description="masks: classical (no weights), detector (24 classes, CPU), sim (ORACLE), sam"
     )
     segmenter_options: dict[str, Any] = Field(default_factory=dict, description="segmenter options")
     embedder: str = Field(
-        default="classical", description="labels/descriptors: classical (appearance), sim (ORACLE labels), clip"
+        default="classical", description="labels: classical (appearance), detector, sim (ORACLE labels), clip"
     )
     embedder_options: dict[str, Any] = Field(default_factory=dict, description="embedder options")
 

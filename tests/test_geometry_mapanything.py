@@ -44,9 +44,9 @@ def _fake_module(calls: dict, use_quats: bool) -> dict[str, types.ModuleType]:
         def infer(self, views: list[dict], **kw: object) -> list[dict]:
             calls["views"] = views
             poses, depth_ray = _truth(len(views))
-            given = "camera_poses" in views[0]
-            # Without input poses MapAnything's world is the first camera's frame.
-            ref = np.eye(4) if given else np.linalg.inv(poses[0])
+            # The real model (checked in test_models_real) predicts poses in its reference view's frame
+            # whether or not poses were given: given poses are conditioning, not the output frame.
+            ref = np.linalg.inv(poses[0])
             out = []
             for i in range(len(views)):
                 T = ref @ poses[i]
@@ -123,7 +123,7 @@ def test_missing_checkpoint_is_clear_and_never_downloads(monkeypatch: pytest.Mon
     calls: dict = {}
     for k, m in _fake_module(calls, False).items():
         monkeypatch.setitem(sys.modules, k, m)
-    with pytest.raises(RuntimeError, match="missing/model.*not available locally"):
+    with pytest.raises(RuntimeError, match="missing/model.*huggingface-cli download missing/model"):
         make_reconstructor("mapanything", checkpoint="missing/model")
     assert calls["from_pretrained"][1] == {"local_files_only": True}
 

@@ -14,6 +14,7 @@ RECONSTRUCTORS: dict[str, str] = {
     "mvs": "mapper.geometry.mvs:MvsReconstructor",
     "oracle": "mapper.geometry.oracle:OracleReconstructor",
     "mapanything": "mapper.geometry.mapanything_adapter:MapAnythingReconstructor",
+    "da3": "mapper.geometry.da3:Da3Reconstructor",
 }
 
 

@@ -1,6 +1,6 @@
 """``clip`` embedder: OpenCLIP crop embeddings labelled against a vocabulary file (optional extra).
 
-Needs ``open_clip_torch`` (``pip install 'argus-scenegraph[models]'``) and LOCAL weights (a checkpoint
+Needs ``open_clip_torch`` (``pip install 'argus-scenegraph[clip]'``) and LOCAL weights (a checkpoint
 file passed as ``pretrained``); nothing is ever downloaded. Labels come from a vocabulary text file,
 one name per line (default: ``mapper/vocab/indoor.txt``); each mask's crop is compared with the prompt
 ``"a photo of a <name>"`` of every name.
@@ -16,7 +16,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
 from mapper.perception.base import Detection, Mask2D
-from mapper.perception.sam import BackendUnavailable
+from mapper.perception.sam import BackendUnavailable, usable_device
 
 if TYPE_CHECKING:
     from mapper.geometry.contract import View
@@ -67,10 +67,15 @@ class ClipEmbedder:
         try:
             import open_clip
             import torch
+        except RuntimeError as e:  # e.g. a CUDA torchvision beside a CPU torch
+            raise BackendUnavailable(
+                f"the 'clip' embedder's package open_clip_torch fails to import: {str(e).splitlines()[0][:200]} "
+                "(install the torchvision build that matches your torch)"
+            ) from None
         except ImportError as e:
             raise BackendUnavailable(
                 f"the 'clip' embedder needs the optional package open_clip_torch ({e}); install it with "
-                "pip install 'argus-scenegraph[models]' and pass local weights with "
+                "pip install 'argus-scenegraph[clip]' and pass local weights with "
                 "--set perception.embedder_options.pretrained=PATH, or use --embedder classical"
             ) from None
         if cfg.pretrained is None and not cfg.random_init:
@@ -81,6 +86,7 @@ class ClipEmbedder:
         if cfg.pretrained is not None and not cfg.pretrained.is_file():
             raise BackendUnavailable(f"OpenCLIP checkpoint {cfg.pretrained} does not exist")
         self.vocabulary = load_vocabulary(cfg.vocabulary)
+        usable_device(cfg.device)
         model, _, preprocess = open_clip.create_model_and_transforms(
             cfg.model_name, pretrained=None if cfg.random_init else str(cfg.pretrained), device=cfg.device
         )

@@ -1,8 +1,9 @@
 """Registries of 2D perception backends; heavy imports happen only inside the chosen backend.
 
-Segmenters: ``sim`` (ORACLE: the simulator's semantic camera), ``classical`` (no weights), ``sam``
-(optional extra). Embedders: ``sim`` (ORACLE labels), ``classical`` (appearance, label ``object``),
-``clip`` (optional extra). Third parties add backends through the entry-point groups
+Segmenters: ``sim`` (ORACLE: the simulator's semantic camera), ``classical`` (no weights), ``detector``
+(bundled closed-set SSD, 24 classes, CPU), ``sam`` (optional extra). Embedders: ``sim`` (ORACLE labels),
+``classical`` (appearance, label ``object``), ``detector`` (the detector segmenter's classes), ``clip``
+(optional extra). Third parties add backends through the entry-point groups
 ``argus.segmenters`` and ``argus.embedders`` (name -> ``module:Class``).
 """
 
@@ -18,11 +19,13 @@ SEGMENTERS: dict[str, str] = {
     "sim": "mapper.perception.sim:SimSegmenter",
     "classical": "mapper.perception.classical:ClassicalSegmenter",
     "sam": "mapper.perception.sam:SamSegmenter",
+    "detector": "mapper.perception.detector:DetectorSegmenter",
 }
 EMBEDDERS: dict[str, str] = {
     "sim": "mapper.perception.sim:SimEmbedder",
     "classical": "mapper.perception.classical:AppearanceEmbedder",
     "clip": "mapper.perception.clip:ClipEmbedder",
+    "detector": "mapper.perception.detector:DetectorEmbedder",
 }
 ORACLE_BACKENDS = frozenset({"sim"})
 """Backends that read simulator ground truth (ORACLE); the mapper subscribes to oracle keys for them."""

@@ -1,6 +1,6 @@
 """``sam`` segmenter: SAM / MobileSAM automatic masks from a LOCAL checkpoint (optional extra).
 
-Needs ``segment-anything`` (``pip install 'argus-scenegraph[models]'``) or ``mobile_sam``, and a
+Needs ``segment-anything`` (``pip install 'argus-scenegraph[sam]'``) or ``mobile_sam``, and a
 checkpoint file on disk; nothing is ever downloaded. The package is imported only when this backend is
 built.
 """
@@ -47,12 +47,27 @@ def _import(package: str) -> Any:
 
     try:
         return importlib.import_module(package)
+    except RuntimeError as e:  # e.g. a CUDA torchvision beside a CPU torch
+        raise BackendUnavailable(
+            f"the 'sam' segmenter's package {package!r} fails to import: {str(e).splitlines()[0][:200]} "
+            "(install the torchvision build that matches your torch)"
+        ) from None
     except ImportError as e:
         raise BackendUnavailable(
             f"the 'sam' segmenter needs the optional package {package!r} ({e}); install it with "
-            "pip install 'argus-scenegraph[models]' (segment-anything) and pass a local checkpoint with "
+            "pip install 'argus-scenegraph[sam]' (segment-anything) and pass a local checkpoint with "
             "--set perception.segmenter_options.checkpoint=PATH, or use --segmenter classical"
         ) from None
+
+
+def usable_device(device: str) -> str:
+    """``device`` if torch can use it here, else ``BackendUnavailable`` (e.g. cuda without a GPU)."""
+    from mapper.geometry.modelutil import ModelUnavailable, check_device
+
+    try:
+        return check_device(device)
+    except ModelUnavailable as e:
+        raise BackendUnavailable(str(e)) from None
 
 
 class SamSegmenter:
@@ -74,6 +89,7 @@ class SamSegmenter:
         if cfg.model_type not in mod.sam_model_registry:
             have = sorted(mod.sam_model_registry)
             raise BackendUnavailable(f"unknown SAM model type {cfg.model_type!r}; have {have}")
+        usable_device(cfg.device)
         model = mod.sam_model_registry[cfg.model_type](checkpoint=None if cfg.random_init else str(cfg.checkpoint))
         model.to(cfg.device).eval()
         self._generator = mod.SamAutomaticMaskGenerator(
