@@ -29,7 +29,7 @@ from typing import Any
 import numpy as np
 
 from bench.report import write_report
-from bench.system import CameraPlayer, GraphWatch, _pct, proc_mem_mb, render_cameras
+from bench.system import CameraPlayer, GraphWatch, _pct, proc_mem_mb, render_cameras, stop_load
 from protocol.keys import Keys
 
 REPO = Path(__file__).resolve().parents[1]
@@ -149,13 +149,7 @@ def run(minutes: float, warmup_min: float, cameras: int, fps: float, sample_s: f
                 + f" MiB; nodes {sample['nodes']}; delta p99 {sample['latency_p99_ms'] or float('nan'):.0f} ms;"
                 f" dropped {sample['frames_dropped']}")
     finally:
-        for p in players:
-            p.stop()
-        if watch is not None:
-            watch.close()
-        if session is not None:
-            session.close()
-        stack.stop()
+        stop_load(players, watch, session, stack)
     warmup_n = sum(1 for s in samples if s["t_s"] <= warmup_min * 60.0)
     names = list(samples[0]["rss_mb"]) if samples else []
     rows = []

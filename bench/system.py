@@ -255,6 +255,17 @@ class GraphWatch:
             s.undeclare()
 
 
+def stop_load(players: list[CameraPlayer], watch: GraphWatch | None, session: Any, stack: Any) -> None:
+    """Stop the cameras, the watcher, the bench's own session and the stack (in that order)."""
+    for p in players:
+        p.stop()
+    if watch is not None:
+        watch.close()
+    if session is not None:
+        session.close()
+    stack.stop()
+
+
 def _counter(status: dict[str, float], name: str) -> float:
     return float(status.get(name, float("nan")))
 
@@ -357,13 +368,7 @@ def run(cameras: int, fps: float, phase_s: float, warmup_s: float, width: int, h
                 f"query p50 {phase['query_p50_ms'] or float('nan'):.1f} ms, cpu {phase['mapper_cpu_cores']:.2f}, "
                 f"peak {mem['peak_rss_mb']:.0f} MiB")
     finally:
-        for p in players:
-            p.stop()
-        if watch is not None:
-            watch.close()
-        if session is not None:
-            session.close()
-        stack.stop()
+        stop_load(players, watch, session, stack)
     rows = [{k: v for k, v in ph.items() if k != "mapper_status"} for ph in results["phases"]]
     write_report(out, "system", results, rows,
                  title=f"System: {cameras} simulated cameras at {fps:g} fps into one mapper "

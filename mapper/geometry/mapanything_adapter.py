@@ -30,7 +30,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
 from mapper.geometry.contract import FactoredReconstruction, View, pixel_rays, z_to_ray_depth
-from mapper.geometry.modelutil import ModelUnavailable, check_device, load_pretrained
+from mapper.geometry.modelutil import ModelUnavailable, check_device, import_or_explain, load_pretrained
 from protocol.messages import Intrinsics
 
 INSTALL_HINT = (
@@ -60,17 +60,7 @@ class MapAnythingConfig(BaseModel):
 
 
 def _import_mapanything() -> tuple[Any, Any | None]:
-    try:
-        models = importlib.import_module("mapanything.models")
-    except ImportError:
-        raise ModelUnavailable(
-            f"the mapanything reconstructor needs the `mapanything` package: {INSTALL_HINT}"
-        ) from None
-    except RuntimeError as e:  # e.g. a CUDA torchvision beside a CPU torch
-        raise ModelUnavailable(
-            f"the `mapanything` package fails to import: {str(e).splitlines()[0][:200]} "
-            "(install the torchvision build that matches your torch)"
-        ) from None
+    models = import_or_explain("mapanything.models", "mapanything", INSTALL_HINT)
     try:
         preprocess = importlib.import_module("mapanything.utils.image").preprocess_inputs
     except (ImportError, AttributeError):
