@@ -148,7 +148,9 @@ def run_episode(
     labels = scene.labels()
     seq = [0]
 
-    def ingest(rgb_out: Any, T_true: np.ndarray, T_prior: np.ndarray | None, source: str) -> None:
+    def ingest(rgb_out: Any, T_true: np.ndarray, T_prior: np.ndarray | None, source: str,
+               trusted: bool = False) -> None:
+        """Map one rendered view; ``trusted``: its pose is surveyed (a calibrated fixed camera), not odometry."""
         oracle = OracleData(
             depth_m=rgb_out.depth_m.astype(np.float32),
             T_world_cam_true=np.asarray(T_true, float),
@@ -161,7 +163,7 @@ def run_episode(
             source_id=source,
             intrinsics=intr,
             T_world_cam=T_prior,
-            pose_trusted=False,
+            pose_trusted=trusted,
             stamp_ns=seq[0] * 100_000_000,
             seq=seq[0],
             oracle=oracle,
@@ -230,7 +232,8 @@ def run_episode(
 
         for cam in place_fixed_cameras(scene, int(external_cameras), seed, intr, renderer=renderer):
             T = np.asarray(cam.T_world_cam, float)
-            ingest(renderer.render(cam.intrinsics, T), T, T if cam.pose_known else None, cam.camera_id)
+            ingest(renderer.render(cam.intrinsics, T), T, T if cam.pose_known else None, cam.camera_id,
+                   trusted=cam.pose_known)  # calibrated, as the edge camera marks it: single-view geometry
             if cam.pose_known:  # a surveyed camera's view is known to the planner (both strategies)
                 planner.record_view(T, cam.intrinsics, vps.max_range_m)
             ext_ids.append(cam.camera_id)

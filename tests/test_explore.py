@@ -126,3 +126,11 @@ def test_goal_capture_gives_the_arrival_view_stereo_partners() -> None:
         store.add(v)
     assert {v.key for v in store.neighbours(arrival, 2.5)} == {v.key for v in sides}
     assert captured["steps"][1]["distance_m"] == pytest.approx(plain["steps"][1]["distance_m"] + 0.6 * extra, abs=1e-3)
+
+
+def test_a_calibrated_external_camera_maps_at_step_0_with_rgb_only_geometry() -> None:
+    """The external camera's pose is surveyed: RGB-only geometry places its objects from the floor plane at
+    step 0 (single-view), as the mapper does for a calibrated edge camera."""
+    kw = dict(family="furnished_room", seed=1, strategy="see", steps=0, start_index=0, geometry="mvs")
+    ext = run_episode(**kw, external_cameras=1)  # type: ignore[arg-type]
+    assert ext["steps"][0]["n_nodes"] > 0
