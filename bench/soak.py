@@ -20,7 +20,6 @@ Example::
 from __future__ import annotations
 
 import argparse
-import socket
 import sys
 import time
 from pathlib import Path
@@ -39,16 +38,10 @@ DROP_COUNTERS = ("frames_dropped", "sources_refused", "decode_errors", "header_e
 
 def soak_launch(endpoint: str, max_steps: int = 100_000) -> Any:
     """The demo launch file on ``endpoint`` with the robot's step budget lifted (it explores all run)."""
-    from deploy.up import load_launch, with_endpoint
+    from deploy.demo import DemoConfig, prepare_launch
+    from deploy.up import with_endpoint
 
-    launch = with_endpoint(load_launch(DEMO), endpoint)
-    procs = []
-    for spec in launch.process:
-        if spec.command == "robot-agent" and spec.settings is not None:
-            settings = {**spec.settings, "budget": {"max_steps": max_steps}}
-            spec = spec.model_copy(update={"settings": settings})
-        procs.append(spec)
-    return launch.model_copy(update={"process": procs})
+    return with_endpoint(prepare_launch(DemoConfig(launch=DEMO, steps=max_steps, free_port=False)), endpoint)
 
 
 def growth_pct(series: list[float], warmup_samples: int) -> float | None:
@@ -92,16 +85,14 @@ def _plot(samples: list[dict[str, Any]], warmup_s: float, out: Path) -> Path | N
 
 def run(minutes: float, warmup_min: float, cameras: int, fps: float, sample_s: float, width: int, height: int,
         out: Path) -> dict[str, Any]:
+    from deploy.demo import free_endpoint
     from deploy.up import Stack
     from protocol.session import client, open_session
 
     def log(msg: str) -> None:
         print(f"[bench soak] {msg}", flush=True)
 
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        endpoint = f"tcp/127.0.0.1:{s.getsockname()[1]}"
-    launch = soak_launch(endpoint)
+    launch = soak_launch(free_endpoint())
     keys = Keys(launch.site)
     world = launch.world
     assert world is not None
@@ -117,7 +108,7 @@ def run(minutes: float, warmup_min: float, cameras: int, fps: float, sample_s: f
         stack.start()
         if not stack.wait_healthy(240):
             raise RuntimeError("stack did not come up:\n" + "\n".join(lines[-30:]))
-        session = open_session(client(endpoint))
+        session = open_session(client(launch.endpoint))
         watch = GraphWatch(session, keys)
         players = [CameraPlayer(session, keys, cam, fps) for cam in cams]
         for p in players:

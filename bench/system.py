@@ -280,11 +280,9 @@ def run(cameras: int, fps: float, phase_s: float, warmup_s: float, width: int, h
     def log(msg: str) -> None:
         print(f"[bench system] {msg}", flush=True)
 
-    import socket
+    from deploy.demo import free_endpoint
 
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        endpoint = f"tcp/127.0.0.1:{s.getsockname()[1]}"
+    endpoint = free_endpoint()
     site = "benchsys"
     keys = Keys(site)
     t_render = time.monotonic()

@@ -29,7 +29,7 @@ from typing import Any
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
-from deploy.up import LaunchFile, Stack, load_launch
+from deploy.up import LaunchFile, Stack, load_launch, with_endpoint
 from protocol.codec import DecodeError, decode
 from protocol.keys import Keys
 from protocol.messages import GraphSnapshot, PointMap, RobotState
@@ -58,7 +58,8 @@ class DemoConfig(BaseModel):
     verbose: bool = Field(default=False, description="print every process's log lines too")
 
 
-def _free_endpoint() -> str:
+def free_endpoint() -> str:
+    """A loopback TCP endpoint on a port that was free a moment ago."""
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))
         return f"tcp/127.0.0.1:{s.getsockname()[1]}"
@@ -68,7 +69,7 @@ def prepare_launch(config: DemoConfig) -> LaunchFile:
     """The demo's launch file with the step budget and (optionally) a free router port applied."""
     launch = load_launch(config.launch)
     if config.free_port:
-        launch = launch.model_copy(update={"endpoint": _free_endpoint()})
+        launch = with_endpoint(launch, free_endpoint())
     procs = []
     for p in launch.process:
         if p.command == "robot-agent" and p.settings is not None:

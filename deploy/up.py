@@ -226,13 +226,7 @@ TMP_PREFIX = "argus-up-"
 
 
 def _pid_alive(pid: int) -> bool:
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        return True
-    return True
+    return _exists(os.kill, pid)
 
 
 def sweep_stale_tmp_dirs(root: Path | None = None) -> list[Path]:
@@ -256,11 +250,16 @@ def sweep_stale_tmp_dirs(root: Path | None = None) -> list[Path]:
 
 
 def _group_alive(pgid: int) -> bool:
+    return _exists(os.killpg, pgid)
+
+
+def _exists(send: Callable[[int, int], None], ident: int) -> bool:
+    """Whether a process (``os.kill``) or process group (``os.killpg``) exists: signal 0 probes it."""
     try:
-        os.killpg(pgid, 0)
+        send(ident, 0)
     except ProcessLookupError:
         return False
-    except PermissionError:
+    except PermissionError:  # it exists, it is just not ours
         return True
     return True
 
