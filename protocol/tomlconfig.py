@@ -19,7 +19,7 @@ from typing import Annotated, Any, Literal, TypeVar, Union, get_args, get_origin
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
 
-from protocol.keys import validate_id
+from protocol.keys import SiteName, validate_id
 from protocol.session import ZenohSettings, default_endpoints, default_site
 
 C = TypeVar("C", bound=BaseModel)
@@ -184,7 +184,7 @@ class AgentConfig(BaseModel):
 
     model_config = ConfigDict(extra="forbid")
     id: str = Field(default="agent0", description="id (a single key chunk: letters, digits, _ . -)")
-    site: str = Field(
+    site: SiteName = Field(
         default_factory=default_site,
         validate_default=True,
         description="Argus site name (key prefix argus/<site>/...; default $ARGUS_SITE or default)",
@@ -194,7 +194,7 @@ class AgentConfig(BaseModel):
     zenoh: ZenohSettings = Field(default_factory=ZenohSettings, description="how to join the Zenoh network")
     log_level: str = Field(default="INFO", description="DEBUG, INFO, WARNING or ERROR")
 
-    @field_validator("id", "site")
+    @field_validator("id")
     @classmethod
     def _chunk(cls, v: str) -> str:
         return validate_id(v)
