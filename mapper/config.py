@@ -127,6 +127,12 @@ class SingleViewConfig(BaseModel):
         "sim walks the first frames' placements duplicated later stereo nodes (F1 0.687 -> 0.664); on, the RGB-only "
         "active loop's ASP recall@30 rose from 0.21 to 0.44 (README figures)",
     )
+    fill_depthless: bool = Field(
+        default=True,
+        description="detections of a multi-view keyframe with no confident stereo depth (textureless objects) are "
+        "placed by single-view geometry from the keyframe's pose, as coarse nodes that measured depth or other "
+        "views' rays refine later",
+    )
     floor_z_m: float = Field(default=0.0, description="height of the floor in the world frame, metres")
     max_range_m: float = Field(default=12.0, gt=0.0, description="floor contacts farther from the camera are ignored")
     max_extent_m: float = Field(

@@ -23,9 +23,10 @@ from typing import Any, cast
 import cv2
 import numpy as np
 
+from mapper.association import KeyframeView
 from mapper.config import MapperCoreConfig
 from mapper.consistency import downsample, verify_depth
-from mapper.fusion import LiftStats, ObjectMap, UpdateResult, lift_detections, outside_fraction
+from mapper.fusion import LiftStats, Object3D, ObjectMap, UpdateResult, lift_detections, outside_fraction
 from mapper.geometry.contract import Reconstructor, View, anchor_pose, compose
 from mapper.geometry.features import Features, LruCache, extract_features
 from mapper.geometry.posecheck import rotation_between
@@ -33,7 +34,7 @@ from mapper.geometry.singleview import SeenView, depth_to_world, layout_depth, p
 from mapper.graph_store import GraphStore
 from mapper.intake import view_problem
 from mapper.keyframes import KeyframeSelector, KeyframeStore, intrinsics_of
-from mapper.perception.base import Embedder, Mask2D, Segmenter, ViewGeometry
+from mapper.perception.base import Detection, Embedder, Mask2D, Segmenter, ViewGeometry
 from mapper.pointmap import VoxelMap
 from mapper.relations import compute_edges, refine_with_points
 from protocol.messages import GraphDelta, GraphNode, GraphSnapshot, PointMap
@@ -316,6 +317,10 @@ class MapperCore:
         self._count("detections_dropped_no_depth", lift.dropped_no_depth)
         self._count("detections_dropped_small", lift.dropped_small_mask)
         self._count("detections_dropped_noise", lift.dropped_noise)
+        if not single_view and lift.no_depth and self.config.single_view.fill_depthless:
+            coarse = self._place_depthless(view, T_world_cam, dets, lift.no_depth)
+            self._count("detections_placed_single_view", len(coarse))
+            objs += coarse
         seen: SeenView | None = None
         if single_view:
             objs = [dataclasses.replace(o, ray_origin=T_world_cam[:3, 3].copy()) for o in objs]
@@ -324,7 +329,12 @@ class MapperCore:
                     view.image, [d.mask for d in dets], [d.descriptor for d in dets], intrinsics_of(view).K(),
                     T_world_cam, floor_masks, self.config.single_view.floor_z_m)
                 self._seen.put(view.source_id, seen)
-        res = self.objects.integrate(objs, view.source_id, view.stamp_ns or time.time_ns())
+        kv = None
+        if not single_view:  # measured depth: its detections are also matched to nodes in the image
+            h, w = vg.depth_m.shape
+            sure = np.where(vg.confidence >= self.config.fusion.min_depth_confidence, vg.depth_m, 0.0)
+            kv = KeyframeView(intrinsics_of(view).scaled(w, h).K(), T_world_cam, sure)
+        res = self.objects.integrate(objs, view.source_id, view.stamp_ns or time.time_ns(), kv)
         if single_view:
             # Other cameras' placements of the same objects fix their depth, and what they saw as free space
             # refutes placements; cameras that never move make few keyframes, so this runs now, not every
@@ -342,6 +352,24 @@ class MapperCore:
         times["fusion"] = time.perf_counter() - t
         self.last = KeyframeResult(view, T_world_cam, vg, len(dets), lift, times)
         return res
+
+    def _place_depthless(self, view: View, T_world_cam: np.ndarray, dets: list[Detection],
+                         which: list[int]) -> list[Object3D]:
+        """Coarse 3D objects for the detections ``which`` that stereo gave no depth (textureless): placed from
+        where their masks touch the floor (single-view geometry, every mask of the view taking part), marked
+        with the camera centre as coarse."""
+        sv = self.config.single_view
+        K = intrinsics_of(view).K()
+        shown = [d.mask for d in dets]
+        boxes = place_objects(shown, K, T_world_cam, sv.params(), view.image if sv.floor_colour_check else None)
+        # Only floor contacts: a guess stacked on another guess (a vase on a shelf) is too loose to keep.
+        pick = [i for i in which if (b := boxes[i]) is not None and b.support < 0]
+        if not pick:
+            return []
+        depth, conf = layout_depth([shown[i] for i in pick], [boxes[i] for i in pick], K, T_world_cam, sv.confidence)
+        objs, _ = lift_detections([dets[i] for i in pick], depth_to_world(depth, K, T_world_cam), conf, depth,
+                                  self.config.fusion)
+        return [dataclasses.replace(o, ray_origin=T_world_cam[:3, 3].copy()) for o in objs]
 
     def _add_points(self, view: View, vg: ViewGeometry) -> None:
         pm = self.config.point_map

@@ -8,6 +8,11 @@ similarity: cosine of descriptors) when it reaches ``match_threshold``, else it 
 unions the clouds (voxel-downsampled, capped) and averages descriptors weighted by observation count.
 Every ``merge_every_updates`` updates duplicate nodes are merged and rarely seen nodes dropped.
 
+With the keyframe's camera and confident depth (``mapper.association``), association also happens in the
+image: a node whose visible points project inside a detection's mask counts as overlapping it, and nodes one
+mask holds are merged as fragments of one object (estimated depth scatters an object's views apart in 3D;
+its masks do not).
+
 Points are world metres (z up). Node ids are stable strings ``n000001``... that never get reused.
 """
 
@@ -21,6 +26,7 @@ from typing import Any
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
+from mapper.association import KeyframeView, containment
 from mapper.perception.base import Detection, unit
 from protocol.messages import GraphNode, LabelScore, OrientedBox
 
@@ -85,6 +91,30 @@ class FusionConfig(BaseModel):
         description="duplicates: box intersection / smaller box volume that also merges similar nodes "
         "(estimated depth scatters one object's views too far apart for the point overlap)",
     )
+    mask_association: bool = Field(
+        default=True,
+        description="also associate in the image: a node whose visible points project inside a detection's mask "
+        "is that detection's object whatever its depth (estimated depth scatters one object's views along the "
+        "rays; see mapper/association.py)",
+    )
+    min_containment: float = Field(
+        default=0.5, ge=0.0, le=1.0,
+        description="fraction of a node's visible points inside a detection's mask that counts as overlap",
+    )
+    merge_containment: float = Field(
+        default=0.6, ge=0.0, le=1.0,
+        description="nodes this much inside one detection's mask (and similar to it) are fragments of one object "
+        "and merge into the node the detection joins",
+    )
+    containment_min_points: int = Field(
+        default=10, ge=1, description="a node with fewer points visible in a keyframe is not judged by its masks"
+    )
+    occlusion_margin_m: float = Field(
+        default=0.2, ge=0.0,
+        description="a node point farther than the keyframe's confident depth by this (plus occlusion_margin_rel "
+        "of that depth) is hidden there and does not count",
+    )
+    occlusion_margin_rel: float = Field(default=0.15, ge=0.0, description="... relative part of that margin")
     min_observations: int = Field(default=1, ge=1, description="nodes seen fewer times are dropped after ...")
     prune_after_updates: int = Field(default=15, ge=1, description="... this many updates since creation")
     weak_node_points: int = Field(
@@ -220,6 +250,7 @@ class Object3D:
     descriptor: np.ndarray
     alternatives: tuple[tuple[str, float], ...] = ()
     ray_origin: np.ndarray | None = None  # camera centre when the depth is a coarse single-view estimate
+    mask: np.ndarray | None = None  # (h, w) bool at the depth map's resolution: the detection in its keyframe
 
 
 @dataclass
@@ -230,6 +261,7 @@ class LiftStats:
     dropped_small_mask: int = 0
     dropped_no_depth: int = 0
     dropped_noise: int = 0
+    no_depth: list[int] = field(default_factory=list)  # indices of the detections dropped for lack of depth
 
     @property
     def dropped(self) -> int:
@@ -280,11 +312,11 @@ def lift_detections(
         & (points_world[..., 2] <= cfg.max_z_m)
     )
     out: list[Object3D] = []
-    for det in detections:
+    for i, det in enumerate(detections):
         if int(det.mask.sum()) < cfg.min_mask_pixels:
             stats.dropped_small_mask += 1
             continue
-        m = resize_mask(det.mask, h, w)
+        m = full = resize_mask(det.mask, h, w)
         if cfg.mask_erosion_px > 0:
             import cv2
 
@@ -295,6 +327,7 @@ def lift_detections(
         m = m & valid
         if int(m.sum()) < max(cfg.min_points, cfg.min_depth_fraction * n_mask):
             stats.dropped_no_depth += 1
+            stats.no_depth.append(i)
             continue
         pts = voxel_downsample(points_world[m], cfg.voxel_m)
         pts = main_cluster(pts, cfg.dbscan_eps_m, cfg.dbscan_min_samples)
@@ -302,7 +335,8 @@ def lift_detections(
             stats.dropped_noise += 1
             continue
         stats.lifted += 1
-        out.append(Object3D(pts, det.label, float(det.confidence), unit(det.descriptor), det.alternatives))
+        out.append(Object3D(pts, det.label, float(det.confidence), unit(det.descriptor), det.alternatives,
+                            mask=full))
     return out, stats
 
 
@@ -493,12 +527,17 @@ class ObjectMap:
                 out.append(node)
         return out
 
-    def match(self, obj: Object3D) -> tuple[NodeState | None, float]:
-        """The best node for ``obj`` and its score (None when no node reaches the threshold)."""
+    def match(self, obj: Object3D, contained: dict[str, float] | None = None) -> tuple[NodeState | None, float]:
+        """The best node for ``obj`` and its score (None when no node reaches the threshold). ``contained``:
+        per node id, the fraction of its visible points inside ``obj``'s mask (mask association); a fraction of
+        at least ``min_containment`` counts as overlap."""
         cfg = self.cfg
+        inside = {k: v for k, v in (contained or {}).items() if v >= cfg.min_containment and k in self.nodes}
+        cands = {n.node_id: n for n in self._candidates(obj.points)}
+        cands.update((k, self.nodes[k]) for k in inside)
         best, best_score = None, -math.inf
-        for node in self._candidates(obj.points):
-            ov = overlap_fraction(obj.points, node, cfg.radius_m)
+        for node in cands.values():
+            ov = max(overlap_fraction(obj.points, node, cfg.radius_m), inside.get(node.node_id, 0.0))
             if ov < cfg.min_overlap:
                 continue
             score = cfg.geo_weight * ov + cfg.sem_weight * similarity(obj.descriptor, node.descriptor)
@@ -507,6 +546,35 @@ class ObjectMap:
         if best is None or best_score < cfg.match_threshold:
             return None, best_score
         return best, best_score
+
+    def _near_similar(self, obj: Object3D) -> NodeState | None:
+        """The nearest node within ``coarse_max_shift_m`` of ``obj``'s centre with a similar descriptor."""
+        c = obj.points.mean(0)
+        best, best_d = None, self.cfg.coarse_max_shift_m
+        for k in sorted(self.nodes):
+            node = self.nodes[k]
+            d = float(np.linalg.norm(node.points.mean(0) - c))
+            if d <= best_d and similarity(obj.descriptor, node.descriptor) >= self.cfg.merge_similarity:
+                best, best_d = node, d
+        return best
+
+    def containment(self, objects: Sequence[Object3D], view: KeyframeView) -> list[dict[str, float]]:
+        """Per detection, the fraction of each node's visible points in ``view`` inside its mask (only nodes
+        that reach ``min(min_containment, merge_containment)``)."""
+        cfg = self.cfg
+        with_mask = [i for i, o in enumerate(objects) if o.mask is not None]
+        masks = [m for o in objects if (m := o.mask) is not None]
+        out: list[dict[str, float]] = [{} for _ in objects]
+        ids = sorted(self.nodes)
+        if not with_mask or not ids:
+            return out
+        frac = containment(view, [self.nodes[k].points for k in ids], masks,
+                           min_points=cfg.containment_min_points, margin_m=cfg.occlusion_margin_m,
+                           margin_rel=cfg.occlusion_margin_rel)
+        floor = min(cfg.min_containment, cfg.merge_containment)
+        for col, i in enumerate(with_mask):
+            out[i] = {ids[r]: float(frac[r, col]) for r in np.flatnonzero(frac[:, col] >= floor)}
+        return out
 
     def _cap(self, pts: np.ndarray) -> np.ndarray:
         if len(pts) > self.cfg.max_points_per_node:
@@ -540,6 +608,8 @@ class ObjectMap:
         n = node.observations
         if node.rays and obj.ray_origin is None:
             node.points = self._cap(obj.points.astype(np.float32))  # measured depth replaces a coarse guess
+        elif not node.rays and obj.ray_origin is not None:
+            pass  # a coarse guess adds nothing to measured depth: the observation and its label still count
         else:
             node.points = self._cap(voxel_downsample(np.concatenate([node.points, obj.points]), self.cfg.voxel_m))
         node.descriptor = unit(node.descriptor * n + obj.descriptor)
@@ -553,26 +623,72 @@ class ObjectMap:
         node.rays = node.rays + _rays_of(obj) if (node.rays and obj.ray_origin is not None) else []
         node.touch()
 
-    def integrate(self, objects: Sequence[Object3D], source_id: str, stamp_ns: int) -> UpdateResult:
-        """Fuse one view's 3D detections; runs maintenance every ``merge_every_updates`` updates."""
+    def integrate(self, objects: Sequence[Object3D], source_id: str, stamp_ns: int,
+                  view: KeyframeView | None = None) -> UpdateResult:
+        """Fuse one view's 3D detections; runs maintenance every ``merge_every_updates`` updates. With the
+        keyframe's ``view`` (and ``mask_association``), detections are also matched in the image, and nodes
+        that one detection's mask holds are merged as fragments of its object."""
         self.updates += 1
         res = UpdateResult()
+        inside = (self.containment(objects, view) if view is not None and self.cfg.mask_association
+                  else [{} for _ in objects])
         # Match everything against the map as it was before this view: detections of one view are
         # distinct instances and must not absorb each other.
-        matches = [self.match(obj)[0] for obj in objects]
+        matches = [self.match(obj, held)[0] for obj, held in zip(objects, inside, strict=True)]
+        if view is not None:
+            # A coarse guess in a measured keyframe (an object stereo gave no depth) is poor along its ray: a
+            # similar node near it is that object, not a new one.
+            matches = [self._near_similar(obj) if node is None and obj.ray_origin is not None else node
+                       for obj, node in zip(objects, matches, strict=True)]
+        targets: list[str] = []
         for obj, node in zip(objects, matches, strict=True):
             if node is not None and node.node_id in self.nodes:
                 self._absorb(node, obj, source_id, stamp_ns)
                 res.associated += 1
                 res.changed.add(node.node_id)
+                targets.append(node.node_id)
             else:
-                res.changed.add(self._new_node(obj, source_id, stamp_ns).node_id)
+                targets.append(self._new_node(obj, source_id, stamp_ns).node_id)
+                res.changed.add(targets[-1])
                 res.created += 1
+        self._merge_fragments(objects, targets, inside, res)
         if self.updates % self.cfg.merge_every_updates == 0:
             self.maintain(res)
         self._enforce_cap(res)
         res.changed -= res.removed
         return res
+
+    def _merge_fragments(self, objects: Sequence[Object3D], targets: Sequence[str],
+                         inside: Sequence[dict[str, float]], res: UpdateResult) -> None:
+        """Merge into each detection's node the other nodes its mask holds (``merge_containment`` of their
+        visible points, descriptors similar): one mask, one object. A node another detection of this view
+        joined, held by two masks, or placed by single-view geometry is left alone."""
+        cfg = self.cfg
+        claimed = set(targets)
+        holders: dict[str, int] = {}
+        for held in inside:
+            for k, v in held.items():
+                if v >= cfg.merge_containment:
+                    holders[k] = holders.get(k, 0) + 1
+        for obj, target, held in zip(objects, targets, inside, strict=True):
+            for k in sorted(held):
+                if k == target:
+                    continue
+                if held[k] < cfg.merge_containment or k in claimed or holders[k] > 1 or target not in self.nodes:
+                    continue
+                node, keep = self.nodes.get(k), self.nodes[target]
+                if node is None or node.rays or keep.rays:
+                    continue
+                if similarity(node.descriptor, obj.descriptor) < cfg.merge_similarity:
+                    continue
+                # The longer-lived node keeps its id (consumers already know it).
+                keep, gone = (keep, node) if (keep.observations, node.node_id) >= (node.observations, target) \
+                    else (node, keep)
+                self.merge_nodes(keep, gone)
+                target = keep.node_id
+                res.merged_duplicates += 1
+                res.removed.add(gone.node_id)
+                res.changed.add(target)
 
     # -- maintenance ---------------------------------------------------------------------------
     def merge_nodes(self, keep: NodeState, gone: NodeState) -> None:
