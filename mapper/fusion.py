@@ -125,6 +125,11 @@ class FusionConfig(BaseModel):
         default=0.005, ge=0.0, lt=0.5,
         description="node boxes ignore this fraction of points at each end of each axis (robust to strays)",
     )
+    centroid_trim_fraction: float = Field(
+        default=0.05, ge=0.0, lt=0.5,
+        description="a node's centroid is the centre of its points' extent after ignoring this fraction at each "
+        "end of each axis: estimated depth leaves tails along the viewing rays that would drag it off the object",
+    )
     max_label_alternatives: int = Field(default=3, ge=0, description="label alternatives kept per node")
     seed: int = Field(default=0, description="seed of point subsampling")
 
@@ -358,17 +363,29 @@ class NodeState:
     last_seen_ns: int
     created_update: int
     box_trim: float = 0.0
+    centroid_trim: float = 0.0
     # Coarse (single-view) observations only: one (camera centre, unit direction to the placed object) per
     # observation. Empty once any multi-view observation joins the node.
     rays: list[tuple[np.ndarray, np.ndarray]] = field(default_factory=list)
     _tree: Any = field(default=None, repr=False)
     _box: OrientedBox | None = field(default=None, repr=False)
     _full_box: OrientedBox | None = field(default=None, repr=False)
+    _centre: tuple[float, float, float] | None = field(default=None, repr=False)
 
     def touch(self) -> None:
         self._tree = None
         self._box = None
         self._full_box = None
+        self._centre = None
+
+    @property
+    def centre(self) -> tuple[float, float, float]:
+        """The centroid reported for the node: its points' extent centre, ``centroid_trim`` of the points
+        ignored at each end of each axis."""
+        if self._centre is None:
+            self._centre = self.box.center if self.centroid_trim <= self.box_trim else fit_box(
+                self.points, self.centroid_trim).center
+        return self._centre
 
     @property
     def tree(self) -> Any:
@@ -409,7 +426,7 @@ class NodeState:
             label=ranking[0][0],
             label_confidence=float(min(1.0, max(0.0, ranking[0][1]))),
             label_alternatives=[LabelScore(label=k, score=float(v)) for k, v in ranking[1 : 1 + max_alternatives]],
-            centroid=box.center,
+            centroid=self.centre,
             box=box,
             point_count=int(len(self.points)),
             observation_count=int(self.observations),
@@ -599,6 +616,7 @@ class ObjectMap:
             last_seen_ns=stamp_ns,
             created_update=self.updates,
             box_trim=self.cfg.box_trim_fraction,
+            centroid_trim=self.cfg.centroid_trim_fraction,
             rays=_rays_of(obj),
         )
         self.nodes[node_id] = node
@@ -918,6 +936,7 @@ class ObjectMap:
                 last_seen_ns=int(d["last_seen_ns"]),
                 created_update=int(d["created_update"]),
                 box_trim=self.cfg.box_trim_fraction,
+                centroid_trim=self.cfg.centroid_trim_fraction,
             )
         self.nodes = nodes
         self.next_id = int(state["next_id"])
