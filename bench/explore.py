@@ -68,7 +68,7 @@ def mapper_config(geometry: str, perception: str, torch_threads: int, overrides:
     from bench.eval import core_config
 
     cfg = core_config(geometry, perception, torch_threads)
-    return type(cfg).model_validate(_merged(cfg.model_dump(), overrides)) if overrides else cfg
+    return type(cfg).model_validate(_merged(cfg.model_dump(exclude_unset=True), overrides)) if overrides else cfg
 
 
 def run_episode(

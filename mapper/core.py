@@ -78,12 +78,12 @@ class MapperCore:
         if reconstructor is None:
             from mapper.geometry.registry import make_reconstructor
 
-            reconstructor = make_reconstructor(cfg.geometry.backend, **cfg.geometry.options)
+            reconstructor = make_reconstructor(cfg.geometry.backend, cfg.geometry.options)
         if segmenter is None or embedder is None:
             from mapper.perception.registry import make_embedder, make_segmenter
 
-            segmenter = segmenter or make_segmenter(cfg.perception.segmenter, **cfg.perception.segmenter_options)
-            embedder = embedder or make_embedder(cfg.perception.embedder, **cfg.perception.embedder_options)
+            segmenter = segmenter or make_segmenter(cfg.perception.segmenter, cfg.perception.segmenter_options)
+            embedder = embedder or make_embedder(cfg.perception.embedder, cfg.perception.embedder_options)
         self.reconstructor, self.segmenter, self.embedder = reconstructor, segmenter, embedder
         self.objects = ObjectMap(cfg.fusion)
         self.store = GraphStore()
