@@ -41,14 +41,10 @@ from bench.report import machine, markdown_table
 EXPERIMENTS = ("static", "external", "active")
 
 
-def _model(**kw: Any) -> ConfigDict:
-    return ConfigDict(extra="forbid", **kw)
-
-
 class FramesConfig(BaseModel):
     """How simulated robot frames are produced for the static experiment."""
 
-    model_config = _model()
+    model_config = ConfigDict(extra="forbid")
     n_frames: int = Field(default=36, ge=2, description="frames per scene along a scanning walk")
     step_m: float = Field(default=0.3, gt=0, description="distance between consecutive frames")
     width: int = Field(default=640, ge=32, description="image width, px")
@@ -63,7 +59,7 @@ class FramesConfig(BaseModel):
 class StaticConfig(BaseModel):
     """Table I: oracle vs mvs geometry on the same frames and 2D perception."""
 
-    model_config = _model()
+    model_config = ConfigDict(extra="forbid")
     family: str = Field(default="furnished_room", description="scene family (Replica rooms are single rooms)")
     seeds: list[int] = Field(default_factory=lambda: [0, 1, 2, 3, 4], description="scene seeds")
     geometries: list[str] = Field(default_factory=lambda: ["oracle", "mvs"], description="reconstructors compared")
@@ -74,7 +70,7 @@ class StaticConfig(BaseModel):
 class ExternalConfig(BaseModel):
     """Table II: fixed cameras only, no robot."""
 
-    model_config = _model()
+    model_config = ConfigDict(extra="forbid")
     families: list[str] = Field(default_factory=lambda: ["apartment", "furnished_room"], description="families")
     seeds: list[int] = Field(default_factory=lambda: list(range(10)), description="scene seeds per family")
     cameras: list[int] = Field(default_factory=lambda: [1, 2, 3], description="camera counts")
@@ -90,7 +86,7 @@ class ExternalConfig(BaseModel):
 class ActiveConfig(BaseModel):
     """Fig. 2: see vs asp, with and without one external camera."""
 
-    model_config = _model()
+    model_config = ConfigDict(extra="forbid")
     family: str = Field(default="apartment", description="scene family")
     seed: int = Field(default=0, description="scene seed (the paper shows one representative apartment)")
     strategies: list[str] = Field(default_factory=lambda: ["see", "asp"], description="planner strategies")
@@ -124,7 +120,7 @@ class ActiveConfig(BaseModel):
 class EvalConfig(BaseModel):
     """All three experiments."""
 
-    model_config = _model()
+    model_config = ConfigDict(extra="forbid")
     out: Path = Field(default=Path("eval_out"), description="output folder")
     experiments: list[str] = Field(default_factory=lambda: list(EXPERIMENTS), description="which to run")
     static: StaticConfig = Field(default_factory=StaticConfig, description="Table I")
@@ -298,8 +294,8 @@ def run_static(cfg: StaticConfig, torch_threads: int, log: Callable[[str], None]
     summary = []
     for geometry in cfg.geometries:
         rows = [r for r in per_scene if r["geometry"] == geometry]
-        entry = {"experiment": {"oracle": "CG (oracle geometry)", "mvs": "CG-RGB (mvs, ours)"}.get(geometry, geometry),
-                 "geometry": geometry}
+        name = {"oracle": "CG (oracle geometry)", "mvs": "CG-RGB (mvs, ours)"}.get(geometry, geometry)
+        entry: dict[str, str | float] = {"experiment": name, "geometry": geometry}
         for k in ("precision", "recall", "f1", "n_pred"):
             m, s = _mean_std(rows, k)
             entry[k], entry[k + "_std"] = m, s

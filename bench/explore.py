@@ -103,7 +103,7 @@ def run_episode(
     from mapper.geometry.contract import OracleData, View
     from planner.config import PlannerConfig
     from planner.core import Planner
-    from protocol.messages import Intrinsics, RobotState, ViewpointSet
+    from protocol.messages import Intrinsics, RobotState, ViewpointSet, rows
     from sim.nav import NavMap
     from sim.render import Renderer
     from sim.robot import OdometryNoise, SimRobot
@@ -255,7 +255,7 @@ def run_episode(
                 x=x,
                 y=y,
                 yaw_rad=yaw,
-                T_world_cam=robot.T_world_cam_odom(),
+                T_world_cam=rows(robot.T_world_cam_odom()),
                 distance_m=robot.distance_m,
                 steps=step - 1,
                 travel_cost_m=travel_costs(nav, robot.pose_true()[:2], vp_xy),

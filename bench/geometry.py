@@ -37,6 +37,7 @@ from bench.geomscore import ScenarioResult, score_depth
 from mapper.geometry.contract import OracleData, View, anchor_pose, compose
 from mapper.geometry.register import MapKeyframe, PoseEstimate, register_view
 from mapper.geometry.registry import make_reconstructor
+from mapper.keyframes import intrinsics_of
 from protocol.messages import Intrinsics
 from protocol.poses import camera_pose_from_base, rotation_angle_deg
 
@@ -215,7 +216,7 @@ def bench_sim(
             # Registration of the fixed camera, uncalibrated extrinsics, against the robot-built map.
             map_kfs = []
             for (k, (g, i, _)) in outs:
-                map_kfs.append(MapKeyframe(kfs[k].view.image, kfs[k].view.intrinsics, g.T_world_cam[i],
+                map_kfs.append(MapKeyframe(kfs[k].view.image, intrinsics_of(kfs[k].view), g.T_world_cam[i],
                                            g.depth_m[i], g.intrinsics[i], g.confidence[i], kfs[k].view.key))
             fview = View(fixed.rgb, cam.camera_id, cam.intrinsics, None)
             t0 = time.perf_counter()

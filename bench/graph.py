@@ -72,7 +72,8 @@ def render_views(scene: Any, poses: list[np.ndarray], intr: Any, source_id: str,
     from mapper.geometry.contract import OracleData, View
 
     labels = scene.labels()
-    views, seen = [], {}
+    views: list[View] = []
+    seen: dict[int, int] = {}
     for i, (T, known) in enumerate(zip(poses, posed, strict=True)):
         out = renderer.render(intr, T)
         ids, counts = np.unique(out.instance_id[out.instance_id > 0], return_counts=True)
@@ -154,13 +155,13 @@ def score_run(core: Any, scene: Any, visible_ids: list[int]) -> dict[str, Any]:
 
 # --- query latency ---------------------------------------------------------------------------------
 def synthetic_nodes(n: int, seed: int = 0) -> list[Any]:
-    from protocol.messages import GraphNode, OrientedBox
+    from protocol.messages import GraphNode, OrientedBox, vec3
 
     rng = np.random.default_rng(seed)
     names = ["chair", "table", "lamp", "sofa", "mug", "book", "plant", "tv", "bed", "shelf"]
     out = []
     for i in range(n):
-        c = tuple(float(v) for v in rng.uniform([0, 0, 0], [10, 8, 2]))
+        c = vec3(rng.uniform([0, 0, 0], [10, 8, 2]))
         out.append(GraphNode(
             node_id=f"n{i + 1:06d}", label=names[i % len(names)], label_confidence=0.9, centroid=c,
             box=OrientedBox(center=c, extent=(0.5, 0.5, 0.5)), point_count=500, observation_count=3,

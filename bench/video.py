@@ -68,6 +68,14 @@ class Frame:
     T_true: np.ndarray
 
 
+def read_image(path: Path, flags: int = cv2.IMREAD_COLOR) -> np.ndarray:
+    """``cv2.imread`` that raises ``ValueError`` for a missing or unreadable file instead of returning None."""
+    img = cv2.imread(str(path), flags)
+    if img is None:
+        raise ValueError(f"cannot read image {path}")
+    return np.asarray(img)
+
+
 def load_sequence(name: str, root: Path = DATA_ROOT) -> tuple[list[Frame], dict[str, int]]:
     """Frames of a packaged sequence with recorded poses as priors (as written: near-orthonormal rotations are
     projected, and counted in the returned stats)."""
@@ -77,14 +85,15 @@ def load_sequence(name: str, root: Path = DATA_ROOT) -> tuple[list[Frame], dict[
     frames, stats = [], {"poses_projected": 0}
     for p in sorted((base / "frames").glob("frame-*.color.png")):
         stem = p.name[: -len(".color.png")]
-        bgr = cv2.imread(str(p))
-        raw = cv2.imread(str(base / "frames" / f"{stem}.depth.png"), cv2.IMREAD_UNCHANGED)
+        bgr = read_image(p)
+        raw = read_image(base / "frames" / f"{stem}.depth.png", cv2.IMREAD_UNCHANGED)
         chk = check_pose(np.loadtxt(base / "frames" / f"{stem}.pose.txt"), source=f"{name} {stem}")
         stats["poses_projected"] += int(chk.projected)
         h, w = bgr.shape[:2]
         intr = Intrinsics(width=w, height=h, fx=K[0, 0], fy=K[1, 1], cx=K[0, 2], cy=K[1, 2])
         depth = spec.depth(raw)
-        view = View(cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB), name, intr, chk.T, seq=int(stem[6:]),
+        rgb = np.asarray(cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB), dtype=np.uint8)
+        view = View(rgb, name, intr, chk.T, seq=int(stem[6:]),
                     prior_rel_rot_deg=spec.rel_rot_deg)
         frames.append(Frame(view, depth, (depth > spec.valid_m[0]) & (depth < spec.valid_m[1]), chk.T))
     return frames, stats

@@ -317,7 +317,7 @@ class MapperCore:
         self._count("detections_dropped_small", lift.dropped_small_mask)
         self._count("detections_dropped_noise", lift.dropped_noise)
         seen: SeenView | None = None
-        if single_view:
+        if floor_masks is not None:  # a single-view keyframe
             objs = [dataclasses.replace(o, ray_origin=T_world_cam[:3, 3].copy()) for o in objs]
             if dets:
                 seen = SeenView.build(
@@ -350,7 +350,8 @@ class MapperCore:
         if not ok.any():
             return
         h, w = d.shape
-        img = view.image if view.image.shape[:2] == (h, w) else cv2.resize(view.image, (w, h), cv2.INTER_AREA)
+        # bilinear: cv2.INTER_AREA used to be passed where resize takes ``dst`` (positional), so it never applied
+        img = view.image if view.image.shape[:2] == (h, w) else cv2.resize(view.image, (w, h))
         with self.lock:
             self.voxels.add(vg.points_world[ok], img[ok])
 

@@ -204,6 +204,7 @@ def run_check(cfg: CheckConfig) -> dict[str, Any]:
     for fam in cfg.families:
         for seed in cfg.seeds:
             t0 = time.perf_counter()
+            entry: dict[str, object]
             try:
                 scene = generate_scene(fam, seed)
                 gen_s = time.perf_counter() - t0
