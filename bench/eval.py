@@ -36,6 +36,7 @@ from typing import Any
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
+from bench.explore import core_config
 from bench.report import machine, markdown_table
 
 EXPERIMENTS = ("static", "external", "active")
@@ -220,17 +221,6 @@ def fixed_camera_views(scene: Any, n: int, seed: int, width: int, height: int) -
     return views
 
 
-def core_config(geometry: str, perception: str, torch_threads: int = 2) -> Any:
-    from mapper.config import MapperCoreConfig
-
-    embedder = "sim" if perception == "sim" else ("clip" if perception == "sam" else "classical")
-    return MapperCoreConfig.model_validate({
-        "geometry": {"backend": geometry},
-        "perception": {"segmenter": perception, "embedder": embedder},
-        "torch_threads": torch_threads,
-    })
-
-
 def map_views(views: Sequence[Any], geometry: str, perception: str, torch_threads: int = 2,
               force_keyframes: bool = True) -> tuple[Any, dict[str, float]]:
     """Feed views to an in-process MapperCore; returns its final snapshot and counters."""
@@ -243,7 +233,7 @@ def map_views(views: Sequence[Any], geometry: str, perception: str, torch_thread
 
 
 def score(nodes: Sequence[Any], scene: Any) -> dict[str, float]:
-    from bench.scoring import score_nodes
+    from sim.scoring import score_nodes
 
     s = score_nodes(list(nodes), scene)
     return {"precision": float(s.precision), "recall": float(s.recall), "f1": float(s.f1),

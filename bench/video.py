@@ -180,7 +180,7 @@ def run_last_window(rec: Any, frames: Sequence[Frame], result: ScenarioResult, l
 
 def sim_video_frames(family: str, seed: int, n: int) -> list[Frame]:
     """A simulated robot camera at video rate: 2 cm and 0.6 deg between frames (0.6 m/s at 30 fps)."""
-    from bench.geometry import sim_sequences
+    from bench.simdrive import sim_sequences
 
     kfs, _, _ = sim_sequences(family, seed, 1, n, None, step_m=0.02, turn_deg=0.6, flip_every=30)
     return [Frame(replace(k.view, prior_rel_rot_deg=0.05), k.gt_depth, k.gt_depth > 0, k.T_true) for k in kfs]
