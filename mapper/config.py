@@ -7,6 +7,7 @@ from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal
 
 from pydantic import BaseModel, ConfigDict, Field, SerializeAsAny, ValidationInfo, field_validator
+from pydantic_core import PydanticCustomError
 
 from mapper.fusion import FusionConfig
 from mapper.geometry.registry import RECONSTRUCTORS
@@ -21,12 +22,24 @@ if TYPE_CHECKING:
     from mapper.geometry.singleview import SingleViewParams
 
 
+def _backend_name(registry: FactoryRegistry, name: str) -> str:
+    """``name`` if ``registry`` has it, else one error listing the known names."""
+    try:
+        registry.factory_target(name)
+    except ValueError as e:
+        raise PydanticCustomError("unknown_backend", "{reason}", {"reason": str(e)}) from None
+    return name
+
+
 def _backend_options(registry: FactoryRegistry, name: Any, value: Any) -> BaseModel:
-    """``value`` validated as the options of backend ``name`` (a string already checked, else left to the
-    name's own error)."""
+    """``value`` validated as the options of backend ``name``: one error naming the backend and each bad
+    option. A name that failed its own check leaves the options unchecked (its error says why)."""
     if not isinstance(name, str):
         return FreeOptions()
-    return registry.parse_options(name, value)
+    try:
+        return registry.parse_options(name, value)
+    except ValueError as e:
+        raise PydanticCustomError("backend_options", "{reason}", {"reason": str(e)}) from None
 
 
 class GeometryConfig(BaseModel):
@@ -43,8 +56,7 @@ class GeometryConfig(BaseModel):
     @field_validator("backend")
     @classmethod
     def _known(cls, v: str) -> str:
-        RECONSTRUCTORS.factory_target(v)
-        return v
+        return _backend_name(RECONSTRUCTORS, v)
 
     @field_validator("options", mode="before")
     @classmethod
@@ -73,14 +85,12 @@ class PerceptionConfig(BaseModel):
     @field_validator("segmenter")
     @classmethod
     def _known_segmenter(cls, v: str) -> str:
-        SEGMENTERS.factory_target(v)
-        return v
+        return _backend_name(SEGMENTERS, v)
 
     @field_validator("embedder")
     @classmethod
     def _known_embedder(cls, v: str) -> str:
-        EMBEDDERS.factory_target(v)
-        return v
+        return _backend_name(EMBEDDERS, v)
 
     @field_validator("segmenter_options", mode="before")
     @classmethod

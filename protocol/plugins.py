@@ -88,9 +88,9 @@ def _attr(target: str) -> Any:
 
 
 def _suggest(wrong: str, names: list[str]) -> str:
-    close = difflib.get_close_matches(wrong, names, n=3)
+    close = difflib.get_close_matches(wrong, names, n=1)
     if close:
-        return f"did you mean {' or '.join(repr(c) for c in close)}?"
+        return f"did you mean {close[0]!r}?"
     return f"its options: {', '.join(names)}" if len(names) <= 12 else "its options: see --describe"
 
 
