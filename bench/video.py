@@ -104,10 +104,12 @@ def available(name: str, root: Path = DATA_ROOT) -> bool:
     return (root / SEQUENCES[name].folder / "frames").is_dir()
 
 
-def _record(result: ScenarioResult, label: str, k: int, frame: Frame, prior: np.ndarray, recon: Any,
+def _record(result: ScenarioResult, label: str, k: int, frame: Frame, prior: np.ndarray | None, recon: Any,
             geo: Any, i: int, seconds: float) -> None:
     s = score_depth(geo.depth_m[i], geo.confidence[i], frame.depth_m, frame.valid)
     T = geo.T_world_cam[i]
+    rot_before = math.nan if prior is None else rotation_angle_deg(prior, frame.T_true)
+    trans_before = math.nan if prior is None else 100 * float(np.linalg.norm(prior[:3, 3] - frame.T_true[:3, 3]))
     result.seconds.append(seconds)
     result.frames.append({
         "label": label, "k": k, "absrel": s.absrel, "delta125": s.delta125, "confident": s.confident,
@@ -116,9 +118,9 @@ def _record(result: ScenarioResult, label: str, k: int, frame: Frame, prior: np.
         "t_poses_s": float(recon.info.get("t_poses_s", math.nan)),
         "t_dense_s": float(recon.info.get("t_dense_s", math.nan)),
         "n_sources": len(recon.info.get("sources", {}).get(i, [])),
-        "rot_deg_before": rotation_angle_deg(prior, frame.T_true),
+        "rot_deg_before": rot_before,
         "rot_deg_after": rotation_angle_deg(T, frame.T_true),
-        "trans_cm_before": 100 * float(np.linalg.norm(prior[:3, 3] - frame.T_true[:3, 3])),
+        "trans_cm_before": trans_before,
         "trans_cm_after": 100 * float(np.linalg.norm(T[:3, 3] - frame.T_true[:3, 3])),
         "ba": [b.get("status", "accepted" if b.get("accepted") else "rejected") for b in recon.info.get("ba", [])],
     })
@@ -142,7 +144,7 @@ def run_keyframed(rec: Any, frames: Sequence[Frame], result: ScenarioResult, lab
         r = rec.reconstruct(win, targets=[0])
         dt = time.perf_counter() - t0
         g = compose(r, anchor_pose(r, win))
-        _record(result, label, k, frames[k], v.T_world_cam, r, g, 0, dt)  # type: ignore[arg-type]
+        _record(result, label, k, frames[k], v.T_world_cam, r, g, 0, dt)
         d = typical_depth(g.depth_m[0], g.confidence[0])
         if d is not None:
             selector.observe_depth(v.source_id, d)
@@ -175,7 +177,7 @@ def run_last_window(rec: Any, frames: Sequence[Frame], result: ScenarioResult, l
         r = rec.reconstruct(win, targets=[len(win) - 1])
         dt = time.perf_counter() - t0
         g = compose(r, anchor_pose(r, win))
-        _record(result, label, k, frames[k], win[-1].T_world_cam, r, g, len(win) - 1, dt)  # type: ignore[arg-type]
+        _record(result, label, k, frames[k], win[-1].T_world_cam, r, g, len(win) - 1, dt)
 
 
 def sim_video_frames(family: str, seed: int, n: int) -> list[Frame]:
