@@ -10,8 +10,8 @@ export PYTHONUNBUFFERED := 1
 
 .PHONY: install demo test test-all lint typecheck bench wheel clean
 
-# mypy-clean: the protocol and the pure modules (geometry, fusion, relations, planner maths)
-TYPED := protocol mapper/geometry mapper/fusion.py mapper/association.py mapper/relations.py planner/gain.py planner/frontier.py planner/geometry.py robot_agent/goals.py deploy/goal.py
+# mypy-clean: every package
+TYPED := protocol edge_camera robot_agent mapper planner deploy sim bench
 
 install: $(STAMP)
 

@@ -23,7 +23,7 @@ from typing import Any
 import cv2
 import numpy as np
 
-from bench.video import DATA_ROOT, Frame, available, load_sequence
+from bench.video import DATA_ROOT, Frame, available, load_sequence, read_image
 from mapper.fusion import FusionConfig, ObjectMap, lift_detections
 from mapper.perception.base import ViewGeometry
 from mapper.perception.detector import DetectorEmbedder, DetectorSegmenter, draw_boxes
@@ -52,7 +52,7 @@ def true_objects(base: Path, frames: Sequence[Frame]) -> dict[int, np.ndarray]:
         p = base / "frames" / f"frame-{f.view.seq:06d}.segm.png"
         if not p.is_file():
             continue
-        seg = cv2.imread(str(p), cv2.IMREAD_UNCHANGED)
+        seg = read_image(p, cv2.IMREAD_UNCHANGED)
         g = view_geometry(f)
         for k in np.unique(seg):
             sel = (seg == k) & f.valid
@@ -89,7 +89,9 @@ def run_sequence(name: str, out: Path | None, seg: DetectorSegmenter, emb: Detec
     frames, _ = load_sequence(name)
     fusion = FusionConfig(min_z_m=-1e9, max_z_m=1e9)  # these worlds are not z-up rooms
     objects = ObjectMap(fusion)
-    per_frame, t_detect, t_masks = [], [], []
+    per_frame: list[dict[str, Any]] = []
+    t_detect: list[float] = []
+    t_masks: list[float] = []
     for f in frames:
         t0 = time.perf_counter()
         boxes = seg.detect(f.view.image)
@@ -113,11 +115,11 @@ def run_sequence(name: str, out: Path | None, seg: DetectorSegmenter, emb: Detec
         nodes.append({"id": nid, "label": label, "centroid": [round(float(x), 4) for x in np.median(n.points, 0)],
                       "observations": n.observations, "points": len(n.points)})
     truth = true_objects(DATA_ROOT / name, frames)
-    for n in nodes:
+    for node in nodes:
         if truth:
-            k, c = min(truth.items(), key=lambda kv: float(np.linalg.norm(kv[1] - np.array(n["centroid"]))))
-            n["nearest_true_object"] = k
-            n["distance_to_it_m"] = round(float(np.linalg.norm(c - np.array(n["centroid"]))), 3)
+            k, c = min(truth.items(), key=lambda kv: float(np.linalg.norm(kv[1] - np.array(node["centroid"]))))
+            node["nearest_true_object"] = k
+            node["distance_to_it_m"] = round(float(np.linalg.norm(c - np.array(node["centroid"]))), 3)
     if out is not None:
         for tag, f in (("first", frames[0]), ("last", frames[-1])):
             cv2.imwrite(str(out / f"{name}-nodes-{tag}.png"), draw_nodes(f, nodes))

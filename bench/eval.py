@@ -36,19 +36,16 @@ from typing import Any
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
+from bench.explore import core_config
 from bench.report import machine, markdown_table
 
 EXPERIMENTS = ("static", "external", "active")
 
 
-def _model(**kw: Any) -> ConfigDict:
-    return ConfigDict(extra="forbid", **kw)
-
-
 class FramesConfig(BaseModel):
     """How simulated robot frames are produced for the static experiment."""
 
-    model_config = _model()
+    model_config = ConfigDict(extra="forbid")
     n_frames: int = Field(default=36, ge=2, description="frames per scene along a scanning walk")
     step_m: float = Field(default=0.3, gt=0, description="distance between consecutive frames")
     width: int = Field(default=640, ge=32, description="image width, px")
@@ -63,7 +60,7 @@ class FramesConfig(BaseModel):
 class StaticConfig(BaseModel):
     """Table I: oracle vs mvs geometry on the same frames and 2D perception."""
 
-    model_config = _model()
+    model_config = ConfigDict(extra="forbid")
     family: str = Field(default="furnished_room", description="scene family (Replica rooms are single rooms)")
     seeds: list[int] = Field(default_factory=lambda: [0, 1, 2, 3, 4], description="scene seeds")
     geometries: list[str] = Field(default_factory=lambda: ["oracle", "mvs"], description="reconstructors compared")
@@ -74,7 +71,7 @@ class StaticConfig(BaseModel):
 class ExternalConfig(BaseModel):
     """Table II: fixed cameras only, no robot."""
 
-    model_config = _model()
+    model_config = ConfigDict(extra="forbid")
     families: list[str] = Field(default_factory=lambda: ["apartment", "furnished_room"], description="families")
     seeds: list[int] = Field(default_factory=lambda: list(range(10)), description="scene seeds per family")
     cameras: list[int] = Field(default_factory=lambda: [1, 2, 3], description="camera counts")
@@ -90,7 +87,7 @@ class ExternalConfig(BaseModel):
 class ActiveConfig(BaseModel):
     """Fig. 2: see vs asp, with and without one external camera."""
 
-    model_config = _model()
+    model_config = ConfigDict(extra="forbid")
     family: str = Field(default="apartment", description="scene family")
     seed: int = Field(default=0, description="scene seed (the paper shows one representative apartment)")
     strategies: list[str] = Field(default_factory=lambda: ["see", "asp"], description="planner strategies")
@@ -124,7 +121,7 @@ class ActiveConfig(BaseModel):
 class EvalConfig(BaseModel):
     """All three experiments."""
 
-    model_config = _model()
+    model_config = ConfigDict(extra="forbid")
     out: Path = Field(default=Path("eval_out"), description="output folder")
     experiments: list[str] = Field(default_factory=lambda: list(EXPERIMENTS), description="which to run")
     static: StaticConfig = Field(default_factory=StaticConfig, description="Table I")
@@ -224,17 +221,6 @@ def fixed_camera_views(scene: Any, n: int, seed: int, width: int, height: int) -
     return views
 
 
-def core_config(geometry: str, perception: str, torch_threads: int = 2) -> Any:
-    from mapper.config import MapperCoreConfig
-
-    embedder = "sim" if perception == "sim" else ("clip" if perception == "sam" else "classical")
-    return MapperCoreConfig.model_validate({
-        "geometry": {"backend": geometry},
-        "perception": {"segmenter": perception, "embedder": embedder},
-        "torch_threads": torch_threads,
-    })
-
-
 def map_views(views: Sequence[Any], geometry: str, perception: str, torch_threads: int = 2,
               force_keyframes: bool = True) -> tuple[Any, dict[str, float]]:
     """Feed views to an in-process MapperCore; returns its final snapshot and counters."""
@@ -247,7 +233,7 @@ def map_views(views: Sequence[Any], geometry: str, perception: str, torch_thread
 
 
 def score(nodes: Sequence[Any], scene: Any) -> dict[str, float]:
-    from bench.scoring import score_nodes
+    from sim.scoring import score_nodes
 
     s = score_nodes(list(nodes), scene)
     return {"precision": float(s.precision), "recall": float(s.recall), "f1": float(s.f1),
@@ -298,8 +284,8 @@ def run_static(cfg: StaticConfig, torch_threads: int, log: Callable[[str], None]
     summary = []
     for geometry in cfg.geometries:
         rows = [r for r in per_scene if r["geometry"] == geometry]
-        entry = {"experiment": {"oracle": "CG (oracle geometry)", "mvs": "CG-RGB (mvs, ours)"}.get(geometry, geometry),
-                 "geometry": geometry}
+        name = {"oracle": "CG (oracle geometry)", "mvs": "CG-RGB (mvs, ours)"}.get(geometry, geometry)
+        entry: dict[str, str | float] = {"experiment": name, "geometry": geometry}
         for k in ("precision", "recall", "f1", "n_pred"):
             m, s = _mean_std(rows, k)
             entry[k], entry[k + "_std"] = m, s

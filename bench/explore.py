@@ -4,7 +4,7 @@ One episode: a simulated robot (sim.robot.SimRobot) starts at a seeded pose in a
 optional fixed cameras (sim.cameras) give one frame each at step 0, an in-process
 mapper.core.MapperCore builds the graph, and planner.core.Planner picks each next view from the
 robot's navigable viewpoints. After every step (one image at the reached viewpoint, as in the
-paper) the graph is scored against the ground truth (bench.scoring.score_nodes).
+paper) the graph is scored against the ground truth (sim.scoring.score_nodes).
 
 Both strategies get the same candidates, travel costs (geodesic), perception, geometry and number
 of steps (the budget); distance driven is reported too.
@@ -26,9 +26,12 @@ import sys
 import time
 from collections.abc import Callable
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from mapper.config import MapperCoreConfig
 
 log = logging.getLogger("argus.explore")
 ROBOT_ID = "robot0"
@@ -62,13 +65,25 @@ def _merged(base: dict[str, Any], update: dict[str, Any]) -> dict[str, Any]:
     return out
 
 
-def mapper_config(geometry: str, perception: str, torch_threads: int, overrides: dict[str, Any] | None) -> Any:
-    """The episode's mapper configuration: ``bench.eval.core_config`` with ``overrides`` (nested tables)
-    written over it; pydantic's ValidationError on a bad override."""
-    from bench.eval import core_config
+def core_config(geometry: str, perception: str, torch_threads: int = 2) -> MapperCoreConfig:
+    """The in-process mapper of the benchmarks: reconstructor ``geometry``, segmenter ``perception`` with its
+    usual embedder (sim: sim, sam: clip, else classical)."""
+    from mapper.config import MapperCoreConfig
 
+    embedder = "sim" if perception == "sim" else ("clip" if perception == "sam" else "classical")
+    return MapperCoreConfig.model_validate({
+        "geometry": {"backend": geometry},
+        "perception": {"segmenter": perception, "embedder": embedder},
+        "torch_threads": torch_threads,
+    })
+
+
+def mapper_config(geometry: str, perception: str, torch_threads: int,
+                  overrides: dict[str, Any] | None) -> MapperCoreConfig:
+    """The episode's mapper configuration: :func:`core_config` with ``overrides`` (nested tables) written
+    over it; pydantic's ValidationError on a bad override."""
     cfg = core_config(geometry, perception, torch_threads)
-    return type(cfg).model_validate(_merged(cfg.model_dump(), overrides)) if overrides else cfg
+    return type(cfg).model_validate(_merged(cfg.model_dump(exclude_unset=True), overrides)) if overrides else cfg
 
 
 def run_episode(
@@ -98,16 +113,16 @@ def run_episode(
     """
     import torch
 
-    from bench.scoring import score_nodes
     from mapper.core import MapperCore
     from mapper.geometry.contract import OracleData, View
     from planner.config import PlannerConfig
     from planner.core import Planner
-    from protocol.messages import Intrinsics, RobotState, ViewpointSet
+    from protocol.messages import Intrinsics, RobotState, ViewpointSet, rows
     from sim.nav import NavMap
     from sim.render import Renderer
     from sim.robot import OdometryNoise, SimRobot
     from sim.scene import generate_scene
+    from sim.scoring import score_nodes
 
     torch.set_num_threads(max(1, int(torch_threads)))
     say = log_fn or (lambda s: log.info("%s", s))
@@ -255,7 +270,7 @@ def run_episode(
                 x=x,
                 y=y,
                 yaw_rad=yaw,
-                T_world_cam=robot.T_world_cam_odom(),
+                T_world_cam=rows(robot.T_world_cam_odom()),
                 distance_m=robot.distance_m,
                 steps=step - 1,
                 travel_cost_m=travel_costs(nav, robot.pose_true()[:2], vp_xy),

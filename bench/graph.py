@@ -4,7 +4,7 @@ For each scene family a scripted robot tour (a lattice of navigable viewpoints, 
 visited in a nearest-neighbour walk) plus the fixed cameras is rendered once; the frames go through an
 in-process :class:`mapper.core.MapperCore` with ORACLE 2D perception (the simulator's semantic camera)
 and each geometry backend: ``oracle`` (true depth and poses, the paper's CG) and ``mvs`` (RGB only,
-CG-RGB). Nodes and edges are scored with :mod:`bench.scoring`. Query latency is measured on a 150-node
+CG-RGB). Nodes and edges are scored with :mod:`sim.scoring`. Query latency is measured on a 150-node
 graph served by a real mapper node over Zenoh on loopback.
 
 Example::
@@ -72,7 +72,8 @@ def render_views(scene: Any, poses: list[np.ndarray], intr: Any, source_id: str,
     from mapper.geometry.contract import OracleData, View
 
     labels = scene.labels()
-    views, seen = [], {}
+    views: list[View] = []
+    seen: dict[int, int] = {}
     for i, (T, known) in enumerate(zip(poses, posed, strict=True)):
         out = renderer.render(intr, T)
         ids, counts = np.unique(out.instance_id[out.instance_id > 0], return_counts=True)
@@ -87,23 +88,14 @@ def render_views(scene: Any, poses: list[np.ndarray], intr: Any, source_id: str,
 
 
 # --- one run ---------------------------------------------------------------------------------------
-def core_config(geometry: str, threads: int) -> Any:
-    from mapper.config import MapperCoreConfig
-
-    return MapperCoreConfig.model_validate({
-        "geometry": {"backend": geometry},
-        "perception": {"segmenter": "sim", "embedder": "sim"},
-        "torch_threads": threads,
-    })
-
-
 def run_mapping(views: list[Any], geometry: str, threads: int) -> tuple[Any, dict[str, Any]]:
     import torch
 
+    from bench.explore import core_config
     from mapper.core import MapperCore
 
     torch.set_num_threads(threads)
-    core = MapperCore(core_config(geometry, threads))
+    core = MapperCore(core_config(geometry, "sim", threads))
     t0 = time.perf_counter()
     for v in views:
         # Every tour frame is a keyframe by construction (>= 45 deg or >= spacing apart); forcing it keeps
@@ -129,7 +121,7 @@ def run_mapping(views: list[Any], geometry: str, threads: int) -> tuple[Any, dic
 
 
 def score_run(core: Any, scene: Any, visible_ids: list[int]) -> dict[str, Any]:
-    from bench.scoring import score_edges, score_nodes
+    from sim.scoring import score_edges, score_nodes
 
     snap = core.snapshot()
     ns = score_nodes(snap.nodes, scene)
@@ -154,13 +146,13 @@ def score_run(core: Any, scene: Any, visible_ids: list[int]) -> dict[str, Any]:
 
 # --- query latency ---------------------------------------------------------------------------------
 def synthetic_nodes(n: int, seed: int = 0) -> list[Any]:
-    from protocol.messages import GraphNode, OrientedBox
+    from protocol.messages import GraphNode, OrientedBox, vec3
 
     rng = np.random.default_rng(seed)
     names = ["chair", "table", "lamp", "sofa", "mug", "book", "plant", "tv", "bed", "shelf"]
     out = []
     for i in range(n):
-        c = tuple(float(v) for v in rng.uniform([0, 0, 0], [10, 8, 2]))
+        c = vec3(rng.uniform([0, 0, 0], [10, 8, 2]))
         out.append(GraphNode(
             node_id=f"n{i + 1:06d}", label=names[i % len(names)], label_confidence=0.9, centroid=c,
             box=OrientedBox(center=c, extent=(0.5, 0.5, 0.5)), point_count=500, observation_count=3,

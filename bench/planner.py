@@ -17,9 +17,12 @@ import json
 import sys
 import time
 from pathlib import Path
-from typing import Any
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from planner.config import Strategy
 
 BAR_S = 2.0
 
@@ -54,7 +57,7 @@ def run_bench(
     candidates: int = 300,
     completions: int = 8,
     repeats: int = 10,
-    strategies: tuple[str, ...] = ("see", "asp"),
+    strategies: tuple[Strategy, ...] = ("see", "asp"),
     threads: int = 1,
 ) -> dict[str, Any]:
     """Decision-time statistics per strategy (seconds)."""

@@ -128,15 +128,16 @@ def run(minutes: float, warmup_min: float, cameras: int, fps: float, sample_s: f
             for c in stack.children:
                 if c.pid is not None and c.poll() is None:
                     rss[c.spec.name] = proc_mem_mb(c.pid)["rss_mb"]
+            t_s = time.monotonic() - t0
             sample = {
-                "t_s": time.monotonic() - t0, "rss_mb": rss, "deltas": n_deltas,
+                "t_s": t_s, "rss_mb": rss, "deltas": n_deltas,
                 "latency_p50_ms": _pct(lat, 50), "latency_p99_ms": _pct(lat, 99),
                 "sent": sum(p.sent for p in players),
                 **{k: status.get(k) for k in ("frames_in", "frames_processed", "keyframes", "nodes",
                                               *DROP_COUNTERS)},
             }
             samples.append(sample)
-            log(f"{sample['t_s'] / 60:5.1f} min: rss " + ", ".join(f"{k} {v:.0f}" for k, v in rss.items())
+            log(f"{t_s / 60:5.1f} min: rss " + ", ".join(f"{k} {v:.0f}" for k, v in rss.items())
                 + f" MiB; nodes {sample['nodes']}; delta p99 {sample['latency_p99_ms'] or float('nan'):.0f} ms;"
                 f" dropped {sample['frames_dropped']}")
     finally:

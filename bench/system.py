@@ -35,7 +35,7 @@ import numpy as np
 from bench.report import write_report
 from protocol.codec import DecodeError, decode, encode
 from protocol.keys import Keys
-from protocol.messages import FrameHeader, GraphDelta, OracleFrame, Status
+from protocol.messages import FrameHeader, GraphDelta, OracleFrame, SourceKind, Status, rows
 
 _CLK_TCK = os.sysconf("SC_CLK_TCK") if hasattr(os, "sysconf") else 100
 
@@ -68,7 +68,7 @@ class CameraFrames:
     """Pre-encoded frames of one simulated camera, replayed in a loop."""
 
     source_id: str
-    kind: str
+    kind: SourceKind
     jpegs: list[bytes]
     poses: list[np.ndarray]
     intrinsics: Any
@@ -123,13 +123,13 @@ class CameraPlayer:
         from protocol.transport import declare_frame_publisher
 
         self.cam, self.fps = cam, fps
-        self.pub = declare_frame_publisher(session, keys.frame(cam.kind, cam.source_id))  # type: ignore[arg-type]
+        self.pub = declare_frame_publisher(session, keys.frame(cam.kind, cam.source_id))
         self.oracle_pub = None
         if cam.oracle:
             from protocol.transport import declare_message_publisher
 
             self.oracle_pub = declare_message_publisher(
-                session, keys.oracle(cam.kind, cam.source_id), important=False)  # type: ignore[arg-type]
+                session, keys.oracle(cam.kind, cam.source_id), important=False)
         self.sent = 0
         self._stop = threading.Event()
         self._thread = threading.Thread(target=self._run, daemon=True, name=f"cam-{cam.source_id}")
@@ -150,15 +150,15 @@ class CameraPlayer:
         while not self._stop.is_set():
             k = self.sent % len(cam.jpegs)
             header = FrameHeader(
-                source_id=cam.source_id, source_kind=cam.kind, seq=self.sent, stamp_ns=time.time_ns(),  # type: ignore[arg-type]
+                source_id=cam.source_id, source_kind=cam.kind, seq=self.sent, stamp_ns=time.time_ns(),
                 width=cam.intrinsics.width, height=cam.intrinsics.height, intrinsics=cam.intrinsics,
-                T_world_cam=cam.poses[k], pose_trusted=False,
+                T_world_cam=rows(cam.poses[k]), pose_trusted=False,
             )
             if self.oracle_pub is not None:
                 ids_png, depth_png = cam.oracle[k]
                 self.oracle_pub.put(encode(OracleFrame(
-                    source_id=cam.source_id, seq=self.sent, stamp_ns=header.stamp_ns, T_world_cam_true=cam.poses[k],
-                    ids_png=ids_png, depth_png=depth_png, labels=cam.labels)))
+                    source_id=cam.source_id, seq=self.sent, stamp_ns=header.stamp_ns,
+                    T_world_cam_true=rows(cam.poses[k]), ids_png=ids_png, depth_png=depth_png, labels=cam.labels)))
             put_frame(self.pub, header, cam.jpegs[k])
             self.sent += 1
             next_t += period

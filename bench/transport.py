@@ -23,6 +23,7 @@ from pathlib import Path
 import numpy as np
 
 from bench.report import write_report
+from deploy.loopback import textured_image
 from protocol.jpeg import encode_jpeg
 from protocol.keys import Keys
 from protocol.messages import FrameHeader, Intrinsics
@@ -46,15 +47,6 @@ def _wait_port(port: int, timeout: float = 20.0) -> None:
     raise TimeoutError(f"router did not listen on port {port}")
 
 
-def test_image(width: int, height: int, seed: int = 0) -> np.ndarray:
-    """A textured image (noise plus gradients) that compresses like a camera frame."""
-    rng = np.random.default_rng(seed)
-    yy, xx = np.mgrid[0:height, 0:width]
-    base = np.stack([xx * 255 // max(width - 1, 1), yy * 255 // max(height - 1, 1), (xx + yy) % 256], axis=-1)
-    noise = rng.integers(0, 40, size=(height, width, 3))
-    return np.clip(base + noise, 0, 255).astype(np.uint8)
-
-
 def run(frames: int, width: int, height: int, quality: int, rate_hz: float, endpoint: str | None) -> dict:
     """Publish ``frames`` frames and return the measured figures."""
     router_proc = None
@@ -67,7 +59,7 @@ def run(frames: int, width: int, height: int, quality: int, rate_hz: float, endp
         )
         _wait_port(port)
     keys = Keys("bench")
-    jpeg = encode_jpeg(test_image(width, height), quality)
+    jpeg = encode_jpeg(textured_image(width, height), quality)
     K = Intrinsics.from_fov(width, height, 90.0)
     latencies_ms: list[float] = []
     received_bytes = 0

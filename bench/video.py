@@ -68,6 +68,14 @@ class Frame:
     T_true: np.ndarray
 
 
+def read_image(path: Path, flags: int = cv2.IMREAD_COLOR) -> np.ndarray:
+    """``cv2.imread`` that raises ``ValueError`` for a missing or unreadable file instead of returning None."""
+    img = cv2.imread(str(path), flags)
+    if img is None:
+        raise ValueError(f"cannot read image {path}")
+    return np.asarray(img)
+
+
 def load_sequence(name: str, root: Path = DATA_ROOT) -> tuple[list[Frame], dict[str, int]]:
     """Frames of a packaged sequence with recorded poses as priors (as written: near-orthonormal rotations are
     projected, and counted in the returned stats)."""
@@ -77,14 +85,15 @@ def load_sequence(name: str, root: Path = DATA_ROOT) -> tuple[list[Frame], dict[
     frames, stats = [], {"poses_projected": 0}
     for p in sorted((base / "frames").glob("frame-*.color.png")):
         stem = p.name[: -len(".color.png")]
-        bgr = cv2.imread(str(p))
-        raw = cv2.imread(str(base / "frames" / f"{stem}.depth.png"), cv2.IMREAD_UNCHANGED)
+        bgr = read_image(p)
+        raw = read_image(base / "frames" / f"{stem}.depth.png", cv2.IMREAD_UNCHANGED)
         chk = check_pose(np.loadtxt(base / "frames" / f"{stem}.pose.txt"), source=f"{name} {stem}")
         stats["poses_projected"] += int(chk.projected)
         h, w = bgr.shape[:2]
         intr = Intrinsics(width=w, height=h, fx=K[0, 0], fy=K[1, 1], cx=K[0, 2], cy=K[1, 2])
         depth = spec.depth(raw)
-        view = View(cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB), name, intr, chk.T, seq=int(stem[6:]),
+        rgb = np.asarray(cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB), dtype=np.uint8)
+        view = View(rgb, name, intr, chk.T, seq=int(stem[6:]),
                     prior_rel_rot_deg=spec.rel_rot_deg)
         frames.append(Frame(view, depth, (depth > spec.valid_m[0]) & (depth < spec.valid_m[1]), chk.T))
     return frames, stats
@@ -95,10 +104,12 @@ def available(name: str, root: Path = DATA_ROOT) -> bool:
     return (root / SEQUENCES[name].folder / "frames").is_dir()
 
 
-def _record(result: ScenarioResult, label: str, k: int, frame: Frame, prior: np.ndarray, recon: Any,
+def _record(result: ScenarioResult, label: str, k: int, frame: Frame, prior: np.ndarray | None, recon: Any,
             geo: Any, i: int, seconds: float) -> None:
     s = score_depth(geo.depth_m[i], geo.confidence[i], frame.depth_m, frame.valid)
     T = geo.T_world_cam[i]
+    rot_before = math.nan if prior is None else rotation_angle_deg(prior, frame.T_true)
+    trans_before = math.nan if prior is None else 100 * float(np.linalg.norm(prior[:3, 3] - frame.T_true[:3, 3]))
     result.seconds.append(seconds)
     result.frames.append({
         "label": label, "k": k, "absrel": s.absrel, "delta125": s.delta125, "confident": s.confident,
@@ -107,9 +118,9 @@ def _record(result: ScenarioResult, label: str, k: int, frame: Frame, prior: np.
         "t_poses_s": float(recon.info.get("t_poses_s", math.nan)),
         "t_dense_s": float(recon.info.get("t_dense_s", math.nan)),
         "n_sources": len(recon.info.get("sources", {}).get(i, [])),
-        "rot_deg_before": rotation_angle_deg(prior, frame.T_true),
+        "rot_deg_before": rot_before,
         "rot_deg_after": rotation_angle_deg(T, frame.T_true),
-        "trans_cm_before": 100 * float(np.linalg.norm(prior[:3, 3] - frame.T_true[:3, 3])),
+        "trans_cm_before": trans_before,
         "trans_cm_after": 100 * float(np.linalg.norm(T[:3, 3] - frame.T_true[:3, 3])),
         "ba": [b.get("status", "accepted" if b.get("accepted") else "rejected") for b in recon.info.get("ba", [])],
     })
@@ -133,7 +144,7 @@ def run_keyframed(rec: Any, frames: Sequence[Frame], result: ScenarioResult, lab
         r = rec.reconstruct(win, targets=[0])
         dt = time.perf_counter() - t0
         g = compose(r, anchor_pose(r, win))
-        _record(result, label, k, frames[k], v.T_world_cam, r, g, 0, dt)  # type: ignore[arg-type]
+        _record(result, label, k, frames[k], v.T_world_cam, r, g, 0, dt)
         d = typical_depth(g.depth_m[0], g.confidence[0])
         if d is not None:
             selector.observe_depth(v.source_id, d)
@@ -166,12 +177,12 @@ def run_last_window(rec: Any, frames: Sequence[Frame], result: ScenarioResult, l
         r = rec.reconstruct(win, targets=[len(win) - 1])
         dt = time.perf_counter() - t0
         g = compose(r, anchor_pose(r, win))
-        _record(result, label, k, frames[k], win[-1].T_world_cam, r, g, len(win) - 1, dt)  # type: ignore[arg-type]
+        _record(result, label, k, frames[k], win[-1].T_world_cam, r, g, len(win) - 1, dt)
 
 
 def sim_video_frames(family: str, seed: int, n: int) -> list[Frame]:
     """A simulated robot camera at video rate: 2 cm and 0.6 deg between frames (0.6 m/s at 30 fps)."""
-    from bench.geometry import sim_sequences
+    from bench.simdrive import sim_sequences
 
     kfs, _, _ = sim_sequences(family, seed, 1, n, None, step_m=0.02, turn_deg=0.6, flip_every=30)
     return [Frame(replace(k.view, prior_rel_rot_deg=0.05), k.gt_depth, k.gt_depth > 0, k.T_true) for k in kfs]

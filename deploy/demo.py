@@ -4,7 +4,7 @@ It runs ``argus up`` on ``deploy/launch/demo.toml`` (router, mapper, planner, on
 one overhead simulated camera, an apartment), each its own process, and follows the run as a
 consumer would: robot states for the step count, graph snapshots for the node count, scored against
 the simulator's ground truth (it knows the scene from the launch file's ``[world]`` table) with
-``bench.scoring.score_nodes``. After the exploration steps it prints a table (nodes, precision, recall,
+``sim.scoring.score_nodes``. After the exploration steps it prints a table (nodes, precision, recall,
 F1, edges, wall time), stops every process, and leaves a Rerun recording of the run.
 
 Example::
@@ -440,7 +440,7 @@ class _Scorer:
         if self.world is None or self.error is not None:
             return None
         try:
-            from bench.scoring import score_nodes
+            from sim.scoring import score_nodes
 
             if self.position_only:
                 return score_nodes(list(snap.nodes), self._load(), label_threshold=-1.0)

@@ -19,6 +19,8 @@ import sys
 import threading
 import time
 
+import numpy as np
+
 from protocol.jpeg import decode_jpeg, encode_jpeg
 from protocol.keys import Keys
 from protocol.messages import FrameHeader, Intrinsics
@@ -27,11 +29,18 @@ from protocol.session import client, open_session
 from protocol.transport import declare_frame_publisher, decode_frame_sample, put_frame
 
 
+def textured_image(width: int, height: int, seed: int = 0) -> np.ndarray:
+    """A textured image (noise plus gradients) that compresses like a camera frame."""
+    rng = np.random.default_rng(seed)
+    yy, xx = np.mgrid[0:height, 0:width]
+    base = np.stack([xx * 255 // max(width - 1, 1), yy * 255 // max(height - 1, 1), (xx + yy) % 256], axis=-1)
+    noise = rng.integers(0, 40, size=(height, width, 3))
+    return np.clip(base + noise, 0, 255).astype(np.uint8)
+
+
 def publish(endpoint: str, frames: int, site: str = "default", source_id: str = "demo-cam",
             rate_hz: float = 10.0, width: int = 640, height: int = 480, wait_subscriber_s: float = 10.0) -> int:
     """Publish ``frames`` synthetic frames (prints one JSON line per frame); 0 frames = until stopped."""
-    from bench.transport import test_image  # a textured synthetic image; bench is not an edge dependency
-
     stop = install_stop_handlers()
     keys = Keys(site)
     with open_session(client(endpoint)) as session:
@@ -42,7 +51,7 @@ def publish(endpoint: str, frames: int, site: str = "default", source_id: str = 
             stop.wait(0.05)
         seq = 0
         while not stop.is_set() and (frames == 0 or seq < frames):
-            img = test_image(width, height, seed=seq)
+            img = textured_image(width, height, seed=seq)
             jpeg = encode_jpeg(img, 90)
             hdr = FrameHeader(source_id=source_id, source_kind="fixed", seq=seq, stamp_ns=time.time_ns(),
                               width=width, height=height, intrinsics=Intrinsics.from_fov(width, height, 90.0))

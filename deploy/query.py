@@ -265,9 +265,10 @@ def main(argv: list[str] | None = None) -> int:
         if a.what == "nodes":
             near = None
             if a.near is not None:
-                near = tuple(float(v) for v in a.near.split(","))
-                if len(near) != 3:
+                xyz = [float(v) for v in a.near.split(",")]
+                if len(xyz) != 3:
                     raise ValueError("--near needs x,y,z")
+                near = (xyz[0], xyz[1], xyz[2])
             query = GraphQuery(label=a.label, near=near, radius=a.radius, id=a.id,
                                since_version=a.since_version)
     except ValueError as e:

@@ -368,14 +368,14 @@ class Health:
             if (role, nid) not in pinned:
                 free_ids.setdefault(role, []).append(nid)
         for s in specs:
-            role = s.expected_role
-            if role is None:
+            expected = s.expected_role
+            if expected is None:
                 continue
             if s.node_id:
-                if (role, s.node_id) not in alive:
+                if (expected, s.node_id) not in alive:
                     missing.append(s.name)
-            elif free_ids.get(role):
-                free_ids[role].pop()
+            elif free_ids.get(expected):
+                free_ids[expected].pop()
             else:
                 missing.append(s.name)
         return missing

@@ -63,10 +63,11 @@ def bench_source(
     received: list[int],
 ) -> dict[str, Any]:
     """Time ``n_frames`` frames of one source through the publisher; returns the figures."""
+    source_config = parse_source_config(source)
     cfg = EdgeCameraConfig(
-        id="bench", source=source, publish=PublishConfig(width=width, height=height, jpeg_quality=quality)
+        id="bench", source=source_config, publish=PublishConfig(width=width, height=height, jpeg_quality=quality)
     )
-    src = create_source(parse_source_config(source))
+    src = create_source(source_config)
     src.open()
     pub = declare_frame_publisher(session, keys.cam_frame("bench"))
     publisher = FramePublisher(cfg, pub, None, None)

@@ -10,7 +10,7 @@ import logging
 import threading
 import time
 from dataclasses import dataclass
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, cast
 
 import cv2
 import numpy as np
@@ -22,7 +22,7 @@ from edge_camera.sources.base import FrameSource, Grab, SourceConfigError
 from protocol.codec import encode
 from protocol.jpeg import encode_jpeg
 from protocol.keys import Keys
-from protocol.messages import FrameHeader, Intrinsics, OracleFrame
+from protocol.messages import FrameHeader, Intrinsics, OracleFrame, rows
 from protocol.oracle import depth_to_png, ids_to_png
 from protocol.session import open_session_retrying
 from protocol.transport import Counters, StatusReporter, declare_frame_publisher, declare_message_publisher, put_frame
@@ -126,7 +126,7 @@ class FramePublisher:
             width=w,
             height=h,
             intrinsics=intr,
-            T_world_cam=None if T is None else np.asarray(T, dtype=np.float64),
+            T_world_cam=None if T is None else rows(T),
             pose_trusted=trusted if T is not None else False,
         )
 
@@ -134,7 +134,8 @@ class FramePublisher:
         """Whether anyone (through a router) subscribes to the frame key right now: a frame put with no
         subscriber goes nowhere and is not counted as sent."""
         try:
-            return bool(self.frame_pub.matching_status.matching)
+            # zenoh 1.10 returns a MatchingStatus here; its stub says bool
+            return cast("zenoh.MatchingStatus", self.frame_pub.matching_status).matching
         except Exception:  # noqa: BLE001 - a publisher without matching support: assume delivered
             return True
 
@@ -152,7 +153,7 @@ class FramePublisher:
                 source_id=self.config.id,
                 seq=self.seq,
                 stamp_ns=grab.stamp_ns,
-                T_world_cam_true=np.asarray(o.T_world_cam_true, dtype=np.float64),
+                T_world_cam_true=rows(o.T_world_cam_true),
                 ids_png=ids_to_png(_resize_nearest(o.instance_id, size)),
                 depth_png=depth_to_png(_resize_nearest(o.depth_m, size)),
                 labels={str(k): v for k, v in o.labels.items()},

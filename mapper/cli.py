@@ -47,13 +47,27 @@ def parser() -> argparse.ArgumentParser:
     return p
 
 
+def describe_all() -> str:
+    """Every config field, then every backend's options (``--describe``)."""
+    from mapper.config import MapperConfig
+    from mapper.geometry.registry import RECONSTRUCTORS
+    from mapper.perception.registry import EMBEDDERS, SEGMENTERS
+
+    lines = ["argus mapper configuration (TOML):", "", *describe(MapperConfig), "",
+             "Backend options: the table next to each backend name belongs to the chosen backend; an unknown option "
+             "or a wrong type is an error at load."]
+    lines += RECONSTRUCTORS.describe(describe, "geometry.options", "geometry.backend")
+    lines += SEGMENTERS.describe(describe, "perception.segmenter_options", "perception.segmenter")
+    lines += EMBEDDERS.describe(describe, "perception.embedder_options", "perception.embedder")
+    return "\n".join(lines)
+
+
 def main(argv: list[str] | None = None) -> int:
     a = parser().parse_args(argv)
     from mapper.config import MapperConfig
 
     if a.describe:
-        print("argus mapper configuration (TOML):\n")
-        print("\n".join(describe(MapperConfig)))
+        print(describe_all())
         return 0
     values = {
         **process_values(a),

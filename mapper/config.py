@@ -6,38 +6,101 @@ from __future__ import annotations
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field
+from pydantic import BaseModel, ConfigDict, Field, SerializeAsAny, ValidationInfo, field_validator
+from pydantic_core import PydanticCustomError
 
 from mapper.fusion import FusionConfig
+from mapper.geometry.registry import RECONSTRUCTORS
 from mapper.intake import InputLimits
+from mapper.perception.registry import EMBEDDERS, SEGMENTERS
 from mapper.relations import RelationConfig
 from protocol.keys import SiteName
+from protocol.plugins import FactoryRegistry, FreeOptions
 from protocol.session import ZenohSettings, default_site
 
 if TYPE_CHECKING:
     from mapper.geometry.singleview import SingleViewParams
 
 
+def _backend_name(registry: FactoryRegistry, name: str) -> str:
+    """``name`` if ``registry`` has it, else one error listing the known names."""
+    try:
+        registry.factory_target(name)
+    except ValueError as e:
+        raise PydanticCustomError("unknown_backend", "{reason}", {"reason": str(e)}) from None
+    return name
+
+
+def _backend_options(registry: FactoryRegistry, name: Any, value: Any) -> BaseModel:
+    """``value`` validated as the options of backend ``name``: one error naming the backend and each bad
+    option. A name that failed its own check leaves the options unchecked (its error says why)."""
+    if not isinstance(name, str):
+        return FreeOptions()
+    try:
+        return registry.parse_options(name, value)
+    except ValueError as e:
+        raise PydanticCustomError("backend_options", "{reason}", {"reason": str(e)}) from None
+
+
 class GeometryConfig(BaseModel):
-    """Which reconstructor turns views into metric geometry."""
+    """Which reconstructor turns views into metric geometry; ``options`` are validated against the chosen
+    backend's options model when the config loads (``argus mapper --describe`` lists each backend's)."""
 
     model_config = ConfigDict(extra="forbid")
     backend: str = Field(default="mvs", description="reconstructor: mvs (RGB only), oracle (sim), mapanything, da3")
-    options: dict[str, Any] = Field(default_factory=dict, description="backend options (see its config)")
+    options: SerializeAsAny[BaseModel] = Field(
+        default_factory=dict, validate_default=True,
+        description="the backend's options (its own table: see the per-backend lists below)",
+    )
+
+    @field_validator("backend")
+    @classmethod
+    def _known(cls, v: str) -> str:
+        return _backend_name(RECONSTRUCTORS, v)
+
+    @field_validator("options", mode="before")
+    @classmethod
+    def _options(cls, v: Any, info: ValidationInfo) -> BaseModel:
+        return _backend_options(RECONSTRUCTORS, info.data.get("backend"), v)
 
 
 class PerceptionConfig(BaseModel):
-    """Which 2D perception backends find, describe and label objects."""
+    """Which 2D perception backends find, describe and label objects; each one's options are validated
+    against its options model when the config loads."""
 
     model_config = ConfigDict(extra="forbid")
     segmenter: str = Field(
         default="classical", description="masks: classical (no weights), detector (24 classes, CPU), sim (ORACLE), sam"
     )
-    segmenter_options: dict[str, Any] = Field(default_factory=dict, description="segmenter options")
+    segmenter_options: SerializeAsAny[BaseModel] = Field(
+        default_factory=dict, validate_default=True, description="the segmenter's options (see the per-backend lists)"
+    )
     embedder: str = Field(
         default="classical", description="labels: classical (appearance), detector, sim (ORACLE labels), clip"
     )
-    embedder_options: dict[str, Any] = Field(default_factory=dict, description="embedder options")
+    embedder_options: SerializeAsAny[BaseModel] = Field(
+        default_factory=dict, validate_default=True, description="the embedder's options (see the per-backend lists)"
+    )
+
+    @field_validator("segmenter")
+    @classmethod
+    def _known_segmenter(cls, v: str) -> str:
+        return _backend_name(SEGMENTERS, v)
+
+    @field_validator("embedder")
+    @classmethod
+    def _known_embedder(cls, v: str) -> str:
+        return _backend_name(EMBEDDERS, v)
+
+    @field_validator("segmenter_options", mode="before")
+    @classmethod
+    def _segmenter_options(cls, v: Any, info: ValidationInfo) -> BaseModel:
+        return _backend_options(SEGMENTERS, info.data.get("segmenter"), v)
+
+    @field_validator("embedder_options", mode="before")
+    @classmethod
+    def _embedder_options(cls, v: Any, info: ValidationInfo) -> BaseModel:
+        return _backend_options(EMBEDDERS, info.data.get("embedder"), v)
 
 
 class KeyframeConfig(BaseModel):

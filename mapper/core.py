@@ -79,12 +79,12 @@ class MapperCore:
         if reconstructor is None:
             from mapper.geometry.registry import make_reconstructor
 
-            reconstructor = make_reconstructor(cfg.geometry.backend, **cfg.geometry.options)
+            reconstructor = make_reconstructor(cfg.geometry.backend, cfg.geometry.options)
         if segmenter is None or embedder is None:
             from mapper.perception.registry import make_embedder, make_segmenter
 
-            segmenter = segmenter or make_segmenter(cfg.perception.segmenter, **cfg.perception.segmenter_options)
-            embedder = embedder or make_embedder(cfg.perception.embedder, **cfg.perception.embedder_options)
+            segmenter = segmenter or make_segmenter(cfg.perception.segmenter, cfg.perception.segmenter_options)
+            embedder = embedder or make_embedder(cfg.perception.embedder, cfg.perception.embedder_options)
         self.reconstructor, self.segmenter, self.embedder = reconstructor, segmenter, embedder
         self.objects = ObjectMap(cfg.fusion)
         self.store = GraphStore()
@@ -322,7 +322,7 @@ class MapperCore:
             self._count("detections_placed_single_view", len(coarse))
             objs += coarse
         seen: SeenView | None = None
-        if single_view:
+        if floor_masks is not None:  # a single-view keyframe
             objs = [dataclasses.replace(o, ray_origin=T_world_cam[:3, 3].copy()) for o in objs]
             if dets:
                 seen = SeenView.build(
@@ -378,7 +378,8 @@ class MapperCore:
         if not ok.any():
             return
         h, w = d.shape
-        img = view.image if view.image.shape[:2] == (h, w) else cv2.resize(view.image, (w, h), cv2.INTER_AREA)
+        # bilinear: cv2.INTER_AREA used to be passed where resize takes ``dst`` (positional), so it never applied
+        img = view.image if view.image.shape[:2] == (h, w) else cv2.resize(view.image, (w, h))
         with self.lock:
             self.voxels.add(vg.points_world[ok], img[ok])
 

@@ -360,7 +360,7 @@ class MapperNode:
             f, _ = self._pending.popleft()
             held -= len(f.jpeg)
             self.counters.add("frames_dropped")
-        ready = []
+        ready: list[tuple[Frame, OracleFrame | None]] = []
         waiting: collections.deque[tuple[Frame, float]] = collections.deque(maxlen=self._pending.maxlen)
         while self._pending:
             f, deadline = self._pending.popleft()

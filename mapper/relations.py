@@ -24,7 +24,7 @@ from dataclasses import dataclass
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
-from protocol.messages import GraphEdge, OrientedBox
+from protocol.messages import GraphEdge, OrientedBox, Predicate
 
 
 class RelationConfig(BaseModel):
@@ -183,7 +183,7 @@ def relation(a_box: OrientedBox, b_box: OrientedBox, cfg: RelationConfig | None 
     return _relation(_prep(a_box, cfg.min_extent_m), _prep(b_box, cfg.min_extent_m), cfg)
 
 
-def _relation(a: _Box, b: _Box, cfg: RelationConfig) -> str | None:
+def _relation(a: _Box, b: _Box, cfg: RelationConfig) -> Predicate | None:
     # Cheap reject: footprints far apart horizontally cannot relate at all.
     reach = cfg.next_to_max_gap_m + 0.5 * (np.hypot(*a.extent[:2]) + np.hypot(*b.extent[:2]))
     if np.hypot(*(a.center[:2] - b.center[:2])) > reach:
@@ -241,7 +241,7 @@ def compute_edges(boxes: Mapping[str, OrientedBox], cfg: RelationConfig | None =
     for i, j in zip(*np.nonzero(near), strict=True):
         pred = _relation(prepared[i], prepared[j], cfg)
         if pred is not None:
-            edges.append(GraphEdge(subject_id=ids[i], predicate=pred, object_id=ids[j]))  # type: ignore[arg-type]
+            edges.append(GraphEdge(subject_id=ids[i], predicate=pred, object_id=ids[j]))
     edges.sort(key=lambda e: (e.subject_id, e.predicate, e.object_id))
     return edges
 

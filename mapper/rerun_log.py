@@ -83,7 +83,7 @@ def _color(label: str) -> tuple[int, int, int]:
     import zlib
 
     h = zlib.crc32(label.encode()) % 360
-    rgb = cv2.cvtColor(np.uint8([[[h // 2, 200, 230]]]), cv2.COLOR_HSV2RGB)[0, 0]
+    rgb = cv2.cvtColor(np.array([[[h // 2, 200, 230]]], dtype=np.uint8), cv2.COLOR_HSV2RGB)[0, 0]
     return int(rgb[0]), int(rgb[1]), int(rgb[2])
 
 

@@ -10,6 +10,9 @@ from pydantic import BaseModel, ConfigDict, Field
 from protocol.keys import SiteName
 from protocol.session import ZenohSettings, default_site
 
+Strategy = Literal["see", "asp"]
+"""Planner strategies: see (geometric frontier gain) or asp (semantic gain over sampled completions)."""
+
 
 class _Model(BaseModel):
     model_config = ConfigDict(extra="forbid")
@@ -140,7 +143,7 @@ class SamplerConfig(_Model):
 class PlannerConfig(_Model):
     """The pure planner."""
 
-    strategy: Literal["see", "asp"] = Field(default="asp", description="see (geometric) or asp (semantic)")
+    strategy: Strategy = Field(default="asp", description="see (geometric) or asp (semantic)")
     seed: int = Field(default=0, description="random seed of the samplers")
     visibility: VisibilityConfig = Field(default_factory=VisibilityConfig, description="view prediction")
     see: SeeConfig = Field(default_factory=SeeConfig, description="geometric strategy")

@@ -292,8 +292,8 @@ class Planner:
             acfg = cfg.asp
 
             def seen(targets: np.ndarray, sizes: np.ndarray) -> np.ndarray:
-                return self._history_detect(pano, hist_rows, targets, sizes, acfg.min_pixels, 0.05).any(
-                    axis=0
+                return np.asarray(
+                    self._history_detect(pano, hist_rows, targets, sizes, acfg.min_pixels, 0.05).any(axis=0)
                 )
 
             hyps = realize(
@@ -381,7 +381,7 @@ class Planner:
             self.info.per_robot[rid] = {
                 "gain": float(gain),
                 "travel_m": float(travel[idx]),
-                "vp_id": int(goal.vp_id),
+                "vp_id": int(c.vp_ids[idx]),
                 "reason": goal.reason,
             }
         self.info.decision_s = time.perf_counter() - t0
@@ -402,9 +402,11 @@ class Planner:
     ) -> np.ndarray:
         if claim_T.shape[0] == 0 or targets.shape[0] == 0:
             return np.zeros(targets.shape[0], bool)
-        return detect_matrix(
-            claim_T, claim_r, pano, K, w, h, targets, far, self.config.visibility, sizes, min_px
-        ).any(axis=0)
+        return np.asarray(
+            detect_matrix(claim_T, claim_r, pano, K, w, h, targets, far, self.config.visibility, sizes, min_px).any(
+                axis=0
+            )
+        )
 
     def _choose_see(
         self,

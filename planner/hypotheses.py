@@ -237,8 +237,8 @@ def realize(
     if J > 1 and jitter_m > 0:
         noise = rng.normal(0.0, jitter_m, size=(H, J - 1, 2))
         rep_xyz[:, 1:, :2] += noise
-    comp = np.array(out_comp, dtype=np.int64)
-    sample = comp[:, None] * J + np.arange(J)[None, :]
+    comp_of = np.array(out_comp, dtype=np.int64)
+    sample = comp_of[:, None] * J + np.arange(J)[None, :]
     return Hypotheses(
         labels=labels,
         label_idx=np.repeat(np.array([lidx[lab] for lab in out_label], dtype=np.int64), J),

@@ -21,7 +21,7 @@ from typing import TYPE_CHECKING, Any
 
 from planner.config import PlannerNodeConfig
 from planner.core import Planner
-from protocol.codec import DecodeError, decode, encode
+from protocol.codec import DecodeError, M, decode, encode
 from protocol.graph import GraphFollower
 from protocol.keys import Keys
 from protocol.messages import GraphDelta, GraphSnapshot, NbvGoal, PointMap, RobotState, ViewpointSet
@@ -88,7 +88,7 @@ class PlannerNode:
         return self.follower.need_snapshot
 
     # --- callbacks (Zenoh threads) -----------------------------------------------------------
-    def _decode(self, sample: zenoh.Sample, cls: type) -> Any:
+    def _decode(self, sample: zenoh.Sample, cls: type[M]) -> M | None:
         try:
             return decode(sample.payload.to_bytes(), cls)
         except DecodeError as e:
@@ -359,10 +359,10 @@ class PlannerNode:
             log.warning("goal publish failed: %s", e)
 
     # --- start-up queries --------------------------------------------------------------------
-    def _query(self, session: zenoh.Session, key: str, cls: type) -> list:
+    def _query(self, session: zenoh.Session, key: str, cls: type[M]) -> list[M]:
         import zenoh
 
-        out = []
+        out: list[M] = []
         try:
             # No reply consolidation: the default keeps one reply per key, so a late peer answering
             # with garbage could hide the mapper's snapshot; every reply is judged here instead.

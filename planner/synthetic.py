@@ -14,8 +14,10 @@ from protocol.messages import (
     OrientedBox,
     PointMap,
     RobotState,
+    RobotStatus,
     Viewpoint,
     ViewpointSet,
+    rows,
 )
 from protocol.poses import camera_pose_from_base
 
@@ -101,7 +103,7 @@ def grid_viewpoints(
     """A grid of viewpoints with ``n_headings`` headings each; ``room_of(x, y) -> str | None`` names rooms."""
     xs = np.arange(xy_min[0], xy_max[0] + 1e-9, spacing_m)
     ys = np.arange(xy_min[1], xy_max[1] + 1e-9, spacing_m)
-    vps = []
+    vps: list[Viewpoint] = []
     for x in xs:
         for y in ys:
             for h in range(n_headings):
@@ -122,7 +124,7 @@ def grid_viewpoints(
 
 
 def robot_state(
-    robot_id: str, x: float, y: float, yaw_rad: float, status: str = "arrived", goal_id: str | None = None
+    robot_id: str, x: float, y: float, yaw_rad: float, status: RobotStatus = "arrived", goal_id: str | None = None
 ) -> RobotState:
     return RobotState(
         robot_id=robot_id,
@@ -131,7 +133,7 @@ def robot_state(
         x=x,
         y=y,
         yaw_rad=yaw_rad,
-        T_world_cam=camera_pose_from_base(x, y, yaw_rad, CAMERA_HEIGHT_M, CAMERA_PITCH_DEG),
+        T_world_cam=rows(camera_pose_from_base(x, y, yaw_rad, CAMERA_HEIGHT_M, CAMERA_PITCH_DEG)),
         goal_id=goal_id,
     )
 

@@ -12,7 +12,7 @@ receiver can log, count and carry on.
 
 from __future__ import annotations
 
-from typing import Any, TypeVar
+from typing import Any, TypeVar, overload
 
 import msgpack
 import numpy as np
@@ -113,7 +113,11 @@ def _unpack(data: bytes | bytearray | memoryview) -> list[Any]:
     return env
 
 
-def decode(data: bytes | bytearray | memoryview, expected: type[M] | None = None) -> M:
+@overload
+def decode(data: bytes | bytearray | memoryview) -> Message: ...
+@overload
+def decode(data: bytes | bytearray | memoryview, expected: type[M]) -> M: ...
+def decode(data: bytes | bytearray | memoryview, expected: type[Message] | None = None) -> Message:
     """Decode and validate an envelope.
 
     ``expected`` pins the message class: any other kind is refused. A newer major version is
@@ -132,7 +136,7 @@ def decode(data: bytes | bytearray | memoryview, expected: type[M] | None = None
     if minor > my_minor:
         body = {k: v for k, v in body.items() if k in cls.model_fields}
     try:
-        return cls.model_validate(body)  # type: ignore[return-value]
+        return cls.model_validate(body)
     except ValidationError as e:
         first = e.errors()[0]
         where = ".".join(str(p) for p in first["loc"])

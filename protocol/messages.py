@@ -16,6 +16,7 @@ import math
 from typing import Annotated, Any, ClassVar, Literal
 
 import numpy as np
+from numpy.typing import ArrayLike
 from pydantic import (
     AliasChoices,
     BaseModel,
@@ -87,9 +88,27 @@ def _mat_schema(n: int, m: int) -> WithJsonSchema:
 
 
 Mat4 = Annotated[list[list[float]], _to_mat(4, 4), _mat_schema(4, 4)]
-"""A 4x4 pose (rows), see :mod:`protocol.poses`. ``np.asarray(msg.T_world_cam)`` gives the matrix."""
+"""A 4x4 pose (rows), see :mod:`protocol.poses`. ``np.asarray(msg.T_world_cam)`` gives the matrix;
+``rows(T)`` gives the field value of an ndarray pose."""
 Mat3 = Annotated[list[list[float]], _to_mat(3, 3), _mat_schema(3, 3)]
 Mat6 = Annotated[list[list[float]], _to_mat(6, 6), _mat_schema(6, 6)]
+
+
+def rows(matrix: ArrayLike) -> list[list[float]]:
+    """A matrix (an ndarray pose or covariance) as the rows a ``Mat4`` / ``Mat3`` / ``Mat6`` field holds.
+    Shape and finiteness are checked by the field."""
+    out: list[list[float]] = np.asarray(matrix, dtype=np.float64).tolist()
+    return out
+
+
+def vec3(v: ArrayLike) -> tuple[float, float, float]:
+    """A length-3 array (a point, an extent) as the ``(x, y, z)`` tuple a ``Vec3`` field holds."""
+    a = np.asarray(v, dtype=np.float64)
+    if a.shape != (3,):
+        raise ValueError(f"expected 3 numbers, got shape {a.shape}")
+    return float(a[0]), float(a[1]), float(a[2])
+
+
 Vec3 = Annotated[tuple[float, float, float], Field(description="x, y, z in metres")]
 
 

@@ -27,7 +27,8 @@ import numpy as np
 
 from protocol.messages import NbvGoal
 from protocol.session import ZenohSettings, open_session
-from robot_agent.config import RobotAgentConfig
+from robot_agent.bodies import parse_body_config
+from robot_agent.config import FramesConfig, MotionConfig, RobotAgentConfig
 from robot_agent.node import RobotAgent
 
 
@@ -48,7 +49,7 @@ def _body(name: str, width: int, height: int, oracle: bool) -> dict[str, Any]:
 
 def bench_frames(body: str, n: int, width: int, height: int, oracle: bool) -> dict[str, Any]:
     ep = f"tcp/127.0.0.1:{_free_port()}"
-    cfg = RobotAgentConfig(id="bench", site="bench", body=_body(body, width, height, oracle),
+    cfg = RobotAgentConfig(id="bench", site="bench", body=parse_body_config(_body(body, width, height, oracle)),
                            zenoh=ZenohSettings(mode="peer", connect=[], listen=[ep]))
     agent = RobotAgent(cfg)
     received = [0]
@@ -83,8 +84,8 @@ def bench_frames(body: str, n: int, width: int, height: int, oracle: bool) -> di
 def bench_explore(steps: int, width: int, height: int, time_scale: float, seed: int = 0) -> dict[str, Any]:
     ep = f"tcp/127.0.0.1:{_free_port()}"
     cfg = RobotAgentConfig(
-        id="bench", site="bench", body=_body("sim", width, height, oracle=True),
-        frames={"moving_rate_hz": 0.0}, motion={"time_scale": time_scale, "tick_hz": 50.0},
+        id="bench", site="bench", body=parse_body_config(_body("sim", width, height, oracle=True)),
+        frames=FramesConfig(moving_rate_hz=0.0), motion=MotionConfig(time_scale=time_scale, tick_hz=50.0),
         zenoh=ZenohSettings(mode="peer", connect=[], listen=[ep]),
     )
     t0 = time.perf_counter()

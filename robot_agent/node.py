@@ -27,7 +27,16 @@ import numpy as np
 from protocol.codec import encode
 from protocol.jpeg import encode_jpeg
 from protocol.keys import Keys
-from protocol.messages import FrameHeader, GoalStatus, NbvGoal, OracleFrame, RobotState, RobotStatus, ViewpointSet
+from protocol.messages import (
+    FrameHeader,
+    GoalStatus,
+    NbvGoal,
+    OracleFrame,
+    RobotState,
+    RobotStatus,
+    ViewpointSet,
+    rows,
+)
 from protocol.oracle import depth_to_png, ids_to_png
 from protocol.ratelog import RateLimitedLog
 from protocol.session import open_session_retrying
@@ -207,7 +216,7 @@ class RobotAgent:
             x=x,
             y=y,
             yaw_rad=yaw,
-            T_world_cam=self.body.T_world_cam_odom(),
+            T_world_cam=rows(self.body.T_world_cam_odom()),
             goal_id=self.goal_id,
             reason=self.reason,
             distance_m=self.body.distance_m(),
@@ -263,8 +272,8 @@ class RobotAgent:
                 width=w,
                 height=h,
                 intrinsics=intr if (intr.width, intr.height) == (w, h) else intr.scaled(w, h),
-                T_world_cam=self.body.T_world_cam_odom(),
-                pose_covariance=cov,
+                T_world_cam=rows(self.body.T_world_cam_odom()),
+                pose_covariance=None if cov is None else rows(cov),
                 pose_trusted=False,
             )
             if cap.oracle is not None and self._oracle_pub is not None:
@@ -273,7 +282,7 @@ class RobotAgent:
                     source_id=self.config.id,
                     seq=self.seq,
                     stamp_ns=stamp,
-                    T_world_cam_true=np.asarray(o.T_world_cam_true, dtype=np.float64),
+                    T_world_cam_true=rows(o.T_world_cam_true),
                     ids_png=ids_to_png(o.instance_id),
                     depth_png=depth_to_png(o.depth_m),
                     labels={str(k): v for k, v in o.labels.items()},

@@ -85,9 +85,9 @@ def place_fixed_cameras(scene: Any, n: int, seed: int, intrinsics: Intrinsics | 
         for ci, c in enumerate(corners):
             if (room.name, ci) in used:
                 continue
-            c = np.asarray(c, float)
-            inward = (centre - c) / max(np.linalg.norm(centre - c), 1e-9)
-            eye = np.array([*(c + inward * 0.25), H - 0.2])
+            corner = np.asarray(c, float)
+            inward = (centre - corner) / max(np.linalg.norm(centre - corner), 1e-9)
+            eye = np.array([*(corner + inward * 0.25), H - 0.2])
             jitter = rng.uniform(-0.3, 0.3, 2)
             target = np.array([*(centre + inward * 0.3 + jitter), 0.3])
             T = look_at(eye, target)

@@ -204,6 +204,7 @@ def run_check(cfg: CheckConfig) -> dict[str, Any]:
     for fam in cfg.families:
         for seed in cfg.seeds:
             t0 = time.perf_counter()
+            entry: dict[str, object]
             try:
                 scene = generate_scene(fam, seed)
                 gen_s = time.perf_counter() - t0
@@ -335,11 +336,13 @@ def main(argv: list[str] | None = None) -> int:
             run_view(ViewConfig(source=_src(a), out=a.out, n_fixed=a.fixed))
         elif a.cmd == "check":
             fams = [f.strip() for f in a.families.split(",") if f.strip()]
-            rep = run_check(CheckConfig(families=fams, seeds=a.seeds, full=a.full, out=a.out))  # type: ignore[arg-type]
+            check = {"families": fams, "seeds": a.seeds, "full": a.full, "out": a.out}
+            rep = run_check(CheckConfig.model_validate(check))
             return 1 if rep["errors"] or rep["issues"] else 0
         elif a.cmd == "bench":
-            run_bench(BenchConfig(source=_src(a), camera=_cam(a), frames=a.frames, out=a.out,
-                                  backends=[b.strip() for b in a.backends.split(",") if b.strip()]))  # type: ignore[misc]
+            backends = [b.strip() for b in a.backends.split(",") if b.strip()]
+            run_bench(BenchConfig.model_validate({"source": _src(a), "camera": _cam(a), "frames": a.frames,
+                                                  "out": a.out, "backends": backends}))
     except (ValueError, OSError, KeyError) as e:
         print(f"argus sim {a.cmd}: error: {e}", file=sys.stderr)
         return 2

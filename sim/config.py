@@ -7,6 +7,9 @@ from typing import Literal
 from pydantic import BaseModel, ConfigDict, Field
 
 Family = Literal["apartment", "furnished_room"]
+FAMILIES: tuple[Family, ...] = ("apartment", "furnished_room")
+RenderBackend = Literal["embree", "open3d"]
+RENDER_BACKENDS: tuple[RenderBackend, ...] = ("embree", "open3d")
 
 
 class SceneSource(BaseModel):
@@ -51,8 +54,7 @@ class ViewConfig(BaseModel):
 
 class CheckConfig(BaseModel):
     model_config = ConfigDict(extra="forbid")
-    families: list[Family] = Field(default_factory=lambda: ["apartment", "furnished_room"],
-                                   description="families to check")
+    families: list[Family] = Field(default_factory=lambda: list(FAMILIES), description="families to check")
     seeds: list[int] = Field(default_factory=lambda: list(range(50)), description="seeds to check")
     full: bool = Field(default=False, description="also run the slower interpenetration check")
     out: str | None = Field(default=None, description="write the JSON report here")
@@ -63,6 +65,6 @@ class BenchConfig(BaseModel):
     source: SceneSource = Field(default_factory=SceneSource, description="scene to render")
     camera: CameraConfig = Field(default_factory=CameraConfig, description="camera model")
     frames: int = Field(default=10, ge=1, le=1000, description="frames per backend")
-    backends: list[Literal["embree", "open3d"]] = Field(default_factory=lambda: ["embree", "open3d"],
-                                                        description="backends to compare")
+    backends: list[RenderBackend] = Field(default_factory=lambda: list(RENDER_BACKENDS),
+                                          description="backends to compare")
     out: str | None = Field(default=None, description="write the JSON result here")

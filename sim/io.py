@@ -13,12 +13,12 @@ import json
 import math
 import re
 from pathlib import Path
-from typing import Any
+from typing import Any, cast
 
 import numpy as np
 import trimesh
 
-from protocol.messages import OrientedBox
+from protocol.messages import OrientedBox, vec3
 from protocol.poses import rot_z
 from sim.scene import Scene, SceneObject
 
@@ -32,7 +32,7 @@ def _pieces(mesh: trimesh.Trimesh, face_material: np.ndarray) -> list[tuple[int,
     out = []
     for m in np.unique(face_material):
         faces = np.nonzero(face_material == m)[0]
-        sub = mesh.submesh([faces], append=True, repair=False)
+        sub = cast(trimesh.Trimesh, mesh.submesh([faces], append=True, repair=False))  # append: one mesh
         out.append((int(m), sub))
     return out
 
@@ -79,7 +79,7 @@ def _box_from_mesh(mesh: trimesh.Trimesh, yaw: float) -> OrientedBox:
     local = mesh.vertices @ R.T
     lo, hi = local.min(0), local.max(0)
     c = rot_z(yaw) @ ((lo + hi) / 2)
-    return OrientedBox(center=tuple(float(v) for v in c), extent=tuple(float(v) for v in hi - lo), yaw_rad=yaw)
+    return OrientedBox(center=vec3(c), extent=vec3(hi - lo), yaw_rad=yaw)
 
 
 def load_scene(json_path: str | Path) -> Scene:
@@ -89,7 +89,7 @@ def load_scene(json_path: str | Path) -> Scene:
     if "gltf" not in data:
         return Scene.from_json(data)  # self-contained JSON (Scene.to_json with meshes)
     glb = jp.parent / data["gltf"]
-    tscene = trimesh.load(str(glb), force="scene", process=False)
+    tscene = cast(trimesh.Scene, trimesh.load(str(glb), force="scene", process=False))
     parts: dict[int | None, list[tuple[trimesh.Trimesh, int]]] = {}
     for node in tscene.graph.nodes_geometry:
         T, gname = tscene.graph[node]
@@ -107,7 +107,7 @@ def load_scene(json_path: str | Path) -> Scene:
 
     def merged(items: list[tuple[trimesh.Trimesh, int]]) -> tuple[trimesh.Trimesh, np.ndarray]:
         items = sorted(items, key=lambda x: x[1])
-        mesh = trimesh.util.concatenate([g for g, _ in items]) if len(items) > 1 else items[0][0]
+        mesh = cast(trimesh.Trimesh, trimesh.util.concatenate([g for g, _ in items])) if len(items) > 1 else items[0][0]
         fm = np.concatenate([np.full(len(g.faces), k, np.int32) for g, k in items])
         return mesh, fm
 

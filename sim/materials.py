@@ -8,12 +8,18 @@ need) and cost nothing to store. Everything here is pure, vectorised numpy and d
 from __future__ import annotations
 
 import colorsys
+from collections.abc import Sequence
 from dataclasses import asdict, dataclass
 
 import numpy as np
 
 PATTERNS: tuple[str, ...] = ("noise", "grain", "planks", "tiles", "weave", "speckle", "paint", "leaf")
 """Pattern kinds, indexed by :attr:`Material.pattern`."""
+
+
+def _rgb(values: Sequence[float]) -> tuple[float, float, float]:
+    r, g, b = (float(c) for c in values)
+    return r, g, b
 
 
 @dataclass(frozen=True)
@@ -35,8 +41,8 @@ class Material:
         return cls(
             name=str(d["name"]),
             pattern=str(d["pattern"]),
-            color1=tuple(float(c) for c in d["color1"]),  # type: ignore[arg-type]
-            color2=tuple(float(c) for c in d["color2"]),  # type: ignore[arg-type]
+            color1=_rgb(d["color1"]),
+            color2=_rgb(d["color2"]),
             scale_m=float(d.get("scale_m", 0.1)),
             contrast=float(d.get("contrast", 0.5)),
         )

@@ -75,11 +75,13 @@ class Open3DCaster:
         v = np.ascontiguousarray(triangles.reshape(-1, 3), dtype=np.float32)
         f = np.arange(len(v), dtype=np.uint32).reshape(-1, 3)
         self._scene = o3d.t.geometry.RaycastingScene()
-        self._scene.add_triangles(o3d.core.Tensor(v), o3d.core.Tensor(f))
+        cpu = o3d.core.Device("CPU:0")
+        self._scene.add_triangles(o3d.core.Tensor(v, o3d.core.float32, cpu), o3d.core.Tensor(f, o3d.core.uint32, cpu))
 
     def cast(self, origins: np.ndarray, dirs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         rays = np.concatenate([origins, dirs], axis=1).astype(np.float32)
-        res = self._scene.cast_rays(self._o3d.core.Tensor(rays), nthreads=self._nthreads)
+        core = self._o3d.core
+        res = self._scene.cast_rays(core.Tensor(rays, core.float32, core.Device("CPU:0")), nthreads=self._nthreads)
         t = res["t_hit"].numpy().astype(np.float64)
         prim = res["primitive_ids"].numpy().astype(np.int64)
         hit = np.isfinite(t)

@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import base64
 import math
+from collections.abc import Mapping
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -22,7 +23,7 @@ import numpy as np
 import trimesh
 from scipy import ndimage
 
-from protocol.messages import OrientedBox
+from protocol.messages import OrientedBox, vec3
 from protocol.poses import rot_z
 from sim import catalog
 from sim.catalog import CATEGORIES, Model, Surface
@@ -201,7 +202,7 @@ class Scene:
     def from_json(
         cls,
         data: dict[str, Any],
-        meshes: dict[int, tuple[trimesh.Trimesh, np.ndarray | None]] | None = None,
+        meshes: Mapping[int, tuple[trimesh.Trimesh, np.ndarray | None]] | None = None,
         structure: tuple[trimesh.Trimesh, np.ndarray | None] | None = None,
     ) -> Scene:
         """Rebuild a scene from :meth:`to_json` output; meshes come inline or from ``meshes``/``structure``
@@ -891,8 +892,7 @@ def _finalise(b: _Builder, family: str, seed: int, rooms: list[Room], doors: lis
         c_local = (lb[0] + lb[1]) / 2
         c_world = p.T[:3, :3] @ c_local + p.T[:3, 3]
         yaw = math.atan2(p.T[1, 0], p.T[0, 0])
-        box = OrientedBox(center=tuple(float(v) for v in c_world), extent=tuple(float(v) for v in lb[1] - lb[0]),
-                          yaw_rad=float(yaw))
+        box = OrientedBox(center=vec3(c_world), extent=vec3(lb[1] - lb[0]), yaw_rad=float(yaw))
         cat = p.cat if p.cat != "standing_book" else "book"
         objects.append(SceneObject(
             obj_id=i + 1, label=CATEGORIES[p.cat].label, category=cat, room=p.room, mesh=mesh, box=box,

@@ -28,7 +28,9 @@ from protocol.messages import (
     Status,
     Viewpoint,
     ViewpointSet,
+    rows,
 )
+from protocol.messages import vec3 as as_vec3
 from protocol.poses import camera_pose_from_base
 
 finite = st.floats(min_value=-1e6, max_value=1e6, allow_nan=False, allow_infinity=False)
@@ -254,3 +256,32 @@ def test_point_map_counts_must_match_points() -> None:
     with pytest.raises(ValueError, match="counts"):
         PointMap(version=1, stamp_ns=1, voxel_m=0.1, points=np.zeros((3, 3), np.float32),
                  counts=np.zeros(4, np.uint16))
+
+
+class TestMatrixAndVectorFieldValues:
+    """``rows`` / ``vec3`` turn ndarrays into what Mat4 / Vec3 fields hold, so typed code passes field values."""
+
+    def test_rows_gives_the_same_field_as_the_array_and_round_trips(self) -> None:
+        T = camera_pose_from_base(1.0, 2.0, 0.3, 1.2, -15.0)
+        r = rows(T)
+        assert isinstance(r, list) and all(isinstance(v, float) for row in r for v in row)
+        kw = dict(source_id="c", source_kind="fixed", seq=0, stamp_ns=0, width=4, height=3)
+        assert FrameHeader(**kw, T_world_cam=r) == FrameHeader(**kw, T_world_cam=T)  # type: ignore[arg-type]
+        assert np.array_equal(np.asarray(decode(encode(FrameHeader(**kw, T_world_cam=r))).T_world_cam), T)
+
+    def test_rows_leaves_shape_and_finiteness_to_the_field(self) -> None:
+        kw = dict(source_id="c", source_kind="fixed", seq=0, stamp_ns=0, width=4, height=3)
+        with pytest.raises(ValueError, match="4x4"):
+            FrameHeader(**kw, T_world_cam=rows(np.eye(3)))  # type: ignore[arg-type]
+        bad = np.eye(4)
+        bad[0, 3] = np.nan
+        with pytest.raises(ValueError, match="finite"):
+            FrameHeader(**kw, T_world_cam=rows(bad))  # type: ignore[arg-type]
+
+    def test_vec3_gives_three_floats_and_refuses_other_shapes(self) -> None:
+        v = as_vec3(np.array([1, 2, 3], dtype=np.int64))
+        assert v == (1.0, 2.0, 3.0) and all(type(c) is float for c in v)
+        assert OrientedBox(center=as_vec3(np.zeros(3)), extent=as_vec3([1, 1, 1])).extent == (1.0, 1.0, 1.0)
+        for bad in ([1.0, 2.0], np.zeros((1, 3)), [1, 2, 3, 4]):
+            with pytest.raises(ValueError, match="3 numbers"):
+                as_vec3(bad)

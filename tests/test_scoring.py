@@ -6,8 +6,8 @@ from dataclasses import dataclass
 
 import pytest
 
-from bench.scoring import LabelSimilarity, score_edges, score_nodes, shared_similarity
 from protocol.messages import GraphEdge, GraphNode, OrientedBox
+from sim.scoring import LabelSimilarity, score_edges, score_nodes, shared_similarity
 
 
 @dataclass

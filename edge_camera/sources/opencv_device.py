@@ -35,7 +35,7 @@ class OpenCVDevice(LiveSourceBase):
         c = self.config
         cap = cv2.VideoCapture(c.device, _APIS[c.api])
         if c.fourcc:
-            cap.set(cv2.CAP_PROP_FOURCC, cv2.VideoWriter_fourcc(*c.fourcc))
+            cap.set(cv2.CAP_PROP_FOURCC, cv2.VideoWriter.fourcc(*c.fourcc))
         if c.width:
             cap.set(cv2.CAP_PROP_FRAME_WIDTH, c.width)
         if c.height:

@@ -37,7 +37,7 @@ def extract_features(image_rgb: NDArray[np.uint8], max_features: int = 2000, con
 
     The contrast threshold is half OpenCV's default: indoor surfaces are often low-contrast and the
     ratio test plus geometric checks remove the weaker matches this lets through."""
-    sift = cv2.SIFT_create(nfeatures=max_features, contrastThreshold=contrast)  # type: ignore[attr-defined]
+    sift = cv2.SIFT.create(nfeatures=max_features, contrastThreshold=contrast)
     kps, desc = sift.detectAndCompute(to_gray(image_rgb), None)
     if desc is None or not kps:
         return Features(np.zeros((0, 2)), np.zeros((0, 128), np.float32))

@@ -260,7 +260,8 @@ def two_view_pose(
             h_unit = _plane_distance(Xa)
         if h_unit is None:
             return PoseEstimate(None, int(n_inl), False, "no ground plane found for the height scale", len(m))
-        scale = float(camera_height_m) / h_unit  # type: ignore[arg-type]
+        assert camera_height_m is not None  # checked on entry: one of the two is given
+        scale = float(camera_height_m) / h_unit
     T_a_b[:3, 3] *= scale
     T_world_b = np.asarray(view_a.T_world_cam @ T_a_b if view_a.T_world_cam is not None else T_a_b, np.float64)
     return PoseEstimate(T_world_b, int(n_inl), True, "ok", len(m), view_b.intrinsics, {"scale": scale})

@@ -1,42 +1,39 @@
-"""Registry of reconstructor backends; heavy imports happen only inside the chosen factory."""
+"""Registry of reconstructor backends: each name has a factory and a pydantic options model.
+
+``geometry.options`` of the mapper config is validated against the chosen backend's model when the
+config loads (``mapper.config.GeometryConfig``); heavy imports (torch models, mapanything) happen only
+inside the chosen factory. Third parties add backends through the ``argus.reconstructors`` entry points
+(name -> ``module:Class``; the class's ``Config`` attribute, if any, is its options model).
+"""
 
 from __future__ import annotations
 
-import importlib
-from collections.abc import Callable
-from importlib.metadata import entry_points
 from typing import Any
 
+from pydantic import BaseModel
+
 from mapper.geometry.contract import Reconstructor
-
-# name -> "module:factory"; the factory takes keyword options and returns a Reconstructor.
-RECONSTRUCTORS: dict[str, str] = {
-    "mvs": "mapper.geometry.mvs:MvsReconstructor",
-    "oracle": "mapper.geometry.oracle:OracleReconstructor",
-    "mapanything": "mapper.geometry.mapanything_adapter:MapAnythingReconstructor",
-    "da3": "mapper.geometry.da3:Da3Reconstructor",
-}
-
+from protocol.plugins import FactoryRegistry
 
 ENTRY_POINT_GROUP = "argus.reconstructors"
 
-
-def _load(target: str) -> Callable[..., Reconstructor]:
-    module_name, _, attr = target.partition(":")
-    return getattr(importlib.import_module(module_name), attr)  # type: ignore[no-any-return]
+RECONSTRUCTORS = FactoryRegistry("reconstructor", {
+    "mvs": ("mapper.geometry.mvs:MvsReconstructor", "mapper.geometry.mvs:MvsConfig"),
+    "oracle": ("mapper.geometry.oracle:OracleReconstructor", "mapper.geometry.oracle:OracleConfig"),
+    "mapanything": ("mapper.geometry.mapanything_adapter:MapAnythingReconstructor",
+                    "mapper.geometry.mapanything_adapter:MapAnythingConfig"),
+    "da3": ("mapper.geometry.da3:Da3Reconstructor", "mapper.geometry.da3:Da3Config"),
+}, ENTRY_POINT_GROUP)
+"""Name -> (factory, options model)."""
 
 
 def available() -> dict[str, str]:
     """Built-in backends plus third-party ones registered under the ``argus.reconstructors`` entry points."""
-    found = dict(RECONSTRUCTORS)
-    for ep in entry_points(group=ENTRY_POINT_GROUP):
-        found.setdefault(ep.name, ep.value)
-    return found
+    return RECONSTRUCTORS.available()
 
 
-def make_reconstructor(name: str = "mvs", **opts: Any) -> Reconstructor:
-    """Build the backend registered as ``name`` with its options (see each backend's config)."""
-    backends = available()
-    if name not in backends:
-        raise ValueError(f"unknown reconstructor {name!r}; choose one of {sorted(backends)}")
-    return _load(backends[name])(**opts)
+def make_reconstructor(name: str = "mvs", options: BaseModel | None = None, **opts: Any) -> Reconstructor:
+    """Build the backend registered as ``name`` with its options: a validated options model (the mapper
+    config's ``geometry.options``) or keywords. Raises ``ValueError`` naming a bad option."""
+    rec: Reconstructor = RECONSTRUCTORS.create(name, options if options is not None else opts)
+    return rec

@@ -63,7 +63,7 @@ class ClassicalSegmenter:
     description = "class-agnostic colour/depth-edge segmentation with plane removal (no weights)"
 
     def __init__(self, **opts: object) -> None:
-        self.config = ClassicalSegmenterConfig(**opts)
+        self.config = ClassicalSegmenterConfig.model_validate(opts)
 
     def segment(self, view: View, geometry: ViewGeometry | None = None) -> list[Mask2D]:
         cfg = self.config
@@ -148,7 +148,7 @@ class AppearanceEmbedder:
     description = "appearance descriptor (HSV colour histogram), label 'object' (no weights)"
 
     def __init__(self, **opts: object) -> None:
-        self.config = AppearanceEmbedderConfig(**opts)
+        self.config = AppearanceEmbedderConfig.model_validate(opts)
 
     def embed(self, view: View, masks: Sequence[Mask2D]) -> list[Detection]:
         cfg = self.config

@@ -63,7 +63,7 @@ class ClipEmbedder:
     description = "OpenCLIP crop embeddings labelled against a vocabulary (optional extra, local weights)"
 
     def __init__(self, **opts: object) -> None:
-        self.config = cfg = ClipConfig(**opts)
+        self.config = cfg = ClipConfig.model_validate(opts)
         try:
             import open_clip
             import torch

@@ -178,7 +178,7 @@ class DetectorSegmenter:
     description = "closed-set detector (bundled SSD-MobileNetV2, 24 Open Images classes) + GrabCut masks, CPU"
 
     def __init__(self, **opts: object) -> None:
-        self.config = cfg = DetectorConfig(**opts)
+        self.config = cfg = DetectorConfig.model_validate(opts)
         model = bundled_model() if cfg.model == "bundled" else Path(cfg.model).expanduser()
         labels = cfg.labels or (BUNDLED_LABELS if cfg.model == "bundled" else None)
         if not model.is_file():
@@ -266,8 +266,8 @@ class DetectorSegmenter:
             keep = cv2.dnn.NMSBoxes(rects, scores[idx].astype(float).tolist(), cfg.score_threshold, cfg.nms_iou)
             for k in np.asarray(keep, dtype=int).reshape(-1):
                 j = idx[k]
-                found.append(Box(*(float(v) for v in boxes[j]), class_id=int(c), label=names[j],
-                                 score=float(scores[j])))
+                x0, y0, x1, y1 = (float(v) for v in boxes[j])
+                found.append(Box(x0, y0, x1, y1, class_id=int(c), label=names[j], score=float(scores[j])))
         found.sort(key=lambda b: -b.score)
         return found[: cfg.max_detections]
 
@@ -365,7 +365,7 @@ class DetectorEmbedder:
     description = "labels from the detector segmenter's classes + appearance descriptor (no weights)"
 
     def __init__(self, **opts: object) -> None:
-        self.config = DetectorEmbedderConfig(**opts)
+        self.config = DetectorEmbedderConfig.model_validate(opts)
         self._appearance = AppearanceEmbedder()
 
     def embed(self, view: View, masks: Sequence[Mask2D]) -> list[Detection]:

@@ -77,7 +77,7 @@ class SamSegmenter:
     description = "SAM / MobileSAM automatic masks (optional extra, local checkpoint)"
 
     def __init__(self, **opts: object) -> None:
-        self.config = cfg = SamConfig(**opts)
+        self.config = cfg = SamConfig.model_validate(opts)
         mod = _import(cfg.package)
         if cfg.checkpoint is None and not cfg.random_init:
             raise BackendUnavailable(

@@ -38,7 +38,7 @@ class SimSegmenter:
     description = "ORACLE 2D perception: the simulator's instance-id render (simulated frames only)"
 
     def __init__(self, **opts: object) -> None:
-        self.config = SimSegmenterConfig(**opts)
+        self.config = SimSegmenterConfig.model_validate(opts)
 
     def segment(self, view: View, geometry: ViewGeometry | None = None) -> list[Mask2D]:
         if view.oracle is None or view.oracle.instance_id is None:
@@ -70,7 +70,7 @@ class SimEmbedder:
     description = "ORACLE 2D perception: object labels from the simulator (simulated frames only)"
 
     def __init__(self, **opts: object) -> None:
-        self.config = SimEmbedderConfig(**opts)
+        self.config = SimEmbedderConfig.model_validate(opts)
 
     def _label_of(self, view: View, m: Mask2D) -> str | None:
         if m.hint_label is not None:
