@@ -160,6 +160,8 @@ class MapperCore:
         """Finish a keyframe whose heavy work was offloaded (:attr:`offload`) with its ``products`` (None: its
         reconstruction could not be placed in the world), as :meth:`ingest` would have; the graph delta, if any."""
         t0 = time.perf_counter()
+        if self._offloaded_key == view.key:
+            self._offloaded_key = None  # finished: mark_processed may now mark it
         res: UpdateResult | None = None
         if products is None:
             self._count("views_unposed_skipped")

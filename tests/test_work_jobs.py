@@ -137,8 +137,8 @@ def test_products_problems(change: str, reason: str) -> None:
     elif change == "conf_shape":
         p = bad(p, conf=g.confidence[:-1])
     elif change == "too_big":
-        big = np.ones((H + 2, W), np.float32)
-        p = bad(p, depth=big, conf=big, points=np.zeros((H + 2, W, 3), np.float32))
+        big = np.ones((4 * H + 1, 4 * W), np.float32)  # 16x the image's pixels is the most accepted
+        p = bad(p, depth=big, conf=big, points=np.zeros((*big.shape, 3), np.float32))
     elif change == "negative":
         d[1, 1] = -1.0
         p = bad(p, depth=d)

@@ -46,6 +46,7 @@ class Job:
     attempts: int = 0
     since: float = 0.0  # when it entered its state
     submitted: float = 0.0  # re-issued jobs go before newer ones
+    fresh: bool = True  # a source's newest keyframe (False: an older keyframe retried, never superseded)
 
 
 @dataclass
@@ -98,20 +99,22 @@ class Dispatcher:
         return sorted(k for k, w in self.workers.items() if not w.quarantined)
 
     # -- jobs ---------------------------------------------------------------------------------------
-    def submit(self, job_id: str, source_id: str, now: float) -> bool:
-        """Add a job (False: a duplicate of a known or recently done job, ignored). The source's older pending
-        job is dropped (``superseded``); with ``max_jobs`` jobs already, the new one is (``full``)."""
+    def submit(self, job_id: str, source_id: str, now: float, fresh: bool = True) -> bool:
+        """Add a job (False: a duplicate of a known or recently done job, ignored; or dropped). A ``fresh`` job
+        (the source's newest keyframe) drops the source's older fresh job still pending (``superseded``); an older
+        keyframe retried (``fresh`` False: deferred until it had stereo partners) is not superseded. With
+        ``max_jobs`` jobs already, the new one is dropped (``full``)."""
         if job_id in self.jobs or job_id in self._done:
             self.counters["jobs_duplicate_submit"] += 1
             return False
         for j in list(self.jobs.values()):
-            if j.source_id == source_id and j.state is State.PENDING:
+            if fresh and j.fresh and j.source_id == source_id and j.state is State.PENDING:
                 self._drop(j.job_id, "superseded")
         if len(self.jobs) >= self.config.max_jobs:
             self.dropped.append((job_id, "full"))
             self.counters["jobs_dropped_full"] += 1
             return False
-        self.jobs[job_id] = Job(job_id, source_id, since=now, submitted=now)
+        self.jobs[job_id] = Job(job_id, source_id, since=now, submitted=now, fresh=fresh)
         self.counters["jobs_submitted"] += 1
         return True
 

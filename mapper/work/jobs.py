@@ -38,6 +38,8 @@ DEPTH_UNIT_M = 0.001
 """Metres per depth PNG unit unless the depth is deeper than 65.535 m (then coarser, see :func:`encode_products`)."""
 MAX_DEPTH_M = 1000.0
 """Deeper depth from a worker is garbage."""
+MAX_DEPTH_PIXELS_PER_IMAGE_PIXEL = 16
+"""A depth map may be finer than its image (some backends upsample), up to this many times its pixels."""
 
 
 class ResultRejected(ValueError):
@@ -140,27 +142,28 @@ def _u16(data: bytes | None, what: str, max_pixels: int) -> np.ndarray:
         raise ResultRejected("result_bad_image", f"{what}: {e}") from None
 
 
-def _mask(data: bytes, image_hw: tuple[int, int]) -> np.ndarray:
+def _mask(data: bytes, shapes: set[tuple[int, int]]) -> np.ndarray:
     try:
         w, h = png_size(data)
     except JpegError as e:
         raise ResultRejected("result_bad_detection", f"mask: {e}") from None
-    if (h, w) != image_hw:
-        raise ResultRejected("result_bad_shape", f"mask is {w}x{h}, image is {image_hw[1]}x{image_hw[0]}")
+    if (h, w) not in shapes:
+        raise ResultRejected("result_bad_shape", f"mask is {w}x{h}, neither the image's nor the depth's size")
     m = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
-    if m is None or m.shape != image_hw:
+    if m is None or m.shape != (h, w):
         raise ResultRejected("result_bad_detection", "mask PNG does not decode to one channel")
     return m != 0
 
 
 def decode_result(result: WorkResult, job: WorkJob) -> KeyframeProducts | None:
-    """The products of an ``ok`` result of ``job`` (None: not anchored), checked; raises :class:`ResultRejected`."""
+    """The products of an ``ok`` result of ``job`` (None: not anchored), checked; raises :class:`ResultRejected`.
+    Masks may come at the image's size or at the depth's (some segmenters work on the geometry)."""
     if not result.anchored:
         return None
     if result.T_world_cam is None or result.intrinsics is None:
         raise ResultRejected("result_incomplete", "no pose or no intrinsics")
     target = job.window[job.target_index]
-    pixels = target.width * target.height
+    pixels = MAX_DEPTH_PIXELS_PER_IMAGE_PIXEL * target.width * target.height
     depth = _u16(result.depth_png, "depth", pixels).astype(np.float32) * np.float32(result.depth_unit_m)
     conf = _u16(result.confidence_png, "confidence", pixels).astype(np.float32) / np.float32(65535.0)
     intr = result.intrinsics
@@ -174,7 +177,8 @@ def decode_result(result: WorkResult, job: WorkJob) -> KeyframeProducts | None:
     K = intr.K()
     dets = None
     if result.detections is not None:
-        dets = [Detection(mask=_mask(d.mask_png, (target.height, target.width)), label=d.label,
+        shapes = {(target.height, target.width), depth.shape}
+        dets = [Detection(mask=_mask(d.mask_png, shapes), label=d.label,
                           confidence=d.confidence, descriptor=d.descriptor, alternatives=tuple(d.alternatives),
                           instance_key=d.instance_key) for d in result.detections]
     vg = ViewGeometry(points_world=depth_to_world(depth, K, T), depth_m=depth, confidence=conf)
@@ -191,8 +195,8 @@ def products_problem(p: KeyframeProducts, image_hw: tuple[int, int]) -> Problem 
     d, c, pts = np.asarray(g.depth_m), np.asarray(g.confidence), np.asarray(g.points_world)
     if d.ndim != 2 or d.size == 0 or c.shape != d.shape or pts.shape != (*d.shape, 3):
         return "result_bad_shape", f"depth {d.shape}, confidence {c.shape}, points {pts.shape} disagree"
-    if d.shape[0] > image_hw[0] or d.shape[1] > image_hw[1]:
-        return "result_bad_shape", f"depth of {d.shape} is larger than the image {image_hw}"
+    if d.size > MAX_DEPTH_PIXELS_PER_IMAGE_PIXEL * image_hw[0] * image_hw[1]:
+        return "result_bad_shape", f"depth of {d.shape} is far larger than the image {image_hw}"
     if not (np.all(np.isfinite(d)) and np.all(np.isfinite(c)) and np.all(np.isfinite(pts))):
         return "result_not_finite", "depth, confidence or points hold NaN or inf"
     if d.min() < 0.0 or d.max() > MAX_DEPTH_M:
@@ -206,14 +210,15 @@ def products_problem(p: KeyframeProducts, image_hw: tuple[int, int]) -> Problem 
         check_pose(p.T_world_cam)
     except PoseError as e:
         return "result_bad_pose", str(e)
-    return _detections_problem(p.detections, image_hw)
+    return _detections_problem(p.detections, {image_hw, d.shape})
 
 
-def _detections_problem(dets: list[Detection] | None, image_hw: tuple[int, int]) -> Problem | None:
+def _detections_problem(dets: list[Detection] | None, shapes: set[tuple[int, ...]]) -> Problem | None:
+    """Masks at the image's or the depth's size (fusion resizes them to the depth), finite descriptors."""
     dims = set()
     for x in dets or []:
-        if np.asarray(x.mask).shape != image_hw:
-            return "result_bad_shape", f"a mask is {np.asarray(x.mask).shape}, the image {image_hw}"
+        if np.asarray(x.mask).shape not in shapes:
+            return "result_bad_shape", f"a mask is {np.asarray(x.mask).shape}, not one of {sorted(shapes)}"
         desc = np.asarray(x.descriptor)
         if desc.ndim != 1 or desc.size == 0 or desc.dtype.kind != "f" or not np.all(np.isfinite(desc)):
             return "result_bad_detection", f"descriptor of shape {desc.shape} ({desc.dtype}) is not a finite vector"
