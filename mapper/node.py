@@ -509,6 +509,8 @@ class MapperNode:
             todo = offloader.send()  # given-up jobs come back here: done now
             if not todo:
                 break
+        # Only now: a keyframe finished above may be a source of another still to finish (its JPEG is kept).
+        offloader.prune(self.core.keyframes.views())
 
     def _process(self, frame: Frame, rgb: np.ndarray, oracle: OracleFrame | None) -> GraphDelta | None:
         view = self._to_view(frame, rgb, oracle)
@@ -543,10 +545,7 @@ class MapperNode:
                 self.counters.add("keyframe_errors")
                 log.warning("keyframe %s#%d failed: %s: %s", p.view.source_id, p.view.seq, type(e).__name__, e)
                 return None
-        delta = self.core.complete(done.view, products)
-        if self.offloader is not None:
-            self.offloader.prune(self.core.keyframes.views())
-        return self._after(done.view, delta)
+        return self._after(done.view, self.core.complete(done.view, products))
 
     # -- Rerun -----------------------------------------------------------------------------------------
     def _open_rerun(self) -> None:

@@ -250,3 +250,53 @@ def test_undecodable_work_samples_are_counted(garbage: bytes) -> None:
     o._inbox.append(("ack", garbage))
     assert o.step() == []
     assert counters.get("work_undecodable") == 2
+
+
+# --- the mapper process's loop, without Zenoh ----------------------------------------------------------------
+class FakeSession(Sent):
+    def delete(self, key: str) -> None:
+        self.puts.append((key, b""))
+
+
+class FakePublisher:
+    def __init__(self) -> None:
+        self.payloads: list[bytes] = []
+
+    def put(self, payload: bytes) -> None:
+        self.payloads.append(payload)
+
+
+def test_keyframes_finished_together_keep_their_jpegs_for_later_windows() -> None:
+    """Regression: two results taken in one step; finishing the first forgot the second's JPEG (it was neither
+    a stored keyframe yet nor a job), so every later window with it as a source was done by the mapper."""
+    from mapper.config import MapperConfig
+    from mapper.node import MapperNode
+    from protocol.messages import FrameHeader
+    from protocol.transport import Frame
+
+    node = MapperNode(MapperConfig(site="t"))
+    o = node.offloader
+    assert o is not None
+    session = FakeSession()
+    o._session = session  # type: ignore[assignment]
+    o.dispatcher.worker_up("w")
+    jpegs, poses, intr = frames()
+    vs = views()
+    for i in range(4):
+        h = FrameHeader(source_id="r1", source_kind="robot", seq=i, stamp_ns=1000 + i, width=160, height=120,
+                        intrinsics=intr, T_world_cam=poses[i])
+        node._process(Frame(h, jpegs[i], "argus/t/robot/r1/frame", 0), vs[i].image, None)
+        o.send()  # as the mapper's loop does after each frame: the worker takes up to two at once
+    out = [k for k in o._pending]
+    assert len(out) >= 2, out
+    for job_id in out:  # all answered before the mapper looks: one step takes them all
+        p = o._pending[job_id]
+        products = compute_keyframe(node.core.reconstructor, node.core.segmenter, node.core.embedder,
+                                    node.core.config, p.views, p.target)
+        o._inbox.append(("result", encode(encode_products(products, p.job, "w"))))
+    deltas = FakePublisher()
+    node._finish_jobs(session, {"delta": deltas}, o)  # type: ignore[arg-type]
+    assert deltas.payloads
+    stored = {v.key for v in node.core.keyframes.views()}
+    assert {("r1", int(j.split("#")[1])) for j in out} <= stored
+    assert stored <= set(o._jpegs), "every stored keyframe's JPEG answers workers' fetches"

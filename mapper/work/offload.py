@@ -165,6 +165,7 @@ class Offloader:
             missing = [v.key for v in views if v.key not in self._jpegs]
         if jpeg is None or missing:
             self.counters.add("offload_missing_jpeg")  # e.g. a view fed in-process: done here
+            log.debug("keyframe %s done here: no JPEG of %s", view.key, missing or [view.key])
             return False
         job = make_job(views, target, jpeg, 1, self.perception, self.core_config)
         with self._lock:
