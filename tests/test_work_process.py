@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import signal
 import threading
+import time
 from typing import Any
 
 import numpy as np
@@ -96,19 +97,25 @@ def test_worker_does_keyframes_and_its_death_loses_none(router: str, procs: list
         offloaded = peer.counter("mapper", "keyframes_offloaded")
         accepted = peer.counter("mapper", "work_results_accepted")
         assert offloaded >= 3 and accepted == offloaded, f"{peer.status}\n{mapper.output}"
-        assert peer.counter("worker", "jobs_done") >= accepted
+        wait_for(lambda: peer.counter("worker", "jobs_done") >= accepted, 5, what="the worker's status")
         assert peer.counter("mapper", "keyframe_store_queries") >= 1  # the worker fetched source keyframes
         assert peer.counter("worker", "image_cache_hits") >= 1  # and reused them
         assert peer.counter("mapper", "nodes") >= 1, "keyframes done by the worker reached the graph"
-        # Killed with a job on its way: the job is re-issued (no other worker: done by the mapper itself).
+        # Killed with a job in its hands: the job is re-issued (no other worker: done by the mapper itself).
+        taken, done = peer.counter("worker", "jobs_in"), peer.counter("worker", "jobs_done")
         peer.send(7)
-        wait_for(lambda: peer.counter("mapper", "jobs_in_flight") >= 1 or peer.counter("mapper", "frames_processed")
-                 >= 8, 30, what="frame 7 taken")
+        wait_for(lambda: peer.counter("worker", "jobs_in") > taken, 30, what="frame 7's job taken")
+        assert peer.counter("worker", "jobs_done") == done, "the job was done before the kill: make it slower"
+        t_kill = time.monotonic()
         worker.signal(signal.SIGKILL)
         wait_for(lambda: peer.counter("mapper", "workers_alive") == 0, 20, what="worker gone")
+        # its liveliness token goes with its link: the mapper knows within a status period or two, not a timeout
+        assert time.monotonic() - t_kill < 3.0
         for k in range(8, 11):
             peer.send_and_settle(k)
         wait_for(peer.settled, 30, what="no job left out")
+        assert peer.counter("mapper", "work_jobs_reissued_worker_lost") == 1
+        assert peer.counter("mapper", "work_jobs_done_locally") >= 1
         offloaded = peer.counter("mapper", "keyframes_offloaded")
         done = peer.counter("mapper", "work_results_accepted") + peer.counter("mapper", "work_jobs_done_locally")
         assert done == offloaded, f"offloaded {offloaded}, done {done}\n{mapper.output}"
