@@ -218,6 +218,7 @@ class GraphWatch:
         self.deltas = 0
         self.status: dict[str, float] = {}
         self.status_pid: int | None = None
+        self.workers: dict[str, dict[str, float]] = {}  # worker id -> its latest Status counters
         self._subs = [session.declare_subscriber(keys.graph_delta, self._on_delta),
                       session.declare_subscriber(keys.all_status, self._on_status)]
 
@@ -239,10 +240,11 @@ class GraphWatch:
             st = decode(sample.payload.to_bytes(), Status)
         except DecodeError:
             return
-        if st.role != "mapper":
-            return
         with self._lock:
-            self.status = dict(st.counters)
+            if st.role == "mapper":
+                self.status = dict(st.counters)
+            elif st.role == "worker" and (st.node_id in self.workers or len(self.workers) < 64):
+                self.workers[st.node_id] = dict(st.counters)
 
     def take(self) -> tuple[list[float], int, dict[str, float]]:
         with self._lock:
@@ -250,9 +252,32 @@ class GraphWatch:
             n, self.deltas = self.deltas, 0
             return lat, n, dict(self.status)
 
+    def worker_status(self) -> dict[str, dict[str, float]]:
+        with self._lock:
+            return {k: dict(v) for k, v in self.workers.items()}
+
     def close(self) -> None:
         for s in self._subs:
             s.undeclare()
+
+
+def work_model(diff: Any, workers: dict[str, dict[str, float]]) -> dict[str, Any]:
+    """The scaling model's inputs, measured: a worker's seconds per job (its mean job time: fetch, geometry,
+    perception, encoding) and the bytes one job moves (job + result + source fetches); and what they predict
+    for N workers on N free cores or machines: ``N / job_s`` keyframes/s, capped by what the mapper's thread
+    can finish (``1 / update_s`` per keyframe it fuses)."""
+    done = diff("work_results_accepted", 0.0)
+    job_s = [w["job_s_mean"] for w in workers.values() if "job_s_mean" in w]
+    moved = diff("work_job_bytes", 0.0) + diff("work_result_bytes", 0.0) + diff("work_fetched_bytes", 0.0)
+    out: dict[str, Any] = {"worker_job_s": float(np.mean(job_s)) if job_s else None,
+                           "bytes_per_job": moved / done if done > 0 else None,
+                           "job_roundtrip_s": None}
+    rt = diff("work_roundtrip_s_sum", 0.0)
+    if done > 0 and rt > 0:
+        out["job_roundtrip_s"] = rt / done
+    if out["worker_job_s"]:
+        out["model_kf_per_s_per_worker"] = 1.0 / out["worker_job_s"]
+    return out
 
 
 def stop_load(players: list[CameraPlayer], watch: GraphWatch | None, session: Any, stack: Any) -> None:
@@ -401,6 +426,7 @@ def _run_stack(cams: list[CameraFrames], fps: float, phase_s: float, warmup_s: f
                 "queries": len(qlat), "query_failures": sum(c.failures for c in cons),
                 "mapper_cpu_cores": (cpu1 - cpu0) / dt,
                 "workers_cpu_cores": (wcpu1 - wcpu0) / dt,
+                **work_model(diff, watch.worker_status()),
                 "bench_cpu_cores": (self_cpu1 - self_cpu0) / dt,  # cameras + consumers share the machine
                 "mapper_rss_mb": mem["rss_mb"], "mapper_peak_rss_mb": mem["peak_rss_mb"],
                 "mapper_status": status1,

@@ -62,5 +62,7 @@ def test_system_bench_scaling_with_workers(tmp_path: Path) -> None:
     alone, helped = phases
     assert alone["mapper_status"].get("keyframes_offloaded", 0) == 0 and alone["workers_cpu_cores"] == 0
     assert helped["mapper_status"]["work_results_accepted"] > 0 and helped["workers_cpu_cores"] > 0
+    assert helped["worker_job_s"] > 0 and helped["bytes_per_job"] > 1000 and helped["job_roundtrip_s"] > 0
+    assert alone["worker_job_s"] is None and alone["bytes_per_job"] is None
     assert all(p["keyframes_done_per_s"] > 0 for p in phases)
     assert "| workers |" in (tmp_path / "system.md").read_text()

@@ -51,6 +51,7 @@ class Pending:
     views: list[View]
     target: int
     job: WorkJob
+    submitted: float = 0.0  # time.monotonic() when made a job
 
 
 @dataclass
@@ -103,6 +104,8 @@ class Offloader:
             return
         if len(self._inbox) == self._inbox.maxlen:
             self.counters.add("work_inbox_dropped")
+        if what == "result":
+            self.counters.add("work_result_bytes", len(sample.payload))
         self._inbox.append((what, sample.payload.to_bytes()))
 
     def _on_alive(self, sample: zenoh.Sample) -> None:
@@ -132,6 +135,7 @@ class Offloader:
                 self.counters.add("keyframe_store_misses")
                 return
             query.reply(str(query.key_expr), jpeg, encoding=zenoh.Encoding.IMAGE_JPEG)
+            self.counters.add("work_fetched_bytes", len(jpeg))
         except Exception as e:  # noqa: BLE001 - a callback must never raise into zenoh
             self.counters.add("keyframe_store_errors")
             log.debug("keyframe query %s failed: %s", query.key_expr, e)
@@ -171,7 +175,7 @@ class Offloader:
         with self._lock:
             fresh = view.seq >= self._newest.get(view.source_id, -1)  # else a deferred keyframe retried
             if self.dispatcher.submit(job.job_id, view.source_id, time.monotonic(), fresh):
-                self._pending[job.job_id] = Pending(view, views, target, job)
+                self._pending[job.job_id] = Pending(view, views, target, job, time.monotonic())
         return True
 
     # -- the mapper's thread ---------------------------------------------------------------------------
@@ -213,8 +217,10 @@ class Offloader:
         p.job = p.job.model_copy(update={"attempt": attempt})
         assert self._session is not None
         try:
-            self._session.put(self.keys.work_job(worker_id), encode(p.job), encoding=message_encoding(WorkJob))
+            payload = encode(p.job)
+            self._session.put(self.keys.work_job(worker_id), payload, encoding=message_encoding(WorkJob))
             self.counters.add("jobs_sent")
+            self.counters.add("work_job_bytes", len(payload))
         except Exception as e:  # noqa: BLE001 - the job times out and is re-issued
             log.warning("sending job %s to %s failed: %s", job_id, worker_id, e)
 
@@ -260,6 +266,7 @@ class Offloader:
         if outcome is not Outcome.ACCEPTED or p is None:
             return []
         del self._pending[res.job_id]
+        self.counters.add("work_roundtrip_s_sum", now - p.submitted)  # submitted -> result in, waits included
         return [Finished(p.view, products=products)]
 
     def _dropped(self) -> list[Finished]:
