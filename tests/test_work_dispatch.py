@@ -140,3 +140,13 @@ def test_orphans_without_live_workers_are_handed_back() -> None:
     assert d.worker_down("w", 2.0) == ["b#1"]
     assert d.orphans() == ["b#1"]
     assert d.counters["jobs_done_locally"] == 2
+
+
+def test_the_worker_table_is_bounded() -> None:
+    d = Dispatcher(DispatchConfig(max_workers=2))
+    for w in ("a", "b", "c"):
+        d.worker_up(w)
+    assert d.live_workers() == ["a", "b"] and d.counters["workers_refused"] == 1
+    d.worker_down("a", 0.0)
+    d.worker_up("c")
+    assert d.live_workers() == ["b", "c"]

@@ -65,6 +65,7 @@ class DispatchConfig:
     quarantine_after: int = 3
     max_in_flight: int = 2
     max_jobs: int = 16
+    max_workers: int = 256
 
 
 class Dispatcher:
@@ -82,9 +83,13 @@ class Dispatcher:
     # -- workers ------------------------------------------------------------------------------------
     def worker_up(self, worker_id: str) -> None:
         """A worker's liveliness token appeared (a new or restarted process: not quarantined)."""
-        if worker_id not in self.workers:
-            self.workers[worker_id] = Worker()
-            self.counters["workers_joined"] += 1
+        if worker_id in self.workers:
+            return
+        if len(self.workers) >= self.config.max_workers:  # made-up tokens must not grow the table without bound
+            self.counters["workers_refused"] += 1
+            return
+        self.workers[worker_id] = Worker()
+        self.counters["workers_joined"] += 1
 
     def worker_down(self, worker_id: str, now: float) -> list[str]:
         """A worker's liveliness token disappeared: its jobs go back to pending (returned)."""
