@@ -150,3 +150,18 @@ def test_the_worker_table_is_bounded() -> None:
     d.worker_down("a", 0.0)
     d.worker_up("c")
     assert d.live_workers() == ["b", "c"]
+
+
+def test_a_new_job_waiting_too_long_is_dropped_but_a_started_one_is_not() -> None:
+    d = Dispatcher(DispatchConfig(max_pending_s=2.0, max_in_flight=1, ack_timeout_s=1.0))
+    d.worker_up("w")
+    d.submit("a#1", "a", 0.0)
+    d.submit("b#1", "b", 0.5)
+    d.submit("c#1", "c", 0.6, fresh=False)  # an older keyframe retried
+    assert d.assign(0.6) == [("a#1", "w", 1)]
+    assert d.expire(1.7) == ["a#1"]  # no ack within 1 s: re-issued (pending again, started once)
+    assert d.expire(2.45) == [] and "b#1" in d.jobs  # b#1 waited 1.95 s: not yet
+    assert d.expire(2.6) == []
+    assert d.take_dropped() == [("b#1", "stale")]  # waited 2.1 s
+    assert d.expire(10.0) == [] and set(d.jobs) == {"a#1", "c#1"}  # started once / retried: kept
+    assert d.counters["jobs_dropped_stale"] == 1

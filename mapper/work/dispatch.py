@@ -11,7 +11,10 @@ worker whose results were rejected ``quarantine_after`` times is quarantined (no
 liveliness token goes and comes back (a restarted process).
 
 Backpressure: at most one pending job per source, the freshest (a newer keyframe of the source replaces it:
-dropped as ``superseded``), and at most ``max_jobs`` jobs in all (a new one beyond that: dropped as ``full``).
+dropped as ``superseded``), a new job that waited ``max_pending_s`` for a worker is dropped (``stale``: with
+more sources than the workers keep up with, latency stays bounded instead of every source's job queueing behind
+all the others'), and at most ``max_jobs`` jobs in all (a new one beyond that: dropped as ``full``). A job
+already started once (re-issued) and an older keyframe retried are never dropped for staleness.
 Every outcome is counted in :attr:`Dispatcher.counters`.
 """
 
@@ -66,6 +69,7 @@ class DispatchConfig:
     max_in_flight: int = 2
     max_jobs: int = 16
     max_workers: int = 256
+    max_pending_s: float = 2.0  # a new job waiting longer than this for a worker is dropped (0: never)
 
 
 class Dispatcher:
@@ -190,6 +194,11 @@ class Dispatcher:
         """Re-issue jobs whose ack or result is overdue (returned)."""
         c = self.config
         jobs = list(self.jobs.values())
+        if c.max_pending_s > 0:
+            for j in jobs:
+                if j.state is State.PENDING and j.fresh and j.attempts == 0 and now - j.submitted > c.max_pending_s:
+                    self._drop(j.job_id, "stale")
+            jobs = list(self.jobs.values())
         late_ack = [j.job_id for j in jobs if j.state is State.ASSIGNED and now - j.since > c.ack_timeout_s]
         late = [j.job_id for j in jobs if j.state is State.ACKED and now - j.since > c.result_timeout_s]
         return self._reissue(late_ack, now, "jobs_reissued_no_ack") + self._reissue(late, now, "jobs_reissued_late")
