@@ -218,6 +218,7 @@ class GraphWatch:
         self.deltas = 0
         self.status: dict[str, float] = {}
         self.status_pid: int | None = None
+        self.workers: dict[str, dict[str, float]] = {}  # worker id -> its latest Status counters
         self._subs = [session.declare_subscriber(keys.graph_delta, self._on_delta),
                       session.declare_subscriber(keys.all_status, self._on_status)]
 
@@ -239,10 +240,11 @@ class GraphWatch:
             st = decode(sample.payload.to_bytes(), Status)
         except DecodeError:
             return
-        if st.role != "mapper":
-            return
         with self._lock:
-            self.status = dict(st.counters)
+            if st.role == "mapper":
+                self.status = dict(st.counters)
+            elif st.role == "worker" and (st.node_id in self.workers or len(self.workers) < 64):
+                self.workers[st.node_id] = dict(st.counters)
 
     def take(self) -> tuple[list[float], int, dict[str, float]]:
         with self._lock:
@@ -250,9 +252,32 @@ class GraphWatch:
             n, self.deltas = self.deltas, 0
             return lat, n, dict(self.status)
 
+    def worker_status(self) -> dict[str, dict[str, float]]:
+        with self._lock:
+            return {k: dict(v) for k, v in self.workers.items()}
+
     def close(self) -> None:
         for s in self._subs:
             s.undeclare()
+
+
+def work_model(diff: Any, workers: dict[str, dict[str, float]]) -> dict[str, Any]:
+    """The scaling model's inputs, measured: a worker's seconds per job (its mean job time: fetch, geometry,
+    perception, encoding) and the bytes one job moves (job + result + source fetches); and what they predict
+    for N workers on N free cores or machines: ``N / job_s`` keyframes/s, capped by what the mapper's thread
+    can finish (``1 / update_s`` per keyframe it fuses)."""
+    done = diff("work_results_accepted", 0.0)
+    job_s = [w["job_s_mean"] for w in workers.values() if "job_s_mean" in w]
+    moved = diff("work_job_bytes", 0.0) + diff("work_result_bytes", 0.0) + diff("work_fetched_bytes", 0.0)
+    out: dict[str, Any] = {"worker_job_s": float(np.mean(job_s)) if job_s else None,
+                           "bytes_per_job": moved / done if done > 0 else None,
+                           "job_roundtrip_s": None}
+    rt = diff("work_roundtrip_s_sum", 0.0)
+    if done > 0 and rt > 0:
+        out["job_roundtrip_s"] = rt / done
+    if out["worker_job_s"]:
+        out["model_kf_per_s_per_worker"] = 1.0 / out["worker_job_s"]
+    return out
 
 
 def stop_load(players: list[CameraPlayer], watch: GraphWatch | None, session: Any, stack: Any) -> None:
@@ -266,43 +291,80 @@ def stop_load(players: list[CameraPlayer], watch: GraphWatch | None, session: An
     stack.stop()
 
 
-def _counter(status: dict[str, float], name: str) -> float:
-    return float(status.get(name, float("nan")))
+def _log(msg: str) -> None:
+    print(f"[bench system] {msg}", flush=True)
 
 
 def run(cameras: int, fps: float, phase_s: float, warmup_s: float, width: int, height: int,
         frames_per_camera: int, consumers: list[int], mapper_settings: dict[str, Any], out: Path,
-        family: str = "apartment", seed: int = 0, consumer_rate_hz: float = 10.0) -> dict[str, Any]:
-    """Run the benchmark and write ``system.json`` / ``system.md`` under ``out``."""
-    from deploy.up import LaunchFile, Stack
-    from protocol.session import ZenohSettings, open_session
-
-    def log(msg: str) -> None:
-        print(f"[bench system] {msg}", flush=True)
-
-    from deploy.demo import free_endpoint
-
-    endpoint = free_endpoint()
-    site = "benchsys"
-    keys = Keys(site)
+        family: str = "apartment", seed: int = 0, consumer_rate_hz: float = 10.0,
+        workers: list[int] | None = None) -> dict[str, Any]:
+    """Run the benchmark and write ``system.json`` / ``system.md`` under ``out``. With ``workers`` (counts of
+    ``argus worker`` processes, one fresh stack each, the same frames): the scaling curve, one row per count."""
     t_render = time.monotonic()
     geo = mapper_settings.get("geometry", {}).get("backend", "mvs")
     per = mapper_settings.get("perception", {})
     oracle = geo == "oracle" or "sim" in (per.get("segmenter"), per.get("embedder"))
     cams = render_cameras(cameras, frames_per_camera, width, height, family, seed, oracle=oracle)
-    log(f"rendered {cameras} x {frames_per_camera} frames at {width}x{height} in "
-        f"{time.monotonic() - t_render:.1f}s")
-    settings = {"site": site, "zenoh": {"mode": "client", "connect": [endpoint]}, **mapper_settings}
-    launch = LaunchFile.model_validate({
-        "site": site, "endpoint": endpoint, "stop_timeout_s": 10,
-        "process": [{"name": "router", "command": "router", "args": ["--listen", endpoint, "--site", site]},
-                    {"name": "mapper", "command": "mapper", "settings": settings}],
-    })
-    lines: list[str] = []
-    stack = Stack(launch, Path.cwd(), emit=lines.append)
+    _log(f"rendered {cameras} x {frames_per_camera} frames at {width}x{height} in "
+         f"{time.monotonic() - t_render:.1f}s")
     results: dict[str, Any] = {"cameras": cameras, "fps": fps, "width": width, "height": height,
                                "consumer_rate_hz": consumer_rate_hz,
                                "phase_s": phase_s, "mapper_settings": mapper_settings, "phases": []}
+    counts = workers or [0]
+    for n in counts:
+        phases = _run_stack(cams, fps, phase_s, warmup_s, consumers, mapper_settings, consumer_rate_hz, n)
+        results["phases"] += [{"workers": n, **ph} for ph in phases]
+    rows = [{k: v for k, v in ph.items() if k != "mapper_status"} for ph in results["phases"]]
+    if workers is None:
+        rows = [{k: v for k, v in r.items() if k != "workers"} for r in rows]
+    write_report(out, "system", results, rows,
+                 title=f"System: {cameras} simulated cameras at {fps:g} fps into one mapper "
+                       f"({width}x{height}, {mapper_settings}; consumers query at {consumer_rate_hz:g} Hz each"
+                       + (f"; argus worker processes: {counts}" if workers else "") + ")")
+    return results
+
+
+def _launch(endpoint: str, site: str, mapper_settings: dict[str, Any], n_workers: int,
+            torch_threads: int | None) -> Any:
+    """Router, mapper and ``n_workers`` ``argus worker`` processes (each with ``torch_threads``)."""
+    from deploy.up import LaunchFile
+
+    zenoh = {"mode": "client", "connect": [endpoint]}
+    settings = {"site": site, "zenoh": zenoh, **mapper_settings}
+    procs: list[dict[str, Any]] = [
+        {"name": "router", "command": "router", "args": ["--listen", endpoint, "--site", site]},
+        {"name": "mapper", "command": "mapper", "settings": settings}]
+    for i in range(n_workers):
+        ws: dict[str, Any] = {"id": f"w{i}", "site": site, "zenoh": zenoh}
+        if torch_threads is not None:
+            ws["torch_threads"] = torch_threads
+        procs.append({"name": f"worker{i}", "command": "worker", "node_id": f"w{i}", "settings": ws})
+    return LaunchFile.model_validate({"site": site, "endpoint": endpoint, "stop_timeout_s": 10, "process": procs})
+
+
+def _keyframes_done(diff: Any) -> float:
+    """Keyframes whose work finished: done in the mapper's thread, or sent out and back (or done by the mapper)."""
+    return (diff("keyframes") - diff("keyframes_offloaded", 0.0) + diff("work_results_accepted", 0.0)
+            + diff("work_jobs_done_locally", 0.0))
+
+
+def _run_stack(cams: list[CameraFrames], fps: float, phase_s: float, warmup_s: float, consumers: list[int],
+               mapper_settings: dict[str, Any], consumer_rate_hz: float, n_workers: int) -> list[dict[str, Any]]:
+    """One stack (router, mapper, ``n_workers`` workers) under the cameras' load: one phase per consumer count."""
+    from deploy.demo import free_endpoint
+    from deploy.up import Stack
+    from protocol.session import ZenohSettings, open_session
+
+    log = _log
+    endpoint = free_endpoint()
+    site = "benchsys"
+    keys = Keys(site)
+    launch = _launch(endpoint, site, mapper_settings, n_workers, mapper_settings.get("torch_threads"))
+    lines: list[str] = []
+    stack = Stack(launch, Path.cwd(), emit=lines.append)
+    cameras = len(cams)
+    phases: list[dict[str, Any]] = []
     players: list[CameraPlayer] = []
     session = None
     watch = None
@@ -312,12 +374,14 @@ def run(cameras: int, fps: float, phase_s: float, warmup_s: float, width: int, h
             raise RuntimeError("mapper did not come up:\n" + "\n".join(lines[-30:]))
         mapper_pid = next(c.pid for c in stack.children if c.spec.name == "mapper")
         assert mapper_pid is not None
+        worker_pids = [c.pid for c in stack.children if c.spec.command == "worker" and c.pid is not None]
         session = open_session(ZenohSettings(mode="client", connect=[endpoint]))
         watch = GraphWatch(session, keys)
         players = [CameraPlayer(session, keys, cam, fps) for cam in cams]
         for p in players:
             p.start()
-        log(f"{cameras} cameras at {fps:g} fps into the mapper (pid {mapper_pid}); warm-up {warmup_s:.0f}s")
+        log(f"{cameras} cameras at {fps:g} fps into the mapper (pid {mapper_pid}, {n_workers} workers); "
+            f"warm-up {warmup_s:.0f}s")
         time.sleep(warmup_s)
         for n_consumers in consumers:
             cons = [Consumer(endpoint, keys, consumer_rate_hz) for _ in range(n_consumers)]
@@ -326,18 +390,21 @@ def run(cameras: int, fps: float, phase_s: float, warmup_s: float, width: int, h
             watch.take()
             sent0 = sum(p.sent for p in players)
             cpu0, t0 = proc_cpu_s(mapper_pid), time.monotonic()
+            wcpu0 = sum(proc_cpu_s(pid) for pid in worker_pids)
             self_cpu0 = proc_cpu_s(os.getpid())
             status0 = watch.take()[2]
             time.sleep(phase_s)
             dt = time.monotonic() - t0
             cpu1, sent1 = proc_cpu_s(mapper_pid), sum(p.sent for p in players)
+            wcpu1 = sum(proc_cpu_s(pid) for pid in worker_pids)
             self_cpu1 = proc_cpu_s(os.getpid())
             lat, n_deltas, status1 = watch.take()
             for c in cons:
                 c.stop()
             qlat = [x for c in cons for x in c.latencies_ms]
-            def diff(name: str, s0: dict[str, float] = status0, s1: dict[str, float] = status1) -> float:
-                return _counter(s1, name) - _counter(s0, name)
+            def diff(name: str, default: float = float("nan"), s0: dict[str, float] = status0,
+                     s1: dict[str, float] = status1) -> float:
+                return float(s1.get(name, default)) - float(s0.get(name, default))
 
             received, processed, keyframes = diff("frames_in"), diff("frames_processed"), diff("keyframes")
             dropped = diff("frames_dropped")
@@ -348,6 +415,8 @@ def run(cameras: int, fps: float, phase_s: float, warmup_s: float, width: int, h
                 "received_fps": received / dt,
                 "processed_fps": processed / dt,
                 "keyframes_per_s": keyframes / dt,
+                "keyframes_done_per_s": _keyframes_done(diff) / dt,
+                "keyframes_dropped": diff("keyframes_dropped", 0.0),
                 "keyframes_deferred": diff("keyframes_deferred"),
                 "dropped": dropped,
                 "dropped_frac": dropped / max(received, 1.0),
@@ -356,22 +425,20 @@ def run(cameras: int, fps: float, phase_s: float, warmup_s: float, width: int, h
                 "query_p50_ms": _pct(qlat, 50), "query_p99_ms": _pct(qlat, 99),
                 "queries": len(qlat), "query_failures": sum(c.failures for c in cons),
                 "mapper_cpu_cores": (cpu1 - cpu0) / dt,
+                "workers_cpu_cores": (wcpu1 - wcpu0) / dt,
+                **work_model(diff, watch.worker_status()),
                 "bench_cpu_cores": (self_cpu1 - self_cpu0) / dt,  # cameras + consumers share the machine
                 "mapper_rss_mb": mem["rss_mb"], "mapper_peak_rss_mb": mem["peak_rss_mb"],
                 "mapper_status": status1,
             }
-            results["phases"].append(phase)
+            phases.append(phase)
             log(f"{n_consumers:2d} consumers: offered {phase['offered_fps']:.1f} fps, keyframes "
                 f"{phase['keyframes_per_s']:.2f}/s, delta p50 {phase['latency_p50_ms'] or float('nan'):.0f} ms, "
                 f"query p50 {phase['query_p50_ms'] or float('nan'):.1f} ms, cpu {phase['mapper_cpu_cores']:.2f}, "
                 f"peak {mem['peak_rss_mb']:.0f} MiB")
     finally:
         stop_load(players, watch, session, stack)
-    rows = [{k: v for k, v in ph.items() if k != "mapper_status"} for ph in results["phases"]]
-    write_report(out, "system", results, rows,
-                 title=f"System: {cameras} simulated cameras at {fps:g} fps into one mapper "
-                       f"({width}x{height}, {mapper_settings}; consumers query at {consumer_rate_hz:g} Hz each)")
-    return results
+    return phases
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -393,17 +460,25 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--geometry", default="mvs", help="mapper geometry backend")
     p.add_argument("--segmenter", default="classical",
                    help="mapper segmenter: classical, or sim (ORACLE: the cameras then also publish ground truth)")
+    p.add_argument("--workers", default=None,
+                   help="scaling curve: comma-separated counts of argus worker processes, one fresh stack each "
+                   "(e.g. 0,1,2); default: no worker column")
+    p.add_argument("--torch-threads", type=int, default=None,
+                   help="torch threads of the mapper and of each worker (1: one core each, for scaling curves)")
     p.add_argument("--quick", action="store_true", help="short run (1 camera, 10 s phases)")
     p.add_argument("--out", type=Path, default=Path("bench_out/system"))
     a = p.parse_args(argv)
     if a.quick:
         a.cameras, a.phase_s, a.warmup_s, a.frames_per_camera = min(a.cameras, 2), 10.0, 8.0, 8
     consumers = [int(c) for c in a.consumers.split(",") if c.strip()]
-    mapper_settings = {"geometry": {"backend": a.geometry},
-                       "perception": {"segmenter": a.segmenter, "embedder": a.segmenter}}
+    mapper_settings: dict[str, Any] = {"geometry": {"backend": a.geometry},
+                                       "perception": {"segmenter": a.segmenter, "embedder": a.segmenter}}
+    if a.torch_threads is not None:
+        mapper_settings["torch_threads"] = a.torch_threads
+    workers = None if a.workers is None else [int(w) for w in a.workers.split(",") if w.strip()]
     try:
         run(a.cameras, a.fps, a.phase_s, a.warmup_s, a.width, a.height, a.frames_per_camera, consumers,
-            mapper_settings, a.out, consumer_rate_hz=a.consumer_rate)
+            mapper_settings, a.out, consumer_rate_hz=a.consumer_rate, workers=workers)
     except Exception as e:  # noqa: BLE001
         print(f"argus bench system: {type(e).__name__}: {e}", file=sys.stderr)
         return 1

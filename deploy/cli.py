@@ -17,6 +17,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "edge-camera": ("edge_camera.cli", "stream one fixed camera's JPEG frames"),
     "robot-agent": ("robot_agent.cli", "run one robot: frames with odometry, goals, state"),
     "mapper": ("mapper.cli", "build and serve the 3D scene graph from all frames"),
+    "worker": ("mapper.work.cli", "do the mapper's heavy per-keyframe work (geometry, perception) on any machine"),
     "planner": ("planner.cli", "send each robot its next-best view"),
     "up": ("deploy.up", "start a whole stack from a launch file"),
     "demo": ("deploy.demo", "run the full demo on the embedded simulated world"),

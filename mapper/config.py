@@ -14,6 +14,7 @@ from mapper.geometry.registry import RECONSTRUCTORS
 from mapper.intake import InputLimits
 from mapper.perception.registry import EMBEDDERS, SEGMENTERS
 from mapper.relations import RelationConfig
+from mapper.work.config import OffloadConfig
 from protocol.keys import SiteName
 from protocol.plugins import FactoryRegistry, FreeOptions
 from protocol.session import ZenohSettings, default_site
@@ -320,3 +321,7 @@ class MapperConfig(MapperCoreConfig):
     status_period_s: float = Field(default=1.0, gt=0.0, description="status publishing period")
     rerun: RerunConfig = Field(default_factory=RerunConfig, description="Rerun output")
     log_level: Literal["DEBUG", "INFO", "WARNING", "ERROR"] = Field(default="INFO", description="log level")
+    workers: OffloadConfig = Field(
+        default_factory=OffloadConfig,
+        description="keyframe jobs for argus worker processes (used only while one is alive; not with ORACLE backends)",
+    )

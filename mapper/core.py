@@ -27,7 +27,7 @@ from mapper.association import KeyframeView
 from mapper.config import MapperCoreConfig
 from mapper.consistency import downsample, verify_depth
 from mapper.fusion import LiftStats, Object3D, ObjectMap, UpdateResult, lift_detections, outside_fraction
-from mapper.geometry.contract import Reconstructor, View, anchor_pose, compose
+from mapper.geometry.contract import Reconstructor, View
 from mapper.geometry.features import Features, LruCache, extract_features
 from mapper.geometry.posecheck import rotation_between
 from mapper.geometry.singleview import SeenView, depth_to_world, layout_depth, place_objects
@@ -37,6 +37,7 @@ from mapper.keyframes import KeyframeSelector, KeyframeStore, intrinsics_of
 from mapper.perception.base import Detection, Embedder, Mask2D, Segmenter, ViewGeometry
 from mapper.pointmap import VoxelMap
 from mapper.relations import compute_edges, refine_with_points
+from mapper.work.compute import KeyframeProducts, compute_keyframe
 from protocol.messages import GraphDelta, GraphNode, GraphSnapshot, PointMap
 from protocol.query import GraphQuery
 from protocol.ratelog import RateLimitedLog
@@ -106,6 +107,10 @@ class MapperCore:
         # Each calibrated camera's first keyframe's features: a later one that turned away flags the camera.
         self._pose_refs = LruCache(cfg.keyframes.max_keyframes)  # source id -> Features
         self._failed_key: tuple[str, int] | None = None  # the last view whose processing raised
+        # Given the keyframe, its window and the target's index there, sends its heavy work elsewhere (a worker)
+        # and returns True; :meth:`complete` then finishes it. None or False: the work is done here.
+        self.offload: Callable[[View, list[View], int], bool] | None = None
+        self._offloaded_key: tuple[str, int] | None = None  # the last view whose work was offloaded
         self._bad_input = RateLimitedLog(log)
 
     def _count(self, name: str, value: float = 1.0) -> None:
@@ -130,7 +135,10 @@ class MapperCore:
             self._count("views_not_keyframe")
             return None
         self._count("keyframes")
-        results = [r for r in [self._timed(view)] if r is not None]
+        return self._finish(view, [r for r in [self._timed(view)] if r is not None])
+
+    def _finish(self, view: View, results: list[UpdateResult]) -> GraphDelta | None:
+        """Retry a deferred keyframe when ``view``'s processing changed something, and commit it all."""
         if results and self._deferred:
             # Retry the oldest deferred keyframe that now has neighbours (one per call bounds the time).
             for _ in range(len(self._deferred)):
@@ -148,6 +156,26 @@ class MapperCore:
         removed = set().union(*(r.removed for r in results))
         changed = set().union(*(r.changed for r in results)) - removed
         return self._commit(changed, removed, view.stamp_ns or time.time_ns(), {view.source_id: view.seq})
+
+    def complete(self, view: View, products: KeyframeProducts | None) -> GraphDelta | None:
+        """Finish a keyframe whose heavy work was offloaded (:attr:`offload`) with its ``products`` (None: its
+        reconstruction could not be placed in the world), as :meth:`ingest` would have; the graph delta, if any."""
+        t0 = time.perf_counter()
+        if self._offloaded_key == view.key:
+            self._offloaded_key = None  # finished: mark_processed may now mark it
+        res: UpdateResult | None = None
+        if products is None:
+            self._count("views_unposed_skipped")
+        else:
+            try:
+                res = self.apply_products(view, products)
+            except Exception as e:  # noqa: BLE001 - one bad keyframe must never stop the mapper
+                self._count("keyframe_errors")
+                log.warning("keyframe %s#%d failed: %s: %s", view.source_id, view.seq, type(e).__name__, e)
+        if res is not None:
+            self.update_times_s.append(time.perf_counter() - t0)
+            del self.update_times_s[:-256]
+        return self._finish(view, [res] if res is not None else [])
 
     def _timed(self, view: View, check_pose: bool = True) -> UpdateResult | None:
         t0 = time.perf_counter()
@@ -169,7 +197,7 @@ class MapperCore:
         """A frames-only delta saying ``view`` was processed, when it changed nothing (and is newer than what the
         graph already covers): a planner waiting for a robot's arrival frame needs to know. A view whose
         processing failed is not marked (the graph stays exactly as it was)."""
-        if self._failed_key == view.key:
+        if self._failed_key == view.key or self._offloaded_key == view.key:
             return None
         self._reserve()
         with self.lock:
@@ -228,8 +256,6 @@ class MapperCore:
         return False
 
     def _process(self, view: View, check_pose: bool = True) -> UpdateResult | None:
-        times: dict[str, float] = {}
-        t = time.perf_counter()
         if check_pose and self._moved(view):
             return None
         views, target = self._window(view)
@@ -242,23 +268,26 @@ class MapperCore:
             if sv.enabled and view.T_world_cam is not None and (view.pose_trusted or sv.untrusted_poses):
                 return self._single_view(view)
             return None
-        recon = self.reconstructor.reconstruct(views, targets=[target])
-        try:
-            T_world_first = anchor_pose(recon, views)
-        except ValueError:
+        if self.offload is not None and self.offload(view, views, target):
+            self._count("keyframes_offloaded")
+            self._offloaded_key = view.key
+            return None
+        products = compute_keyframe(self.reconstructor, self.segmenter, self.embedder, self.config, views, target)
+        if products is None:
             self._count("views_unposed_skipped")
             return None
-        geo = compose(recon, T_world_first)
-        times["geometry"] = time.perf_counter() - t
-        vg = ViewGeometry(
-            points_world=geo.points_world[target], depth_m=geo.depth_m[target], confidence=geo.confidence[target]
-        )
-        T_world_cam = geo.T_world_cam[target]
+        return self.apply_products(view, products)
+
+    def apply_products(self, view: View, products: KeyframeProducts) -> UpdateResult:
+        """The mapper's part of a keyframe once its heavy work is done (here or by a worker): typical depth,
+        the depth check, the keyframe store, then fusion."""
+        times = dict(products.timings_s)
+        vg, T_world_cam = products.geometry, products.T_world_cam
         depth_m = typical_depth(vg.depth_m, vg.confidence)
         if depth_m is not None:
             self.selector.observe_depth(view.source_id, depth_m)
         dc = self.config.depth_check
-        K_out = geo.intrinsics[target].K()
+        K_out = products.K
         if dc.enabled and self.config.geometry.backend != "oracle" and depth_m is not None:
             # True depth needs no cross-check; estimated depth must agree with other keyframes before fusion.
             others = self.keyframes.depth_maps_overlapping(view, T_world_cam, depth_m, dc.max_views)
@@ -270,7 +299,7 @@ class MapperCore:
         # Only the depth check reads the stored maps: do not pay for them when it is off.
         depth_map = downsample(vg.depth_m, vg.confidence, K_out, T_world_cam, dc.map_width, 0.5) if dc.enabled else None
         self.keyframes.add(view, T_world_cam, depth_m, depth_map)
-        return self._fuse(view, vg, T_world_cam, times)
+        return self._fuse(view, vg, T_world_cam, times, dets=products.detections)
 
     def _single_view(self, view: View) -> UpdateResult | None:
         """Objects of a posed view with no stereo partner, placed from the floor plane (coarse, low confidence;
@@ -294,8 +323,9 @@ class MapperCore:
                           floor_masks=floor_masks)
 
     def _fuse(self, view: View, vg: ViewGeometry, T_world_cam: np.ndarray, times: dict[str, float],
-              masks: list[Mask2D] | None = None, floor_masks: list[np.ndarray] | None = None) -> UpdateResult:
-        """2D perception (unless ``masks`` are given), lifting and fusion of one keyframe's geometry.
+              masks: list[Mask2D] | None = None, floor_masks: list[np.ndarray] | None = None,
+              dets: list[Detection] | None = None) -> UpdateResult:
+        """2D perception (unless ``dets`` or ``masks`` are given), lifting and fusion of one keyframe's geometry.
         ``floor_masks`` (the masks it placed on the floor) marks a single-view keyframe."""
         single_view = floor_masks is not None
         outside = outside_fraction(vg.points_world, vg.confidence, vg.depth_m, self.config.fusion)
@@ -306,11 +336,12 @@ class MapperCore:
             log.debug("keyframe %s#%d: %.0f %% of its depth outside the room slab, not fused",
                       view.source_id, view.seq, 100 * outside)
             return UpdateResult()
-        t = time.perf_counter()
-        if masks is None:
-            masks = self.segmenter.segment(view, vg)
-        dets = self.embedder.embed(view, masks)
-        times["perception"] = time.perf_counter() - t
+        if dets is None:
+            t = time.perf_counter()
+            if masks is None:
+                masks = self.segmenter.segment(view, vg)
+            dets = self.embedder.embed(view, masks)
+            times["perception"] = time.perf_counter() - t
         t = time.perf_counter()
         objs, lift = lift_detections(dets, vg.points_world, vg.confidence, vg.depth_m, self.config.fusion)
         self._count("detections", len(dets))

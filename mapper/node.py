@@ -38,8 +38,11 @@ import numpy as np
 from mapper.config import MapperConfig
 from mapper.core import MapperCore
 from mapper.geometry.contract import OracleData, View
+from mapper.geometry.features import LruCache
 from mapper.intake import IMAGE_REASONS, frame_problem
 from mapper.keeper import StateKeeper
+from mapper.work.compute import compute_keyframe, runs_perception
+from mapper.work.offload import Finished, Offloader
 from protocol.codec import DecodeError, encode
 from protocol.jpeg import JpegError, decode_jpeg
 from protocol.keys import Keys
@@ -147,6 +150,11 @@ class MapperNode:
         self.keeper = StateKeeper(config.state_dir, config.save_period_s, self.counters)
         log.info("mapper %s: %s", config.id, self.keeper.start(self.core))
         self.core.reserve = lambda version, next_id: self.keeper.reserve(version, next_id, self.core)
+        self.offloader: Offloader | None = None
+        self._robots = LruCache(config.max_sources)  # source ids of robot frames (their keyframes are marked)
+        if config.workers.enabled and not self.needs_oracle:  # jobs carry no ORACLE samples
+            self.offloader = Offloader(config.workers, config, self.keys, self.counters, runs_perception(config))
+            self.core.offload = self.offloader.offload
 
     # -- persistence -----------------------------------------------------------------------------
     def save(self, force: bool = False) -> None:
@@ -411,6 +419,8 @@ class MapperNode:
         out["graph_version"] = self.core.version
         out["nodes"] = len(self.core.store.nodes)
         out["edges"] = len(self.core.store.edges)
+        if self.offloader is not None:
+            out.update(self.offloader.extra_counters())
         times = self.core.update_times_s
         if times:
             out["update_s_mean"] = float(np.mean(times))
@@ -438,6 +448,8 @@ class MapperNode:
                 subs.append(session.declare_subscriber(self.keys.all_oracle, self._on_oracle))
             queryable = session.declare_queryable(self.keys.graph_all, self._on_query)
             json_queryable = session.declare_queryable(self.keys.graph_json_all, self._on_json_query)
+            if self.offloader is not None:
+                self.offloader.open(session)
             reporter = self._reporter = StatusReporter(
                 session, self.keys.status(ROLE, cfg.id), ROLE, cfg.id, self.counters, cfg.status_period_s,
                 extra=self._extra_counters,
@@ -452,9 +464,13 @@ class MapperNode:
                 with reporter:
                     self._publish_periodic(pubs, force=True)
                     while not stop.is_set():
-                        self._step(session, pubs, timeout_s=0.2)
+                        # Results of workers arrive in between frames: poll them often while jobs are out.
+                        busy = self.offloader is not None and self.offloader.busy()
+                        self._step(session, pubs, timeout_s=0.02 if busy else 0.2)
             finally:
                 self.keeper.close(self.core)
+                if self.offloader is not None:
+                    self.offloader.close()
                 queryable.undeclare()
                 json_queryable.undeclare()
                 for s in subs:
@@ -476,21 +492,60 @@ class MapperNode:
                 self._release(frame)
             if delta is not None:
                 self._publish_delta(session, pubs, delta)
+        if self.offloader is not None:
+            self._finish_jobs(session, pubs, self.offloader)
         self._publish_periodic(pubs)
         self.bad_input.flush()
         self.save()
+
+    def _finish_jobs(self, session: zenoh.Session, pubs: dict[str, Any], offloader: Offloader) -> None:
+        """Keyframes back from workers (or left to the mapper) into the graph, then jobs out."""
+        todo = offloader.step()
+        while True:
+            for done in todo:
+                delta = self._finish(done)
+                if delta is not None:
+                    self._publish_delta(session, pubs, delta)
+            todo = offloader.send()  # given-up jobs come back here: done now
+            if not todo:
+                break
+        # Only now: a keyframe finished above may be a source of another still to finish (its JPEG is kept).
+        offloader.prune(self.core.keyframes.views())
 
     def _process(self, frame: Frame, rgb: np.ndarray, oracle: OracleFrame | None) -> GraphDelta | None:
         view = self._to_view(frame, rgb, oracle)
         if view is None:
             return None
         self.counters.add("frames_processed")
+        if frame.header.source_kind == "robot":
+            self._robots.put(view.source_id, True)
+        if self.offloader is not None:
+            self.offloader.remember(view.key, frame.jpeg)  # a keyframe's JPEG answers workers' fetches
         delta = self.core.ingest(view)
+        if self.offloader is not None:
+            self.offloader.prune(self.core.keyframes.views())
+        return self._after(view, delta)
+
+    def _after(self, view: View, delta: GraphDelta | None) -> GraphDelta | None:
         if self.core.last is not None and self.core.last.view is view:
             self._log_rerun()
-        if delta is None and frame.header.source_kind == "robot":
+        if delta is None and self._robots.get(view.source_id) is not None:
             delta = self.core.mark_processed(view)  # a planner may be waiting for this frame
         return delta
+
+    def _finish(self, done: Finished) -> GraphDelta | None:
+        """Finish a keyframe whose work a worker did, or that the mapper must now do itself."""
+        products = done.products
+        if done.local is not None:
+            p, core = done.local, self.core
+            try:
+                products = compute_keyframe(core.reconstructor, core.segmenter, core.embedder, core.config, p.views,
+                                            p.target)
+            except Exception as e:  # noqa: BLE001 - one bad keyframe must never stop the mapper
+                self.counters.add("keyframe_errors")
+                log.warning("keyframe %s#%d failed: %s: %s", p.view.source_id, p.view.seq, type(e).__name__, e)
+                return None
+        return self._after(done.view, self.core.complete(done.view, products))
 
     # -- Rerun -----------------------------------------------------------------------------------------
     def _open_rerun(self) -> None:

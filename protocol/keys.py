@@ -18,6 +18,10 @@ Layout (``prefix`` and ``site`` configurable)::
     <prefix>/<site>/map/points                     PointMap
     <prefix>/<site>/alive/<role>/<id>              liveliness tokens
     <prefix>/<site>/status/<role>/<id>             Status
+    <prefix>/<site>/work/job/<worker_id>           WorkJob (mapper -> worker: a keyframe job)
+    <prefix>/<site>/work/ack/<worker_id>           WorkAck (worker -> mapper: job taken)
+    <prefix>/<site>/work/result/<worker_id>        WorkResult (worker -> mapper: the keyframe's products)
+    <prefix>/<site>/work/keyframe/<source_id>/<seq>   query: a keyframe's JPEG (the mapper's keyframe store)
 """
 
 from __future__ import annotations
@@ -187,6 +191,50 @@ class Keys:
     @property
     def all_status(self) -> str:
         return f"{self.root}/status/**"
+
+    # --- workers (argus worker) --------------------------------------------------------------
+    def work_job(self, worker_id: str) -> str:
+        """Keyframe jobs for one worker (the mapper puts, the worker subscribes)."""
+        return f"{self.root}/work/job/{validate_id(worker_id, 'worker id')}"
+
+    def work_ack(self, worker_id: str) -> str:
+        return f"{self.root}/work/ack/{validate_id(worker_id, 'worker id')}"
+
+    def work_result(self, worker_id: str) -> str:
+        return f"{self.root}/work/result/{validate_id(worker_id, 'worker id')}"
+
+    @property
+    def all_work_acks(self) -> str:
+        return f"{self.root}/work/ack/*"
+
+    @property
+    def all_work_results(self) -> str:
+        return f"{self.root}/work/result/*"
+
+    def work_keyframe(self, source_id: str, seq: int) -> str:
+        """Query target: one keyframe's JPEG from the mapper's keyframe store."""
+        if not isinstance(seq, int) or seq < 0:
+            raise ValueError(f"seq must be a non-negative integer, got {seq!r}")
+        return f"{self.root}/work/keyframe/{validate_id(source_id, 'source id')}/{seq}"
+
+    @property
+    def all_work_keyframes(self) -> str:
+        """The mapper's keyframe-store queryable."""
+        return f"{self.root}/work/keyframe/*/*"
+
+    def parse_work_keyframe(self, key: str) -> tuple[str, int]:
+        """``(source_id, seq)`` of a ``work/keyframe/<source_id>/<seq>`` key."""
+        parts = self._rest(key)
+        if len(parts) != 4 or parts[:2] != ["work", "keyframe"] or not parts[3].isdigit():
+            raise ValueError(f"{key!r} is not a work keyframe key")
+        return validate_id(parts[2]), int(parts[3])
+
+    def parse_work(self, key: str) -> tuple[str, str]:
+        """``(topic, worker_id)`` of a ``work/{job,ack,result}/<worker_id>`` key."""
+        parts = self._rest(key)
+        if len(parts) != 3 or parts[0] != "work" or parts[1] not in ("job", "ack", "result"):
+            raise ValueError(f"{key!r} is not a work key")
+        return parts[1], validate_id(parts[2])
 
     # --- parsers --------------------------------------------------------------------------
     def _rest(self, key: str) -> list[str]:

@@ -473,6 +473,100 @@ class GoalStatus(Message):
     suppressed: int = Field(default=0, ge=0, description="refusals not published (rate limit) since the last status")
 
 
+class WorkFrame(Message):
+    """One view of a keyframe job (mapper -> worker): everything of the frame but its pixels.
+
+    The job's target travels with its JPEG; a source keyframe's JPEG is fetched by the worker from the
+    mapper's keyframe store (``work/keyframe/<source_id>/<seq>``), identified by ``(source_id, seq)``.
+    """
+
+    KIND: ClassVar[str] = "work_frame"
+    source_id: str = Field(min_length=1, max_length=128, description="camera or robot id")
+    seq: int = Field(ge=0, description="the frame's sequence number within its source")
+    stamp_ns: int = Field(default=0, ge=0, description="capture time, ns since the epoch")
+    width: int = Field(gt=0, le=65535, description="image width, pixels")
+    height: int = Field(gt=0, le=65535, description="image height, pixels")
+    intrinsics: Intrinsics | None = Field(default=None, description="null: an uncalibrated camera")
+    T_world_cam: Mat4 | None = Field(
+        default=None, description="the pose the mapper holds for this view (prior or registered); null: unknown"
+    )
+    pose_trusted: bool = Field(default=False, description="a surveyed calibration reconstruction must not move")
+
+
+class WorkJob(Message):
+    """A keyframe job: the mapper asks a worker (``argus worker``) for one keyframe's heavy products.
+
+    Put on ``work/job/<worker_id>``; the worker answers ``work_ack`` at once and ``work_result`` when done.
+    Results are idempotent by ``job_id`` (the keyframe id): the first valid one wins.
+    """
+
+    KIND: ClassVar[str] = "work_job"
+    job_id: str = Field(min_length=1, max_length=300, description="the keyframe id: <source_id>#<seq>")
+    attempt: int = Field(ge=1, description="1 for the first issue, +1 for each re-issue")
+    window: list[WorkFrame] = Field(min_length=1, max_length=64, description="the views reconstructed together")
+    target_index: int = Field(ge=0, description="the keyframe's position in window")
+    jpeg: bytes = Field(description="the keyframe's JPEG bytes (as the camera sent them)")
+    perception: bool = Field(description="also run 2D perception (segmenter and embedder) on the keyframe")
+    core_config: dict[str, Any] = Field(
+        description="the mapper's geometry, perception and fusion settings (a worker runs exactly these)"
+    )
+    config_digest: str = Field(max_length=128, description="digest of core_config (workers cache backends by it)")
+
+    @model_validator(mode="after")
+    def _target_in_window(self) -> WorkJob:
+        if self.target_index >= len(self.window):
+            raise ValueError(f"target_index {self.target_index} is outside the window of {len(self.window)}")
+        return self
+
+
+class WorkAck(Message):
+    """A worker took a job (``work/ack/<worker_id>``)."""
+
+    KIND: ClassVar[str] = "work_ack"
+    job_id: str = Field(min_length=1, max_length=300, description="the job taken")
+    attempt: int = Field(ge=1, description="the attempt taken")
+    worker_id: str = Field(min_length=1, max_length=128, description="the worker")
+
+
+class WorkDetection(Message):
+    """One labelled 2D detection of a keyframe result."""
+
+    KIND: ClassVar[str] = "work_detection"
+    mask_png: bytes = Field(description="8-bit PNG at the image's size: nonzero = inside the mask")
+    label: str = Field(max_length=256, description="class label")
+    confidence: float = Field(description="label confidence in [0, 1]")
+    descriptor: NDArray = Field(description="unit descriptor, 1-D float32 (float64 when the embedder makes those)")
+    alternatives: list[tuple[str, float]] = Field(default_factory=list, description="other (label, score)")
+    instance_key: int = Field(default=0, description="backend-specific instance id (logs)")
+
+
+class WorkResult(Message):
+    """A keyframe job's products (``work/result/<worker_id>``): depth, confidence, refined pose, detections.
+
+    ``ok`` false: the worker could not do the job (``error`` says why; the mapper re-issues it).
+    ``anchored`` false: the reconstruction could not place the keyframe in the world (a valid answer).
+    """
+
+    KIND: ClassVar[str] = "work_result"
+    job_id: str = Field(min_length=1, max_length=300, description="the job answered")
+    attempt: int = Field(ge=1, description="the attempt answered")
+    worker_id: str = Field(min_length=1, max_length=128, description="the worker")
+    ok: bool = Field(description="the job was done")
+    error: str | None = Field(default=None, max_length=2000, description="why not, when ok is false")
+    anchored: bool = Field(default=True, description="the reconstruction placed the keyframe in the world")
+    T_world_cam: Mat4 | None = Field(default=None, description="refined pose of the keyframe")
+    intrinsics: Intrinsics | None = Field(default=None, description="intrinsics at the depth map's resolution")
+    depth_png: bytes | None = Field(
+        default=None, description="16-bit PNG of z-depth in units of depth_unit_m (0 = none)"
+    )
+    depth_unit_m: float = Field(default=0.001, gt=0.0, description="metres per depth PNG unit")
+    confidence_png: bytes | None = Field(default=None, description="16-bit PNG of depth confidence x 65535")
+    detections: list[WorkDetection] | None = Field(
+        default=None, description="2D detections; null when perception was not asked for or skipped"
+    )
+    timings_s: dict[str, float] = Field(default_factory=dict, description="seconds per stage on the worker")
+
+
 class PlainGoal(BaseModel):
     """A goal as a plain JSON object or plain msgpack map (no envelope), for clients without Argus.
 
@@ -509,4 +603,9 @@ ALL_MESSAGES: tuple[type[Message], ...] = (
     Status,
     OracleFrame,
     GoalStatus,
+    WorkFrame,
+    WorkJob,
+    WorkAck,
+    WorkDetection,
+    WorkResult,
 )

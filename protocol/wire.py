@@ -178,9 +178,13 @@ def keys_block() -> str:
         (k.status("ROLE", "ID"), "put + query",
          "`status` (at start, then about once a second; a query gets the newest one)"),
         (k.alive("ROLE", "ID"), "liveliness token", "present while the process runs"),
+        (k.work_job("WORKER"), "put (mapper)", "`work_job`: a keyframe job for one `argus worker`"),
+        (k.work_ack("WORKER"), "put (worker)", "`work_ack`: the worker took a job"),
+        (k.work_result("WORKER"), "put (worker)", "`work_result`: a job's depth, confidence, pose, detections"),
+        (k.work_keyframe("SOURCE", 0), "query (mapper answers)", "a stored keyframe's JPEG bytes (`image/jpeg`)"),
     ]
     subst = {"SITE": "<site>", "CAM": "<camera_id>", "ROBOT": "<robot_id>", "NODE": "<node_id>", "ROLE": "<role>",
-             "ID": "<id>"}
+             "ID": "<id>", "WORKER": "<worker_id>", "SOURCE": "<source_id>", "0": "<seq>"}
     pattern = re.compile(r"(?<=/)(" + "|".join(subst) + r")(?=/|$)")
     lines = ["| key | how | payload |", "| --- | --- | --- |"]
     for key, how, what in rows:

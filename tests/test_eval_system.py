@@ -48,3 +48,21 @@ def test_system_bench_quick(tmp_path: Path) -> None:
     assert phases[1]["queries"] > 0 and phases[1]["query_p50_ms"] is not None
     assert any(p["latency_p50_ms"] is not None for p in phases)
     assert "| consumers |" in (tmp_path / "system.md").read_text()
+
+
+@pytest.mark.slow
+def test_system_bench_scaling_with_workers(tmp_path: Path) -> None:
+    from bench.system import main
+
+    assert main(["--quick", "--cameras", "1", "--consumers", "0", "--workers", "0,1", "--width", "160", "--height",
+                 "120", "--torch-threads", "1", "--out", str(tmp_path)]) == 0
+    res = json.loads((tmp_path / "system.json").read_text())
+    phases = res["phases"]
+    assert [p["workers"] for p in phases] == [0, 1]
+    alone, helped = phases
+    assert alone["mapper_status"].get("keyframes_offloaded", 0) == 0 and alone["workers_cpu_cores"] == 0
+    assert helped["mapper_status"]["work_results_accepted"] > 0 and helped["workers_cpu_cores"] > 0
+    assert helped["worker_job_s"] > 0 and helped["bytes_per_job"] > 1000 and helped["job_roundtrip_s"] > 0
+    assert alone["worker_job_s"] is None and alone["bytes_per_job"] is None
+    assert all(p["keyframes_done_per_s"] > 0 for p in phases)
+    assert "| workers |" in (tmp_path / "system.md").read_text()

@@ -28,6 +28,11 @@ from protocol.messages import (
     Status,
     Viewpoint,
     ViewpointSet,
+    WorkAck,
+    WorkDetection,
+    WorkFrame,
+    WorkJob,
+    WorkResult,
     rows,
 )
 from protocol.messages import vec3 as as_vec3
@@ -70,6 +75,20 @@ nodes = st.builds(
 edges = st.builds(GraphEdge, subject_id=ids, object_id=ids,
                   predicate=st.sampled_from(["on_top_of", "under", "over", "inside", "next_to"]))
 
+work_frames = st.builds(WorkFrame, source_id=ids, seq=st.integers(0, 2**40), stamp_ns=stamps,
+                        width=st.integers(1, 4096), height=st.integers(1, 4096),
+                        intrinsics=st.one_of(st.none(), intrinsics), T_world_cam=st.one_of(st.none(), poses()),
+                        pose_trusted=st.booleans())
+work_dets = st.builds(WorkDetection, mask_png=st.binary(max_size=64), label=st.text(max_size=10),
+                      confidence=st.floats(0, 1), descriptor=arrays(cols=None),
+                      alternatives=st.lists(st.tuples(st.text(max_size=5), finite), max_size=2),
+                      instance_key=st.integers(0, 10**6))
+work_jobs = st.lists(work_frames, min_size=1, max_size=4).flatmap(lambda w: st.builds(
+    WorkJob, job_id=ids, attempt=st.integers(1, 9), window=st.just(w), target_index=st.integers(0, len(w) - 1),
+    jpeg=st.binary(max_size=64), perception=st.booleans(),
+    core_config=st.dictionaries(ids, st.one_of(finite, st.text(max_size=5)), max_size=3),
+    config_digest=st.text(max_size=32)))
+
 STRATEGIES = {
     Intrinsics: intrinsics,
     FrameHeader: st.builds(FrameHeader, source_id=ids, source_kind=st.sampled_from(["fixed", "robot"]),
@@ -109,6 +128,17 @@ STRATEGIES = {
     GoalStatus: st.builds(GoalStatus, robot_id=ids, stamp_ns=stamps, goal_id=st.one_of(st.none(), ids),
                           accepted=st.booleans(), reason=st.text(max_size=40), received=st.integers(0, 10**6),
                           suppressed=st.integers(0, 10**6)),
+    WorkFrame: work_frames,
+    WorkJob: work_jobs,
+    WorkAck: st.builds(WorkAck, job_id=ids, attempt=st.integers(1, 9), worker_id=ids),
+    WorkDetection: work_dets,
+    WorkResult: st.builds(WorkResult, job_id=ids, attempt=st.integers(1, 9), worker_id=ids, ok=st.booleans(),
+                          error=st.one_of(st.none(), st.text(max_size=20)), anchored=st.booleans(),
+                          T_world_cam=st.one_of(st.none(), poses()), intrinsics=st.one_of(st.none(), intrinsics),
+                          depth_png=st.one_of(st.none(), st.binary(max_size=64)), depth_unit_m=pos,
+                          confidence_png=st.one_of(st.none(), st.binary(max_size=64)),
+                          detections=st.one_of(st.none(), st.lists(work_dets, max_size=2)),
+                          timings_s=st.dictionaries(ids, finite, max_size=3)),
 }
 
 

@@ -1,0 +1,72 @@
+"""The heavy per-keyframe work, the same wherever it runs (the mapper's own thread or an ``argus worker``).
+
+``compute_keyframe`` reconstructs a window of views (the keyframe and its chosen source keyframes), places
+the keyframe in the world and, unless told not to, runs 2D perception on it. It has no state: what it
+returns depends only on its inputs and the backends, so a worker's answer is the mapper's own answer.
+Everything after it (typical depth, the depth check, the keyframe store, fusion, edges) reads or writes
+the mapper's state and stays in the mapper (:meth:`mapper.core.MapperCore.apply_products`).
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from mapper.config import MapperCoreConfig
+from mapper.fusion import outside_fraction
+from mapper.geometry.contract import Reconstructor, View, anchor_pose, compose
+from mapper.perception.base import Detection, Embedder, Segmenter, ViewGeometry
+
+
+@dataclass(frozen=True)
+class KeyframeProducts:
+    """What the heavy work gives for one keyframe.
+
+    geometry: the keyframe's world points, z-depth and confidence at the geometry's resolution (h, w);
+    T_world_cam: its refined pose (4, 4); K: its intrinsics (3, 3) at that resolution; detections: its 2D
+    detections at the image's resolution, or None when perception was not run (the mapper runs it).
+    """
+
+    geometry: ViewGeometry
+    T_world_cam: np.ndarray
+    K: np.ndarray
+    detections: list[Detection] | None
+    timings_s: dict[str, float] = field(default_factory=dict)
+
+
+def runs_perception(config: MapperCoreConfig) -> bool:
+    """Whether 2D perception belongs to the heavy work: not when the depth check must first change the
+    confidence perception reads (estimated depth with ``depth_check.enabled``)."""
+    return not (config.depth_check.enabled and config.geometry.backend != "oracle")
+
+
+def compute_keyframe(reconstructor: Reconstructor, segmenter: Segmenter, embedder: Embedder,
+                     config: MapperCoreConfig, views: Sequence[View], target: int,
+                     perception: bool | None = None) -> KeyframeProducts | None:
+    """Reconstruct ``views`` for ``views[target]`` and, when ``perception`` (default: :func:`runs_perception`),
+    segment and describe it; None when the reconstruction cannot be placed in the world (no posed view).
+
+    Perception is skipped for depth that puts too much of the view outside the room's slab: the mapper
+    rejects such a keyframe before perception anyway (``keyframes_rejected_depth``)."""
+    t = time.perf_counter()
+    recon = reconstructor.reconstruct(views, targets=[target])
+    try:
+        T_world_first = anchor_pose(recon, views)
+    except ValueError:
+        return None
+    geo = compose(recon, T_world_first)
+    times = {"geometry": time.perf_counter() - t}
+    vg = ViewGeometry(points_world=geo.points_world[target], depth_m=geo.depth_m[target],
+                      confidence=geo.confidence[target])
+    dets = None
+    if runs_perception(config) if perception is None else perception:
+        fc = config.fusion
+        if outside_fraction(vg.points_world, vg.confidence, vg.depth_m, fc) <= fc.max_outside_fraction:
+            t = time.perf_counter()
+            view = views[target]
+            dets = embedder.embed(view, segmenter.segment(view, vg))
+            times["perception"] = time.perf_counter() - t
+    return KeyframeProducts(vg, geo.T_world_cam[target], geo.intrinsics[target].K(), dets, times)

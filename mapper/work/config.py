@@ -1,0 +1,74 @@
+"""Configuration of keyframe workers: the mapper's side (``[workers]`` of ``argus mapper``) and the
+``argus worker`` process."""
+
+from __future__ import annotations
+
+from typing import Literal
+
+from pydantic import BaseModel, ConfigDict, Field
+
+from mapper.work.dispatch import DispatchConfig
+from protocol.keys import SiteName
+from protocol.session import ZenohSettings, default_site
+
+
+class OffloadConfig(BaseModel):
+    """How the mapper hands keyframes to ``argus worker`` processes (only while one is alive; with none the
+    mapper does every keyframe itself, as without this section)."""
+
+    model_config = ConfigDict(extra="forbid")
+    enabled: bool = Field(
+        default=True, description="send heavy per-keyframe work (geometry, 2D perception) to live workers"
+    )
+    ack_timeout_s: float = Field(default=2.0, gt=0.0, description="a job not acknowledged by then is re-issued")
+    result_timeout_s: float = Field(
+        default=30.0, gt=0.0, description="an acknowledged job with no result by then is re-issued"
+    )
+    max_attempts: int = Field(default=3, ge=1, description="issues of one job before the mapper does it itself")
+    quarantine_after: int = Field(
+        default=3, ge=1, description="rejected results after which a worker gets no more jobs (until it restarts)"
+    )
+    max_in_flight: int = Field(
+        default=1, ge=1, le=16,
+        description="jobs per worker at once. 1: a job never waits behind another on a worker, so the freshest "
+        "keyframe is the one computed (2 hides the transfer of the next job; on loopback that is ~20 ms of ~1 s)",
+    )
+    max_jobs: int = Field(
+        default=16, ge=1, le=256,
+        description="keyframe jobs held (pending or in flight); each holds a decoded image. Beyond it new "
+        "keyframes are dropped (jobs_dropped_full); per source only the freshest pending job is kept",
+    )
+    max_pending_s: float = Field(
+        default=2.0, ge=0.0,
+        description="a keyframe waiting longer for a free worker is dropped (keyframes_dropped.stale.<source>): "
+        "past capacity, latency stays bounded and the freshest keyframes are mapped (0: wait forever)",
+    )
+    max_result_bytes: int = Field(default=32 * 1024 * 1024, ge=1024, description="larger results are refused")
+
+    def dispatch(self) -> DispatchConfig:
+        return DispatchConfig(self.ack_timeout_s, self.result_timeout_s, self.max_attempts, self.quarantine_after,
+                              self.max_in_flight, self.max_jobs, max_pending_s=self.max_pending_s)
+
+
+class WorkerConfig(BaseModel):
+    """``argus worker``: takes keyframe jobs from the mapper of its site. The geometry and perception settings
+    come with each job (the mapper's own), so a worker needs only to know where the site is."""
+
+    model_config = ConfigDict(extra="forbid")
+    id: str = Field(default="worker", description="worker id (unique per site: job, ack, result, status keys)")
+    site: SiteName = Field(
+        default_factory=default_site, validate_default=True,
+        description="Argus site name (key prefix argus/<site>/...; default $ARGUS_SITE or default)",
+    )
+    key_prefix: str = Field(default="argus", description="key expression prefix")
+    zenoh: ZenohSettings = Field(default_factory=ZenohSettings, description="how to join Zenoh")
+    torch_threads: int = Field(default=2, ge=1, le=64, description="torch CPU threads")
+    queue_depth: int = Field(
+        default=2, ge=1, le=16, description="jobs held at once (taking one more answers busy: the mapper re-issues it)"
+    )
+    max_job_bytes: int = Field(default=16 * 1024 * 1024, ge=1024, description="larger job samples are refused")
+    fetch_timeout_s: float = Field(default=5.0, gt=0.0, description="wait for a source keyframe's JPEG")
+    image_cache: int = Field(default=64, ge=0, description="decoded source keyframes kept (they recur across jobs)")
+    max_image_pixels: int = Field(default=4096 * 4096, ge=1, description="largest image decoded")
+    status_period_s: float = Field(default=1.0, gt=0.0, description="status publishing period")
+    log_level: Literal["DEBUG", "INFO", "WARNING", "ERROR"] = Field(default="INFO", description="log level")

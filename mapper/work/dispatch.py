@@ -1,0 +1,258 @@
+"""Which worker does which keyframe job: the dispatcher's state machine (pure: time is passed in, no Zenoh).
+
+A job goes ``pending`` -> ``assigned`` (sent to a worker) -> ``acked`` (the worker took it) -> ``done`` (a valid
+result). It goes back to ``pending`` (re-issued, to any live worker) when its worker's liveliness disappears,
+when no ack comes within ``ack_timeout_s`` or no result within ``result_timeout_s``, when the worker answers that
+it could not do it, or when its result is rejected. After ``max_attempts`` issues it is given up (the mapper does
+it itself). Results are idempotent by job id: a second result of a done job is a duplicate and ignored.
+
+Workers: a job goes to the live worker with the fewest jobs in flight (at most ``max_in_flight`` each); a
+worker whose results were rejected ``quarantine_after`` times is quarantined (no more jobs) until its
+liveliness token goes and comes back (a restarted process).
+
+Backpressure: at most one pending job per source, the freshest (a newer keyframe of the source replaces it:
+dropped as ``superseded``), a new job that waited ``max_pending_s`` for a worker is dropped (``stale``: with
+more sources than the workers keep up with, latency stays bounded instead of every source's job queueing behind
+all the others'), and at most ``max_jobs`` jobs in all (a new one beyond that: dropped as ``full``). A job
+already started once (re-issued) and an older keyframe retried are never dropped for staleness.
+Every outcome is counted in :attr:`Dispatcher.counters`.
+"""
+
+from __future__ import annotations
+
+import collections
+import enum
+from dataclasses import dataclass, field
+
+
+class State(enum.Enum):
+    PENDING = "pending"
+    ASSIGNED = "assigned"
+    ACKED = "acked"
+
+
+class Outcome(enum.Enum):
+    """What became of a result handed to :meth:`Dispatcher.result`."""
+
+    ACCEPTED = "accepted"  # the first valid result: use it
+    DUPLICATE = "duplicate"  # the job is already done: ignore it
+    REJECTED = "rejected"  # invalid: counted against the worker, the job is re-issued
+    UNKNOWN = "unknown"  # no such job (given up, dropped, or never issued): ignore it
+
+
+@dataclass
+class Job:
+    job_id: str
+    source_id: str
+    state: State = State.PENDING
+    worker: str | None = None
+    attempts: int = 0
+    since: float = 0.0  # when it entered its state
+    submitted: float = 0.0  # re-issued jobs go before newer ones
+    fresh: bool = True  # a source's newest keyframe (False: an older keyframe retried, never superseded)
+
+
+@dataclass
+class Worker:
+    in_flight: set[str] = field(default_factory=set)
+    bad_results: int = 0
+    quarantined: bool = False
+    done: int = 0
+
+
+@dataclass(frozen=True)
+class DispatchConfig:
+    ack_timeout_s: float = 2.0
+    result_timeout_s: float = 30.0
+    max_attempts: int = 3
+    quarantine_after: int = 3
+    max_in_flight: int = 2
+    max_jobs: int = 16
+    max_workers: int = 256
+    max_pending_s: float = 2.0  # a new job waiting longer than this for a worker is dropped (0: never)
+
+
+class Dispatcher:
+    """Jobs (by id) and workers (by id); the caller keeps the payloads and does the I/O."""
+
+    def __init__(self, config: DispatchConfig | None = None) -> None:
+        self.config = config or DispatchConfig()
+        self.jobs: dict[str, Job] = {}
+        self.workers: dict[str, Worker] = {}
+        self._done: collections.OrderedDict[str, None] = collections.OrderedDict()  # recent done ids
+        self.counters: collections.Counter[str] = collections.Counter()
+        self.dropped: list[tuple[str, str]] = []
+        """``(job_id, reason)`` of jobs dropped or given up since the caller last took them (:meth:`take_dropped`)."""
+
+    # -- workers ------------------------------------------------------------------------------------
+    def worker_up(self, worker_id: str) -> None:
+        """A worker's liveliness token appeared (a new or restarted process: not quarantined)."""
+        if worker_id in self.workers:
+            return
+        if len(self.workers) >= self.config.max_workers:  # made-up tokens must not grow the table without bound
+            self.counters["workers_refused"] += 1
+            return
+        self.workers[worker_id] = Worker()
+        self.counters["workers_joined"] += 1
+
+    def worker_down(self, worker_id: str, now: float) -> list[str]:
+        """A worker's liveliness token disappeared: its jobs go back to pending (returned)."""
+        w = self.workers.pop(worker_id, None)
+        if w is None:
+            return []
+        self.counters["workers_lost"] += 1
+        return self._reissue(sorted(w.in_flight), now, "jobs_reissued_worker_lost")
+
+    def live_workers(self) -> list[str]:
+        """Workers that may take jobs."""
+        return sorted(k for k, w in self.workers.items() if not w.quarantined)
+
+    # -- jobs ---------------------------------------------------------------------------------------
+    def submit(self, job_id: str, source_id: str, now: float, fresh: bool = True) -> bool:
+        """Add a job (False: a duplicate of a known or recently done job, ignored; or dropped). A ``fresh`` job
+        (the source's newest keyframe) drops the source's older fresh job still pending (``superseded``); an older
+        keyframe retried (``fresh`` False: deferred until it had stereo partners) is not superseded. With
+        ``max_jobs`` jobs already, the new one is dropped (``full``)."""
+        if job_id in self.jobs or job_id in self._done:
+            self.counters["jobs_duplicate_submit"] += 1
+            return False
+        for j in list(self.jobs.values()):
+            if fresh and j.fresh and j.source_id == source_id and j.state is State.PENDING:
+                self._drop(j.job_id, "superseded")
+        if len(self.jobs) >= self.config.max_jobs:
+            self.dropped.append((job_id, "full"))
+            self.counters["jobs_dropped_full"] += 1
+            return False
+        self.jobs[job_id] = Job(job_id, source_id, since=now, submitted=now, fresh=fresh)
+        self.counters["jobs_submitted"] += 1
+        return True
+
+    def assign(self, now: float) -> list[tuple[str, str, int]]:
+        """Send pending jobs (oldest first) to the least loaded live workers: ``(job_id, worker_id, attempt)``."""
+        out = []
+        for j in sorted((j for j in self.jobs.values() if j.state is State.PENDING), key=lambda j: j.submitted):
+            free = [(len(self.workers[k].in_flight), k) for k in self.live_workers()
+                    if len(self.workers[k].in_flight) < self.config.max_in_flight]
+            if not free:
+                break
+            _, wid = min(free)
+            j.state, j.worker, j.since = State.ASSIGNED, wid, now
+            j.attempts += 1
+            self.workers[wid].in_flight.add(j.job_id)
+            self.counters["jobs_assigned"] += 1
+            out.append((j.job_id, wid, j.attempts))
+        return out
+
+    def ack(self, job_id: str, worker_id: str, attempt: int, now: float) -> bool:
+        """The worker took the job (False: a stale or unknown ack, ignored)."""
+        j = self.jobs.get(job_id)
+        if j is None or j.worker != worker_id or j.attempts != attempt or j.state is not State.ASSIGNED:
+            self.counters["acks_ignored"] += 1
+            return False
+        j.state, j.since = State.ACKED, now
+        return True
+
+    def result(self, job_id: str, worker_id: str, now: float, problem: str | None = None) -> Outcome:
+        """A result of ``job_id`` from ``worker_id``; ``problem``: why it was found invalid (None: valid).
+
+        The first valid result wins, whichever worker and attempt it comes from (the job's answer does not
+        depend on who computed it)."""
+        if job_id in self._done:
+            self.counters["results_duplicate"] += 1
+            return Outcome.DUPLICATE
+        j = self.jobs.get(job_id)
+        w = self.workers.get(worker_id)
+        if problem is not None:
+            self.counters["results_rejected"] += 1
+            if w is not None:
+                w.bad_results += 1
+                if w.bad_results >= self.config.quarantine_after and not w.quarantined:
+                    w.quarantined = True
+                    self.counters["workers_quarantined"] += 1
+                    self._reissue(sorted(w.in_flight - {job_id}), now, "jobs_reissued_quarantine")
+            if j is not None and j.worker == worker_id:
+                self._reissue([job_id], now, "jobs_reissued_rejected")
+            return Outcome.REJECTED if j is not None else Outcome.UNKNOWN
+        if j is None:
+            self.counters["results_unknown"] += 1
+            return Outcome.UNKNOWN
+        self._finish(j)
+        if w is not None:
+            w.done += 1
+        self.counters["results_accepted"] += 1
+        return Outcome.ACCEPTED
+
+    def failed(self, job_id: str, worker_id: str, now: float) -> bool:
+        """The worker says it could not do the job (busy, a fetch timed out, its backend raised): re-issued."""
+        j = self.jobs.get(job_id)
+        if j is None or j.worker != worker_id:
+            return False
+        self._reissue([job_id], now, "jobs_reissued_worker_failed")
+        return True
+
+    def expire(self, now: float) -> list[str]:
+        """Re-issue jobs whose ack or result is overdue (returned)."""
+        c = self.config
+        jobs = list(self.jobs.values())
+        if c.max_pending_s > 0:
+            for j in jobs:
+                if j.state is State.PENDING and j.fresh and j.attempts == 0 and now - j.submitted > c.max_pending_s:
+                    self._drop(j.job_id, "stale")
+            jobs = list(self.jobs.values())
+        late_ack = [j.job_id for j in jobs if j.state is State.ASSIGNED and now - j.since > c.ack_timeout_s]
+        late = [j.job_id for j in jobs if j.state is State.ACKED and now - j.since > c.result_timeout_s]
+        return self._reissue(late_ack, now, "jobs_reissued_no_ack") + self._reissue(late, now, "jobs_reissued_late")
+
+    def orphans(self) -> list[str]:
+        """Pending jobs while no live worker may take them: removed here, for the caller to do itself."""
+        if self.live_workers():
+            return []
+        out = [j.job_id for j in self.jobs.values() if j.state is State.PENDING]
+        for job_id in out:
+            del self.jobs[job_id]
+            self.counters["jobs_done_locally"] += 1
+        return out
+
+    def take_dropped(self) -> list[tuple[str, str]]:
+        out, self.dropped = self.dropped, []
+        return out
+
+    def in_flight(self) -> int:
+        return sum(j.state is not State.PENDING for j in self.jobs.values())
+
+    def pending(self) -> int:
+        return sum(j.state is State.PENDING for j in self.jobs.values())
+
+    # -- internals ----------------------------------------------------------------------------------
+    def _release(self, j: Job) -> None:
+        if j.worker is not None and j.worker in self.workers:
+            self.workers[j.worker].in_flight.discard(j.job_id)
+        j.worker = None
+
+    def _finish(self, j: Job) -> None:
+        self._release(j)
+        del self.jobs[j.job_id]
+        self._done[j.job_id] = None
+        while len(self._done) > 4 * self.config.max_jobs + 64:
+            self._done.popitem(last=False)
+
+    def _drop(self, job_id: str, reason: str) -> None:
+        j = self.jobs.pop(job_id)
+        self._release(j)
+        self.dropped.append((job_id, reason))
+        self.counters[f"jobs_dropped_{reason}"] += 1
+
+    def _reissue(self, job_ids: list[str], now: float, counter: str) -> list[str]:
+        out = []
+        for job_id in job_ids:
+            j = self.jobs.get(job_id)
+            if j is None:
+                continue
+            self._release(j)
+            if j.attempts >= self.config.max_attempts:
+                self._drop(job_id, "given_up")
+                continue
+            j.state, j.since = State.PENDING, now
+            self.counters[counter] += 1
+            out.append(job_id)
+        return out

@@ -1,0 +1,167 @@
+"""The dispatcher's state machine (mapper/work/dispatch.py): exact transitions, no Zenoh."""
+
+from __future__ import annotations
+
+from mapper.work.dispatch import DispatchConfig, Dispatcher, Outcome, State
+
+
+def make(**kw: float) -> Dispatcher:
+    d = Dispatcher(DispatchConfig(**kw))  # type: ignore[arg-type]
+    return d
+
+
+def test_assigns_to_the_least_loaded_live_worker() -> None:
+    d = make(max_in_flight=2)
+    d.worker_up("w1")
+    d.worker_up("w2")
+    for i in range(5):
+        assert d.submit(f"cam{i}#0", f"cam{i}", now=float(i))
+    sent = d.assign(now=10.0)
+    # oldest first, alternating between the two workers, two each, the fifth waits
+    assert sent == [("cam0#0", "w1", 1), ("cam1#0", "w2", 1), ("cam2#0", "w1", 1), ("cam3#0", "w2", 1)]
+    assert d.jobs["cam4#0"].state is State.PENDING
+    assert d.result("cam1#0", "w2", now=11.0) is Outcome.ACCEPTED
+    assert d.assign(now=11.0) == [("cam4#0", "w2", 1)]
+
+
+def test_job_lost_with_its_worker_is_reissued_to_another() -> None:
+    d = make()
+    d.worker_up("w1")
+    d.submit("cam#1", "cam", now=0.0)
+    assert d.assign(now=0.0) == [("cam#1", "w1", 1)]
+    assert d.ack("cam#1", "w1", 1, now=0.1)
+    d.worker_up("w2")
+    assert d.worker_down("w1", now=0.5) == ["cam#1"]
+    assert d.counters["jobs_reissued_worker_lost"] == 1
+    assert d.assign(now=0.5) == [("cam#1", "w2", 2)]
+    # a late result of the dead worker's attempt still counts once, the live worker's then is a duplicate
+    assert d.result("cam#1", "w1", now=0.6) is Outcome.ACCEPTED
+    assert d.result("cam#1", "w2", now=0.7) is Outcome.DUPLICATE
+    assert d.counters["results_duplicate"] == 1
+    assert d.workers["w2"].in_flight == set()
+
+
+def test_duplicate_results_and_submits_are_ignored() -> None:
+    d = make()
+    d.worker_up("w")
+    d.submit("a#1", "a", 0.0)
+    d.assign(0.0)
+    assert d.result("a#1", "w", 1.0) is Outcome.ACCEPTED
+    assert d.result("a#1", "w", 1.1) is Outcome.DUPLICATE
+    assert not d.submit("a#1", "a", 2.0)  # the same keyframe again: idempotent
+    assert d.result("nope#3", "w", 1.2) is Outcome.UNKNOWN
+    assert d.workers["w"].done == 1
+
+
+def test_no_ack_within_the_timeout_reissues() -> None:
+    d = make(ack_timeout_s=2.0, result_timeout_s=5.0)
+    d.worker_up("w")
+    d.submit("a#1", "a", 0.0)
+    d.assign(0.0)
+    assert d.expire(2.0) == []  # not yet late
+    assert d.expire(2.01) == ["a#1"]
+    assert d.counters["jobs_reissued_no_ack"] == 1
+    d.assign(3.0)
+    assert d.ack("a#1", "w", 2, 3.5)
+    assert not d.ack("a#1", "w", 1, 3.6)  # a stale ack of the first attempt
+    assert d.expire(8.4) == []
+    assert d.expire(8.6) == ["a#1"]  # acked, but no result within result_timeout_s
+    assert d.counters["jobs_reissued_late"] == 1
+
+
+def test_given_up_after_max_attempts() -> None:
+    d = make(max_attempts=2, ack_timeout_s=1.0)
+    d.worker_up("w")
+    d.submit("a#1", "a", 0.0)
+    d.assign(0.0)
+    d.expire(2.0)
+    d.assign(2.0)
+    assert d.expire(4.0) == []
+    assert "a#1" not in d.jobs
+    assert d.take_dropped() == [("a#1", "given_up")]
+    assert d.take_dropped() == []
+
+
+def test_garbage_results_are_rejected_and_the_worker_quarantined_after_n() -> None:
+    d = make(quarantine_after=2, max_in_flight=2, max_attempts=5)
+    d.worker_up("bad")
+    d.worker_up("good")
+    for i in range(2):
+        d.submit(f"s{i}#0", f"s{i}", float(i))
+    sent = dict((j, w) for j, w, _ in d.assign(5.0))
+    bad_job = next(j for j, w in sent.items() if w == "bad")
+    assert d.result(bad_job, "bad", 6.0, problem="result_not_finite") is Outcome.REJECTED
+    assert d.jobs[bad_job].state is State.PENDING  # re-issued
+    assert not d.workers["bad"].quarantined
+    assert d.assign(6.0) == [(bad_job, "bad", 2)]  # "bad" has fewest in flight (0 vs 1)
+    d.submit("s9#0", "s9", 6.5)
+    assert d.assign(6.5) == [("s9#0", "bad", 1)]
+    assert d.result(bad_job, "bad", 7.0, problem="result_bad_shape") is Outcome.REJECTED
+    assert d.workers["bad"].quarantined
+    assert d.counters["workers_quarantined"] == 1 and d.counters["results_rejected"] == 2
+    assert d.live_workers() == ["good"]
+    # its other job went back to pending too, and only "good" gets work now
+    assert d.jobs["s9#0"].state is State.PENDING
+    assert {w for _, w, _ in d.assign(7.0)} == {"good"}
+    # a restarted process (its token goes and comes back) is trusted again
+    d.worker_down("bad", 8.0)
+    d.worker_up("bad")
+    assert "bad" in d.live_workers()
+
+
+def test_freshest_pending_frame_per_source_and_bounded() -> None:
+    d = make(max_jobs=3)
+    assert d.submit("cam#1", "cam", 0.0)
+    assert d.submit("cam#2", "cam", 0.1)  # no worker yet: #1 was pending, superseded
+    assert d.take_dropped() == [("cam#1", "superseded")]
+    d.submit("r#1", "r", 0.2)
+    d.submit("q#1", "q", 0.3)
+    assert not d.submit("z#1", "z", 0.4)
+    assert d.take_dropped() == [("z#1", "full")]
+    assert d.counters["jobs_dropped_superseded"] == 1 and d.counters["jobs_dropped_full"] == 1
+    # an assigned job is not superseded (its worker is already on it)
+    d.worker_up("w")
+    d.assign(1.0)
+    assert d.submit("cam#3", "cam", 1.1) is False  # still full: 3 jobs in flight
+    d.result("cam#2", "w", 1.2)
+    assert d.submit("cam#3", "cam", 1.3)
+    assert "r#1" in d.jobs and d.take_dropped() == [("cam#3", "full")]
+
+
+def test_orphans_without_live_workers_are_handed_back() -> None:
+    d = make()
+    d.submit("a#1", "a", 0.0)
+    assert d.orphans() == ["a#1"]
+    assert d.jobs == {}
+    d.worker_up("w")
+    d.submit("b#1", "b", 1.0)
+    assert d.orphans() == []
+    d.assign(1.0)
+    assert d.worker_down("w", 2.0) == ["b#1"]
+    assert d.orphans() == ["b#1"]
+    assert d.counters["jobs_done_locally"] == 2
+
+
+def test_the_worker_table_is_bounded() -> None:
+    d = Dispatcher(DispatchConfig(max_workers=2))
+    for w in ("a", "b", "c"):
+        d.worker_up(w)
+    assert d.live_workers() == ["a", "b"] and d.counters["workers_refused"] == 1
+    d.worker_down("a", 0.0)
+    d.worker_up("c")
+    assert d.live_workers() == ["b", "c"]
+
+
+def test_a_new_job_waiting_too_long_is_dropped_but_a_started_one_is_not() -> None:
+    d = Dispatcher(DispatchConfig(max_pending_s=2.0, max_in_flight=1, ack_timeout_s=1.0))
+    d.worker_up("w")
+    d.submit("a#1", "a", 0.0)
+    d.submit("b#1", "b", 0.5)
+    d.submit("c#1", "c", 0.6, fresh=False)  # an older keyframe retried
+    assert d.assign(0.6) == [("a#1", "w", 1)]
+    assert d.expire(1.7) == ["a#1"]  # no ack within 1 s: re-issued (pending again, started once)
+    assert d.expire(2.45) == [] and "b#1" in d.jobs  # b#1 waited 1.95 s: not yet
+    assert d.expire(2.6) == []
+    assert d.take_dropped() == [("b#1", "stale")]  # waited 2.1 s
+    assert d.expire(10.0) == [] and set(d.jobs) == {"a#1", "c#1"}  # started once / retried: kept
+    assert d.counters["jobs_dropped_stale"] == 1
