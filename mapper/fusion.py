@@ -554,10 +554,14 @@ class ObjectMap:
         cands.update((k, self.nodes[k]) for k in inside)
         best, best_score = None, -math.inf
         for node in cands.values():
-            ov = max(overlap_fraction(obj.points, node, cfg.radius_m), inside.get(node.node_id, 0.0))
+            sim = similarity(obj.descriptor, node.descriptor)
+            # Being in front of a node proves nothing about a different object: the image only vouches for
+            # a node that looks like the detection.
+            held = inside.get(node.node_id, 0.0) if sim >= cfg.merge_similarity else 0.0
+            ov = max(overlap_fraction(obj.points, node, cfg.radius_m), held)
             if ov < cfg.min_overlap:
                 continue
-            score = cfg.geo_weight * ov + cfg.sem_weight * similarity(obj.descriptor, node.descriptor)
+            score = cfg.geo_weight * ov + cfg.sem_weight * sim
             if score > best_score or (score == best_score and best is not None and node.node_id < best.node_id):
                 best, best_score = node, score
         if best is None or best_score < cfg.match_threshold:
