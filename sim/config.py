@@ -6,7 +6,7 @@ from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
-Family = Literal["apartment", "furnished_room"]
+Family = Literal["apartment", "furnished_room", "apartment_large"]  # sim.scene.FAMILIES
 
 
 class SceneSource(BaseModel):
