@@ -582,6 +582,7 @@ def plot(rows: list[dict[str, Any]], path: Path) -> None:
                              "team metres driven"), strict=True):
         ax.set_xlabel(xl)
         ax.set_ylabel("recall")
+        ax.xaxis.get_major_locator().set_params(integer=True)
         ax.set_ylim(0, 1)
         for level in RECALL_LEVELS:
             ax.axhline(level, color="0.8", linewidth=0.8, zorder=0)
@@ -706,9 +707,11 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument(
         "--report",
         type=Path,
+        nargs="+",
         default=None,
         metavar="JSON",
-        help="run nothing: summarise the episodes of an earlier --out JSON again (writes --out, or beside it)",
+        help="run nothing: summarise the episodes of earlier --out JSONs again, together (e.g. a 1-robot and a "
+        "2-robot run); writes --out (default: over the first)",
     )
     p.add_argument("--quiet", action="store_true", help="no per-step lines")
     return p
@@ -742,7 +745,7 @@ def main(argv: list[str] | None = None) -> int:
     starts = _ints(a.start_list) if a.start_list else list(range(a.starts))
     at_steps = report_steps(a.steps)
     if a.report is not None:
-        return _rereport(a.report, a.out or a.report, at_steps)
+        return _rereport(a.report, a.out or a.report[0], at_steps)
     if any(n < 1 for n in a.robots):
         print("argus explore: --robots must be >= 1", file=sys.stderr)
         return 2
@@ -788,16 +791,19 @@ def main(argv: list[str] | None = None) -> int:
     return 0
 
 
-def _rereport(src: Path, out: Path, at_steps: tuple[int, ...]) -> int:
-    """``--report``: the summary, tables and plot of an earlier run's episodes, recomputed."""
+def _rereport(sources: list[Path], out: Path, at_steps: tuple[int, ...]) -> int:
+    """``--report``: the summary, tables and plot of earlier runs' episodes, recomputed together."""
+    episodes: list[dict[str, Any]] = []
     try:
-        episodes = json.loads(src.read_text())["episodes"]
+        for src in sources:
+            episodes += json.loads(src.read_text())["episodes"]
         rows = summarize(episodes, at_steps)
     except (OSError, ValueError, KeyError, TypeError) as e:
-        print(f"argus explore: cannot read episodes from {src}: {e}", file=sys.stderr)
+        print(f"argus explore: cannot read episodes from {', '.join(map(str, sources))}: {e}", file=sys.stderr)
         return 2
     print(markdown(rows, at_steps))
-    for path in write_outputs({"summary": rows, "episodes": episodes}, out, at_steps, f"argus explore --report {src}"):
+    command = "argus explore --report " + " ".join(map(str, sources))
+    for path in write_outputs({"summary": rows, "episodes": episodes}, out, at_steps, command):
         print(f"wrote {path}")
     return 0
 

@@ -207,10 +207,11 @@ def test_report_steps_include_the_last_step() -> None:
 
 
 def test_report_rewrites_tables_and_plot_from_episodes(tmp_path: Path) -> None:
-    src = tmp_path / "old.json"
-    src.write_text(json.dumps({"episodes": [_team_ep("see", [0.1, 0.5, 0.9], 2), _team_ep("see", [0.1, 0.6], 1)]}))
+    src, src1 = tmp_path / "two.json", tmp_path / "one.json"
+    src.write_text(json.dumps({"episodes": [_team_ep("see", [0.1, 0.5, 0.9], 2)]}))
+    src1.write_text(json.dumps({"episodes": [_team_ep("see", [0.1, 0.6], 1)]}))
     out = tmp_path / "again.json"
-    assert main(["--report", str(src), "--out", str(out), "--steps", "2"]) == 0
+    assert main(["--report", str(src), str(src1), "--out", str(out), "--steps", "2"]) == 0
     assert "SEE x2 robots" in out.with_suffix(".md").read_text()
     assert out.with_suffix(".png").stat().st_size > 1000
     assert len(json.loads(out.read_text())["summary"]) == 2
