@@ -491,6 +491,8 @@ def summarize(
             rids = sorted(per[0])
             row["robot_distance_m"] = {rid: float(np.mean([p[rid]["distance_m"] for p in per])) for rid in rids}
             row["robot_frames"] = {rid: float(np.mean([p[rid]["frames"] for p in per])) for rid in rids}
+        elif n_robots == 1:  # records written before per-robot counts: the one robot drove the team's metres
+            row["robot_distance_m"] = {ROBOT_ID: float(np.mean([e["steps"][-1]["distance_m"] for e in eps]))}
         dec = [r["decision_s"] for e in eps for r in e["steps"][1:]]
         row["decision_s_mean"] = float(np.mean(dec)) if dec else 0.0
         row["decision_s_max"] = float(np.max(dec)) if dec else 0.0

@@ -213,6 +213,8 @@ def test_report_rewrites_tables_and_plot_from_episodes(tmp_path: Path) -> None:
     out = tmp_path / "again.json"
     assert main(["--report", str(src), str(src1), "--out", str(out), "--steps", "2"]) == 0
     assert "SEE x2 robots" in out.with_suffix(".md").read_text()
+    old = json.loads(out.read_text())["summary"]
+    assert next(r for r in old if r["robots"] == 2)["robot_frames"] == {"robot0": 3.0, "robot1": 3.0}
     assert out.with_suffix(".png").stat().st_size > 1000
     assert len(json.loads(out.read_text())["summary"]) == 2
     (tmp_path / "bad.json").write_text("{}")
