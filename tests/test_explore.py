@@ -200,6 +200,17 @@ def test_team_figures_count_every_robots_steps() -> None:
     assert "ASP x2 robots" in md and "1/1: 6" in md and "0/1" in md
 
 
+def test_records_without_per_robot_counts_still_summarise() -> None:
+    """JSONs written before the team counts (one robot, no ``robots`` / ``team_steps`` per step)."""
+    old = _team_ep("see", [0.1, 0.6], robots=1, per_step_m=2.0)
+    del old["robots"]
+    for rec in old["steps"]:
+        del rec["robots"], rec["team_steps"]
+    (row,) = summarize([old], (0, 1))
+    assert row["robots"] == 1 and row["recall@team1"] == pytest.approx([0.6, 0.0])
+    assert row["robot_distance_m"] == {"robot0": 2.0} and "robot_frames" not in row
+
+
 def test_report_steps_include_the_last_step() -> None:
     assert report_steps(30) == (0, 10, 20, 30)
     assert report_steps(3) == (0, 3)
