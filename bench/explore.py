@@ -9,11 +9,20 @@ paper) the graph is scored against the ground truth (sim.scoring.score_nodes).
 Both strategies get the same candidates, travel costs (geodesic), perception, geometry and number
 of steps (the budget); distance driven is reported too.
 
+Several robots (``--robots N``): the team starts at a common dock (``team_starts``: robot 0 at the
+seeded start, the others at the nearest navigable positions, headings spread around) and moves in
+rounds. One wall step = one round: the planner assigns every robot a goal in one decision (its
+multi-robot claims keep the goals apart), each robot drives there and maps its frames. Each robot's
+goals, frames and metres are counted; the team's steps are the goals issued (N per wall step), so
+recall is reported against wall steps, team steps and team metres, with steps to 50 % / 80 % recall.
+The simulated robots do not block each other (no inter-robot collisions).
+
 Example::
 
     argus explore --strategy see asp --steps 30 --seeds 0 --starts 3 --out explore.json
     argus explore --strategy asp --ext-cams 1 --geometry oracle --perception sim --steps 10
     argus explore --geometry mvs --move-frames 2 --steps 30 --starts 2   # RGB-only geometry needs baselines
+    argus explore --robots 1 2 --geometry oracle --seeds 3,4 --starts 2 --out ex/team.json  # + team.md, team.png
 """
 
 from __future__ import annotations
@@ -25,10 +34,13 @@ import math
 import sys
 import time
 from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, get_args
 
 import numpy as np
+
+from sim.config import Family
 
 if TYPE_CHECKING:
     from mapper.config import MapperCoreConfig
@@ -36,6 +48,8 @@ if TYPE_CHECKING:
 log = logging.getLogger("argus.explore")
 ROBOT_ID = "robot0"
 REPORT_STEPS = (0, 10, 20, 30)
+RECALL_LEVELS = (0.5, 0.8)
+DOCK_GAP_M = 0.6
 
 
 def start_pose(viewpoints: list[Any], seed: int, start_index: int) -> tuple[float, float, float]:
@@ -44,6 +58,32 @@ def start_pose(viewpoints: list[Any], seed: int, start_index: int) -> tuple[floa
     rng = np.random.default_rng([int(seed) & 0xFFFFFFFF, int(start_index), 0x57A7])
     x, y = xy[int(rng.integers(len(xy)))]
     return float(x), float(y), float(rng.uniform(-math.pi, math.pi))
+
+
+def robot_ids(n: int) -> list[str]:
+    """``robot0`` .. ``robot{n-1}`` (robot0 is the single robot of a one-robot episode)."""
+    return [f"robot{k}" for k in range(n)]
+
+
+def team_starts(
+    first: tuple[float, float, float], xy: np.ndarray, geodesic_m: np.ndarray, n: int, gap_m: float = DOCK_GAP_M
+) -> list[tuple[float, float, float]]:
+    """Start poses of an ``n``-robot team at a common dock: robot 0 at ``first``; each further robot at the
+    navigable position (rows of ``xy``) nearest to it along the floor (``geodesic_m``, inf: unreachable)
+    that is at least ``gap_m`` from every robot already placed; headings spread evenly around ``first``'s."""
+    xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
+    geo = np.asarray(geodesic_m, dtype=np.float64).reshape(-1)
+    out = [(float(first[0]), float(first[1]), float(first[2]))]
+    order = np.lexsort((xy[:, 1], xy[:, 0], geo))
+    for k in range(1, n):
+        placed = np.array([p[:2] for p in out])
+        pick = next((int(i) for i in order if np.isfinite(geo[i])
+                     and np.min(np.hypot(*(xy[i] - placed).T)) >= gap_m), None)
+        if pick is None:
+            raise ValueError(f"no room for robot {k} of {n} near the start (fewer free positions than robots)")
+        yaw = (first[2] + 2.0 * math.pi * k / n + math.pi) % (2.0 * math.pi) - math.pi
+        out.append((float(xy[pick, 0]), float(xy[pick, 1]), float(yaw)))
+    return out
 
 
 def travel_costs(nav: Any, xy: tuple[float, float], vp_xy: np.ndarray) -> np.ndarray:
@@ -86,6 +126,22 @@ def mapper_config(geometry: str, perception: str, torch_threads: int,
     return type(cfg).model_validate(_merged(cfg.model_dump(exclude_unset=True), overrides)) if overrides else cfg
 
 
+@dataclass
+class _Bot:
+    """One robot of the episode: its body, viewpoints and what it has cost and contributed."""
+
+    rid: str
+    robot: Any
+    vps: Any
+    capture_m: float = 0.0  # metres of goal-capture sidesteps (out and back)
+    frames: int = 0  # frames it gave the mapper
+    goals: int = 0  # goals it reached (drove to)
+
+    @property
+    def distance_m(self) -> float:
+        return float(self.robot.distance_m) + self.capture_m
+
+
 def run_episode(
     family: str = "apartment",
     seed: int = 0,
@@ -105,11 +161,14 @@ def run_episode(
     score_every: int = 1,
     move_frames: int = 0,
     goal_capture_m: float = 0.0,
+    robots: int = 1,
     log_fn: Callable[[str], None] | None = None,
 ) -> dict[str, Any]:
-    """One closed-loop episode; returns ``{"steps": [{step, n_nodes, recall, ...}], ...}``.
+    """One closed-loop episode; returns ``{"steps": [{step, team_steps, n_nodes, recall, ...}], ...}``.
 
-    Step 0 is the state after the start view (and the fixed cameras' frames); step k after k goals.
+    Step 0 is the state after the start views (and the fixed cameras' frames); step k (a wall step) after
+    k rounds in which each of the ``robots`` robots got a goal. ``distance_m`` is the team's metres;
+    ``goal`` / ``gain`` / ``reason`` are robot0's, ``robots`` has each robot's goal, metres and frames.
     """
     import torch
 
@@ -124,6 +183,8 @@ def run_episode(
     from sim.scene import generate_scene
     from sim.scoring import score_nodes
 
+    if robots < 1:
+        raise ValueError("robots must be >= 1")
     torch.set_num_threads(max(1, int(torch_threads)))
     say = log_fn or (lambda s: log.info("%s", s))
     t_start = time.perf_counter()
@@ -141,15 +202,26 @@ def run_episode(
     )
     vp_xy = np.array([[v.x, v.y] for v in vps.viewpoints], dtype=np.float64).reshape(-1, 2)
     start = start_pose(vps.viewpoints, seed, start_index)
-    robot = SimRobot(
-        scene,
-        nav,
-        start,
-        intr,
-        noise=None if odometry_noise else OdometryNoise.none(),
-        seed=seed,
-        renderer=renderer,
-    )
+    starts = [start]
+    if robots > 1:
+        dock_xy = np.array(sorted({(v.x, v.y) for v in vps.viewpoints}), dtype=np.float64)
+        starts = team_starts(start, dock_xy, travel_costs(nav, start[:2], dock_xy), robots)
+    bots = [
+        _Bot(
+            rid,
+            SimRobot(
+                scene,
+                nav,
+                xyyaw,
+                intr,
+                noise=None if odometry_noise else OdometryNoise.none(),
+                seed=seed + 7919 * k,
+                renderer=renderer,
+            ),
+            vps.model_copy(update={"robot_id": rid}),
+        )
+        for k, (rid, xyyaw) in enumerate(zip(robot_ids(robots), starts, strict=True))
+    ]
     mapper = MapperCore(mapper_config(geometry, perception, torch_threads, mapper_overrides))
     pcfg = PlannerConfig.model_validate(
         {
@@ -185,9 +257,14 @@ def run_episode(
         )
         mapper.ingest(view, force_keyframe=True)
 
-    def drive(n_frames: int) -> None:
+    def ingest_bot(bot: _Bot, rgb_out: Any, T_true: np.ndarray, T_odom: np.ndarray) -> None:
+        ingest(rgb_out, T_true, T_odom, bot.rid)
+        bot.frames += 1
+
+    def drive(bot: _Bot, n_frames: int) -> None:
         """Drive to the goal; with ``n_frames`` > 0 also map the last n poses passed on the way (every
         0.3 m or 20 deg) before the arrival view: stereo baselines for RGB-only geometry."""
+        robot = bot.robot
         passed: list[tuple[np.ndarray, np.ndarray]] = []
         last = np.asarray(robot.T_world_cam_true())
         t = 0.0
@@ -201,14 +278,13 @@ def run_episode(
                 passed = [*passed, (T, np.asarray(robot.T_world_cam_odom()))][-n_frames:]
                 last = T
         for T_true, T_odom in passed:
-            ingest(renderer.render(intr, T_true), T_true, T_odom, ROBOT_ID)
+            ingest_bot(bot, renderer.render(intr, T_true), T_true, T_odom)
 
-    capture_m = [0.0]  # metres driven by goal captures (sidesteps out and back), counted in distance_m
-
-    def capture(step_m: float) -> None:
+    def capture(bot: _Bot, step_m: float) -> None:
         """At the goal, also map the views from the camera moved ``step_m`` to its left and to its right
         (where the robot can stand): a stereo baseline at the goal for RGB-only geometry. The sidesteps,
         out and back, count in the distance driven."""
+        robot = bot.robot
         T_true, T_odom = np.asarray(robot.T_world_cam_true()), np.asarray(robot.T_world_cam_odom())
         side = T_true[:3, 0].copy()
         side[2] = 0.0
@@ -220,26 +296,87 @@ def run_episode(
             Tt, To = T_true.copy(), T_odom.copy()
             Tt[:3, 3] += off
             To[:3, 3] += off
-            ingest(renderer.render(intr, Tt), Tt, To, ROBOT_ID)
-            capture_m[0] += 2.0 * step_m
+            ingest_bot(bot, renderer.render(intr, Tt), Tt, To)
+            bot.capture_m += 2.0 * step_m
+
+    def arrive(bot: _Bot) -> None:
+        ingest_bot(bot, bot.robot.render(), bot.robot.T_world_cam_true(), bot.robot.T_world_cam_odom())
+
+    def state_of(bot: _Bot, step: int) -> Any:
+        x, y, yaw = bot.robot.pose_odom()
+        return RobotState(
+            robot_id=bot.rid,
+            stamp_ns=time.time_ns(),
+            status="arrived",
+            x=x,
+            y=y,
+            yaw_rad=yaw,
+            T_world_cam=rows(bot.robot.T_world_cam_odom()),
+            distance_m=bot.robot.distance_m,
+            steps=step - 1,
+            travel_cost_m=travel_costs(nav, bot.robot.pose_true()[:2], vp_xy),
+        )
+
+    def assign(step: int) -> tuple[dict[str, Any], float]:
+        """One round's goals: every robot planned in one decision; a robot whose goal it cannot drive to
+        gets that viewpoint blacklisted and is planned again alone (the others' goals stay claimed)."""
+        by_id = {b.rid: b for b in bots}
+        pending = list(by_id)
+        chosen: dict[str, Any] = {}
+        decision_s = 0.0
+        for _attempt in range(5):
+            if not pending:
+                break
+            plan = {rid: (state_of(by_id[rid], step), by_id[rid].vps) for rid in pending}
+            goals = {g.robot_id: g for g in planner.plan(mapper.snapshot(), mapper.point_map(), plan)}
+            decision_s += planner.info.decision_s
+            retry = []
+            for rid in pending:
+                g = goals.get(rid)
+                if g is None:
+                    continue  # nothing to do for this robot this round
+                if by_id[rid].robot.drive_to(g.x, g.y, g.yaw_rad):
+                    chosen[rid] = g
+                    by_id[rid].goals += 1
+                else:
+                    planner.mark_failed(rid, g.vp_id)
+                    retry.append(rid)
+            pending = retry
+        return chosen, decision_s
 
     records: list[dict[str, Any]] = []
     last_score: dict[str, float] = {"recall": 0.0, "precision": 0.0}
 
-    def record(step: int, extra: dict[str, Any]) -> None:
+    def record(step: int, chosen: dict[str, Any], decision_s: float) -> None:
         snap = mapper.snapshot()
         if step % max(1, score_every) == 0 or step == steps:
             s = score_nodes(snap.nodes, scene)
             last_score.update(recall=float(s.recall), precision=float(s.precision))
-        rec = {
+        per = {
+            b.rid: {
+                "goal": _goal_xyyaw(chosen.get(b.rid)),
+                "gain": round(float(chosen[b.rid].expected_gain), 4) if b.rid in chosen else 0.0,
+                "reason": chosen[b.rid].reason if b.rid in chosen else ("start" if step == 0 else "no goal"),
+                "distance_m": round(b.distance_m, 3),
+                "frames": b.frames,
+                "goals": b.goals,
+            }
+            for b in bots
+        }
+        first = per[bots[0].rid]
+        records.append({
             "step": step,
+            "team_steps": step * len(bots),
             "n_nodes": len(snap.nodes),
             "recall": last_score["recall"],
             "precision": last_score["precision"],
-            "distance_m": round(robot.distance_m + capture_m[0], 3),
-            **extra,
-        }
-        records.append(rec)
+            "distance_m": round(sum(b.distance_m for b in bots), 3),
+            "decision_s": round(decision_s, 4),
+            "gain": first["gain"],
+            "goal": first["goal"],
+            "reason": first["reason"],
+            "robots": per,
+        })
 
     ext_ids: list[str] = []
     if external_cameras > 0:
@@ -252,59 +389,28 @@ def run_episode(
             if cam.pose_known:  # a surveyed camera's view is known to the planner (both strategies)
                 planner.record_view(T, cam.intrinsics, vps.max_range_m)
             ext_ids.append(cam.camera_id)
-    ingest(robot.render(), robot.T_world_cam_true(), robot.T_world_cam_odom(), ROBOT_ID)
-    record(0, {"decision_s": 0.0, "gain": 0.0, "goal": None, "reason": "start"})
+    for b in bots:
+        arrive(b)
+    record(0, {}, 0.0)
     say(
         f"{strategy} seed {seed} start {start_index}: {len(scene.objects)} objects, {len(vps.viewpoints)} "
-        f"candidates; step 0 nodes {records[0]['n_nodes']} recall {records[0]['recall']:.3f}"
+        f"candidates, {len(bots)} robot(s); step 0 nodes {records[0]['n_nodes']} recall {records[0]['recall']:.3f}"
     )
 
     for step in range(1, steps + 1):
-        x, y, yaw = robot.pose_odom()
-        decision_s, gain, goal, reason = 0.0, 0.0, None, "no goal"
-        for _attempt in range(5):
-            state = RobotState(
-                robot_id=ROBOT_ID,
-                stamp_ns=time.time_ns(),
-                status="arrived",
-                x=x,
-                y=y,
-                yaw_rad=yaw,
-                T_world_cam=rows(robot.T_world_cam_odom()),
-                distance_m=robot.distance_m,
-                steps=step - 1,
-                travel_cost_m=travel_costs(nav, robot.pose_true()[:2], vp_xy),
-            )
-            goals = planner.plan(mapper.snapshot(), mapper.point_map(), {ROBOT_ID: (state, vps)})
-            decision_s += planner.info.decision_s
-            if not goals:
-                break
-            g = goals[0]
-            if robot.drive_to(g.x, g.y, g.yaw_rad):
-                goal, gain, reason = g, g.expected_gain, g.reason
-                break
-            planner.mark_failed(ROBOT_ID, g.vp_id)
-        if goal is not None:
-            drive(move_frames)
-            if goal_capture_m > 0:
-                capture(goal_capture_m)
-        ingest(robot.render(), robot.T_world_cam_true(), robot.T_world_cam_odom(), ROBOT_ID)
-        record(
-            step,
-            {
-                "decision_s": round(decision_s, 4),
-                "gain": round(float(gain), 4),
-                "goal": None
-                if goal is None
-                else [round(goal.x, 3), round(goal.y, 3), round(goal.yaw_rad, 3)],
-                "reason": reason,
-            },
-        )
+        chosen, decision_s = assign(step)
+        for b in bots:
+            if b.rid in chosen:
+                drive(b, move_frames)
+                if goal_capture_m > 0:
+                    capture(b, goal_capture_m)
+            arrive(b)
+        record(step, chosen, decision_s)
         r = records[-1]
         say(
             f"  step {step:2d}: nodes {r['n_nodes']:3d} recall {r['recall']:.3f} "
             f"dist {r['distance_m']:.1f} m "
-            f"decide {decision_s:.2f} s | {reason}"
+            f"decide {decision_s:.2f} s | " + " | ".join(f"{rid}: {p['reason']}" for rid, p in r["robots"].items())
         )
 
     return {
@@ -312,12 +418,15 @@ def run_episode(
         "seed": seed,
         "strategy": strategy,
         "external_cameras": int(external_cameras),
+        "robots": len(bots),
         "start_index": start_index,
         "start": list(start),
+        "starts": [list(p) for p in starts],
         "geometry": geometry,
         "perception": perception,
         "sampler": sampler,
         "n_true": len(scene.objects),
+        "n_rooms": len(scene.rooms),
         "n_candidates": len(vps.viewpoints),
         "external_ids": ext_ids,
         "seconds": round(time.perf_counter() - t_start, 2),
@@ -325,18 +434,51 @@ def run_episode(
     }
 
 
+def _goal_xyyaw(goal: Any) -> list[float] | None:
+    return None if goal is None else [round(goal.x, 3), round(goal.y, 3), round(goal.yaw_rad, 3)]
+
+
+def _team_steps(ep: dict[str, Any], rec: dict[str, Any]) -> int:
+    """The team's steps (goals issued) at a step record; older records without the field: one robot."""
+    return int(rec.get("team_steps", rec["step"] * int(ep.get("robots", 1))))
+
+
+def recall_at_team_steps(ep: dict[str, Any], k: int) -> float | None:
+    """Recall after the team has taken ``k`` steps (the last wall step within them); None past the episode."""
+    recs = ep["steps"]
+    if not recs or _team_steps(ep, recs[-1]) < k:
+        return None
+    return float([r for r in recs if _team_steps(ep, r) <= k][-1]["recall"])
+
+
+def reach(ep: dict[str, Any], level: float) -> dict[str, Any] | None:
+    """When an episode's recall first reaches ``level``: wall step, team steps and team metres (None: never)."""
+    from bench.eval import steps_to
+
+    recs = ep["steps"]
+    i = steps_to([r["recall"] for r in recs], level)
+    if i is None:
+        return None
+    return {"wall": int(recs[i]["step"]), "team": _team_steps(ep, recs[i]), "metres": float(recs[i]["distance_m"])}
+
+
 def summarize(
     episodes: list[dict[str, Any]], at_steps: tuple[int, ...] = REPORT_STEPS
 ) -> list[dict[str, Any]]:
-    """Mean and std over episodes of node count, recall and distance at the given steps, per method."""
-    groups: dict[tuple[str, int], list[dict[str, Any]]] = {}
+    """Per method (strategy, external cameras, robots): mean and std over episodes of node count, recall and
+    the team's metres at the given wall steps, recall at the same numbers of team steps, when each episode
+    reached 50 % / 80 % recall, and each robot's metres and frames at the end."""
+    from bench.eval import steps_to
+
+    groups: dict[tuple[str, int, int], list[dict[str, Any]]] = {}
     for ep in episodes:
-        groups.setdefault((ep["strategy"], ep["external_cameras"]), []).append(ep)
+        groups.setdefault((ep["strategy"], ep["external_cameras"], int(ep.get("robots", 1))), []).append(ep)
     rows = []
-    for (strategy, ext), eps in sorted(groups.items()):
+    for (strategy, ext, n_robots), eps in sorted(groups.items()):
         row: dict[str, Any] = {
             "strategy": strategy,
             "external_cameras": ext,
+            "robots": n_robots,
             "episodes": len(eps),
             "n_true_mean": float(np.mean([e["n_true"] for e in eps])),
         }
@@ -345,6 +487,28 @@ def summarize(
             for key in ("n_nodes", "recall", "distance_m"):
                 v = np.array([r[key] for r in recs], float)
                 row[f"{key}@{k}"] = [float(v.mean()), float(v.std())]
+            team = [recall_at_team_steps(e, k) for e in eps]
+            known = [t for t in team if t is not None]
+            row[f"recall@team{k}"] = (
+                None if len(known) < len(team) else [float(np.mean(known)), float(np.std(known))]
+            )
+        n_steps = min(len(e["steps"]) for e in eps)
+        mean_curve = np.mean([[r["recall"] for r in e["steps"][:n_steps]] for e in eps], axis=0)
+        row["recall_mean"] = [float(v) for v in mean_curve]
+        row["distance_mean"] = [float(np.mean([e["steps"][i]["distance_m"] for e in eps])) for i in range(n_steps)]
+        for level in RECALL_LEVELS:
+            tag = f"{int(round(100 * level))}%"
+            row[f"to{tag}"] = {
+                "mean_curve_wall": steps_to(mean_curve, level),
+                "runs": [reach(e, level) for e in eps],
+            }
+        per = [e["steps"][-1].get("robots") for e in eps]
+        if all(per):
+            rids = sorted(per[0])
+            row["robot_distance_m"] = {rid: float(np.mean([p[rid]["distance_m"] for p in per])) for rid in rids}
+            row["robot_frames"] = {rid: float(np.mean([p[rid]["frames"] for p in per])) for rid in rids}
+        elif n_robots == 1:  # records written before per-robot counts: the one robot drove the team's metres
+            row["robot_distance_m"] = {ROBOT_ID: float(np.mean([e["steps"][-1]["distance_m"] for e in eps]))}
         dec = [r["decision_s"] for e in eps for r in e["steps"][1:]]
         row["decision_s_mean"] = float(np.mean(dec)) if dec else 0.0
         row["decision_s_max"] = float(np.max(dec)) if dec else 0.0
@@ -352,7 +516,20 @@ def summarize(
     return rows
 
 
+def _reach_text(row: dict[str, Any], tag: str, key: str) -> str:
+    """``k/n`` runs that reached the level, and the range of steps (or metres) they needed."""
+    runs = row[f"to{tag}"]["runs"]
+    got = sorted(r[key] for r in runs if r is not None)
+    if not got:
+        return f"0/{len(runs)}"
+    fmt = (lambda v: f"{v:.0f}") if key == "metres" else str
+    span = fmt(got[0]) if got[0] == got[-1] else f"{fmt(got[0])}-{fmt(got[-1])}"
+    return f"{len(got)}/{len(runs)}: {span}"
+
+
 def markdown(rows: list[dict[str, Any]], at_steps: tuple[int, ...] = REPORT_STEPS) -> str:
+    """Two tables: node count and recall per wall step; then the team view (recall per team step, steps and
+    metres to 50 % / 80 % recall, each robot's metres and frames)."""
     head = (
         "| method | "
         + " | ".join(f"nodes@{k}" for k in at_steps)
@@ -362,15 +539,99 @@ def markdown(rows: list[dict[str, Any]], at_steps: tuple[int, ...] = REPORT_STEP
     )
     out = [head, "|" + "---|" * (2 + 2 * len(at_steps) + 1)]
     for r in rows:
-        name = r["strategy"].upper() + (" + Ext" if r["external_cameras"] else "")
         nodes = " | ".join("{:.1f} ± {:.1f}".format(*r[f"n_nodes@{k}"]) for k in at_steps)
         rec = " | ".join("{:.3f} ± {:.3f}".format(*r[f"recall@{k}"]) for k in at_steps)
         dist = "{:.1f} ± {:.1f}".format(*r[f"distance_m@{at_steps[-1]}"])
         out.append(
-            f"| {name} (n={r['episodes']}, GT {r['n_true_mean']:.0f}) | {nodes} | {rec} | {dist} | "
+            f"| {_method(r)} (n={r['episodes']}, GT {r['n_true_mean']:.0f}) | {nodes} | {rec} | {dist} | "
             f"{r['decision_s_mean']:.2f} (max {r['decision_s_max']:.2f}) |"
         )
+    team_k = [k for k in at_steps if k > 0]
+    out += [
+        "",
+        "| method | "
+        + " | ".join(f"recall@team {k}" for k in team_k)
+        + " | wall steps to 50 % | to 80 % | team steps to 50 % | to 80 % | team m to 50 % | to 80 % "
+        "| m per robot | frames per robot |",
+        "|" + "---|" * (1 + len(team_k) + 8),
+    ]
+    for r in rows:
+        team = " | ".join(
+            "-" if r.get(f"recall@team{k}") is None else "{:.3f} ± {:.3f}".format(*r[f"recall@team{k}"])
+            for k in team_k
+        )
+        reached = " | ".join(_reach_text(r, tag, key) for key in ("wall", "team", "metres") for tag in ("50%", "80%"))
+        dist = ", ".join(f"{v:.0f}" for v in r.get("robot_distance_m", {}).values()) or "-"
+        frames = ", ".join(f"{v:.0f}" for v in r.get("robot_frames", {}).values()) or "-"
+        out.append(f"| {_method(r)} | {team} | {reached} | {dist} | {frames} |")
+    out += [
+        "",
+        "Steps to a recall level: runs that reached it / runs, and the range over those runs. A wall step is one "
+        "round (one goal per robot); team steps count every robot's goals; metres are the team's (goal-capture "
+        "sidesteps included).",
+    ]
     return "\n".join(out)
+
+
+def _method(r: dict[str, Any]) -> str:
+    n = int(r.get("robots", 1))
+    return r["strategy"].upper() + (" + Ext" if r["external_cameras"] else "") + (f" x{n} robots" if n > 1 else "")
+
+
+def plot(rows: list[dict[str, Any]], path: Path) -> None:
+    """Mean recall against wall steps, the team's steps and the team's metres, one curve per method."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, axes = plt.subplots(1, 3, figsize=(14, 4))
+    colours = {s: f"C{i}" for i, s in enumerate(dict.fromkeys(r["strategy"] for r in rows))}
+    for r in rows:
+        m = np.array(r["recall_mean"])
+        wall = np.arange(len(m))
+        style = ["-", "--", ":", "-."][(int(r.get("robots", 1)) - 1) % 4]
+        kw = {"color": colours[r["strategy"]], "linestyle": style, "label": _method(r),
+              "alpha": 0.6 if r["external_cameras"] else 1.0}
+        axes[0].plot(wall, m, **kw)
+        axes[1].plot(wall * int(r.get("robots", 1)), m, **kw)
+        axes[2].plot(r["distance_mean"], m, **kw)
+    for ax, xl in zip(axes, ("wall step (one goal per robot)", "team steps (goals issued)",
+                             "team metres driven"), strict=True):
+        ax.set_xlabel(xl)
+        ax.set_ylabel("recall")
+        ax.xaxis.get_major_locator().set_params(integer=True)
+        ax.set_ylim(0, 1)
+        for level in RECALL_LEVELS:
+            ax.axhline(level, color="0.8", linewidth=0.8, zorder=0)
+    axes[0].legend(fontsize=7)
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def write_outputs(data: dict[str, Any], out: Path, at_steps: tuple[int, ...], command: str = "") -> list[Path]:
+    """``out`` (JSON with ``summary`` and ``episodes``), and beside it ``.md`` and ``.png``."""
+    out.parent.mkdir(parents=True, exist_ok=True)
+    out.write_text(json.dumps(data, indent=1))
+    eps = data["episodes"]
+
+    def values(key: str) -> str:
+        return ", ".join(sorted({str(e.get(key, "?")) for e in eps}))
+
+    head = (f"# argus explore\n\n`{command}`\n\n" if command else "# argus explore\n\n") + (
+        f"Family {values('family')}; seeds {values('seed')}; geometry {values('geometry')}; 2D perception "
+        f"{values('perception')} (sim: ORACLE masks and labels); objects {values('n_true')}.\n\n"
+    )
+    md, png = out.with_suffix(".md"), out.with_suffix(".png")
+    md.write_text(head + markdown(data["summary"], at_steps) + "\n")
+    plot(data["summary"], png)
+    return [out, md, png]
+
+
+def report_steps(steps: int) -> tuple[int, ...]:
+    """The wall steps the tables report: those of REPORT_STEPS within the budget, and the last step."""
+    return tuple(sorted({k for k in REPORT_STEPS if k <= steps} | {max(0, int(steps))}))
 
 
 def _ints(text: str) -> list[int]:
@@ -389,7 +650,9 @@ def parser() -> argparse.ArgumentParser:
         prog="argus explore",
         description="Closed-loop exploration in the simulator (robot, cameras, mapper, planner in-process).",
         epilog="examples:\n  argus explore --strategy see asp --steps 30 --seeds 0 --starts 3 --out ex.json\n"
-        "  argus explore --strategy asp --ext-cams 1 --steps 10 --geometry oracle --perception sim",
+        "  argus explore --strategy asp --ext-cams 1 --steps 10 --geometry oracle --perception sim\n"
+        "  argus explore --robots 1 2 --seeds 3,4 --starts 2 --out ex/team.json   # + ex/team.md, ex/team.png\n"
+        "  argus explore --family apartment_large --robots 2 --steps 30 --seeds 0 --starts 1",
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     p.add_argument("--strategy", nargs="+", choices=["see", "asp"], default=["see", "asp"], help="strategies")
@@ -406,7 +669,17 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--starts", type=int, default=3, help="number of start poses (indices 0..N-1)")
     p.add_argument("--start-list", default=None, help="explicit start indices instead, e.g. 0,4,5")
     p.add_argument(
-        "--family", default="apartment", choices=["apartment", "furnished_room"], help="scene family"
+        "--family",
+        default="apartment",
+        choices=list(get_args(Family)),
+        help="scene family (apartment_large: 7-9 rooms, ~150-190 objects; see argus sim)",
+    )
+    p.add_argument(
+        "--robots",
+        nargs="+",
+        type=int,
+        default=[1],
+        help="robots in the team (several values: one run each), e.g. --robots 1 2",
     )
     p.add_argument("--geometry", default="oracle", choices=["oracle", "mvs"], help="mapper geometry backend")
     p.add_argument("--perception", default="sim", choices=["sim"], help="2D perception (sim: ORACLE masks)")
@@ -444,7 +717,19 @@ def parser() -> argparse.ArgumentParser:
         help="mapper config override, e.g. --mapper-set single_view.untrusted_poses=true (see argus mapper --describe)",
     )
     p.add_argument(
-        "--out", type=Path, default=None, help="write the JSON here (default: stdout summary only)"
+        "--out",
+        type=Path,
+        default=None,
+        help="write the JSON here, the Markdown tables and the recall plot beside it (.md, .png)",
+    )
+    p.add_argument(
+        "--report",
+        type=Path,
+        nargs="+",
+        default=None,
+        metavar="JSON",
+        help="run nothing: summarise the episodes of earlier --out JSONs again, together (e.g. a 1-robot and a "
+        "2-robot run); writes --out (default: over the first)",
     )
     p.add_argument("--quiet", action="store_true", help="no per-step lines")
     return p
@@ -476,6 +761,12 @@ def main(argv: list[str] | None = None) -> int:
             print(f"argus explore: bad --mapper-set: {bad}", file=sys.stderr)
             return 2
     starts = _ints(a.start_list) if a.start_list else list(range(a.starts))
+    at_steps = report_steps(a.steps)
+    if a.report is not None:
+        return _rereport(a.report, a.out or a.report[0], at_steps)
+    if any(n < 1 for n in a.robots):
+        print("argus explore: --robots must be >= 1", file=sys.stderr)
+        return 2
     logging.basicConfig(level=logging.WARNING, format="%(levelname)s %(name)s: %(message)s")
 
     def say(s: str) -> None:
@@ -485,34 +776,53 @@ def main(argv: list[str] | None = None) -> int:
     episodes = []
     for seed in _ints(a.seeds):
         for ext in a.ext_cams:
-            for strategy in a.strategy:
-                for start in starts:
-                    episodes.append(
-                        run_episode(
-                            family=a.family,
-                            seed=seed,
-                            strategy=strategy,
-                            external_cameras=ext,
-                            steps=a.steps,
-                            start_index=start,
-                            geometry=a.geometry,
-                            perception=a.perception,
-                            sampler=a.sampler,
-                            torch_threads=a.threads,
-                            odometry_noise=a.odometry_noise,
-                            move_frames=a.move_frames,
-                            goal_capture_m=a.goal_capture,
-                            planner_overrides=overrides,
-                            mapper_overrides=mapper_overrides,
-                            log_fn=say,
+            for n_robots in a.robots:
+                for strategy in a.strategy:
+                    for start in starts:
+                        episodes.append(
+                            run_episode(
+                                family=a.family,
+                                seed=seed,
+                                strategy=strategy,
+                                external_cameras=ext,
+                                steps=a.steps,
+                                start_index=start,
+                                geometry=a.geometry,
+                                perception=a.perception,
+                                sampler=a.sampler,
+                                torch_threads=a.threads,
+                                odometry_noise=a.odometry_noise,
+                                move_frames=a.move_frames,
+                                goal_capture_m=a.goal_capture,
+                                planner_overrides=overrides,
+                                mapper_overrides=mapper_overrides,
+                                robots=n_robots,
+                                log_fn=say,
+                            )
                         )
-                    )
-    rows = summarize(episodes, tuple(k for k in REPORT_STEPS if k <= a.steps) or (0, a.steps))
-    print(markdown(rows, tuple(k for k in REPORT_STEPS if k <= a.steps) or (0, a.steps)))
+    rows = summarize(episodes, at_steps)
+    print(markdown(rows, at_steps))
     if a.out is not None:
-        a.out.parent.mkdir(parents=True, exist_ok=True)
-        a.out.write_text(json.dumps({"summary": rows, "episodes": episodes}, indent=1))
-        print(f"wrote {a.out}")
+        command = "argus explore " + " ".join(sys.argv[1:] if argv is None else argv)
+        for path in write_outputs({"summary": rows, "episodes": episodes}, a.out, at_steps, command):
+            print(f"wrote {path}")
+    return 0
+
+
+def _rereport(sources: list[Path], out: Path, at_steps: tuple[int, ...]) -> int:
+    """``--report``: the summary, tables and plot of earlier runs' episodes, recomputed together."""
+    episodes: list[dict[str, Any]] = []
+    try:
+        for src in sources:
+            episodes += json.loads(src.read_text())["episodes"]
+        rows = summarize(episodes, at_steps)
+    except (OSError, ValueError, KeyError, TypeError) as e:
+        print(f"argus explore: cannot read episodes from {', '.join(map(str, sources))}: {e}", file=sys.stderr)
+        return 2
+    print(markdown(rows, at_steps))
+    command = "argus explore --report " + " ".join(map(str, sources))
+    for path in write_outputs({"summary": rows, "episodes": episodes}, out, at_steps, command):
+        print(f"wrote {path}")
     return 0
 
 

@@ -18,11 +18,20 @@ import math
 import sys
 import time
 from pathlib import Path
-from typing import Any
+from typing import Any, get_args
 
 import numpy as np
 
-from sim.config import BenchConfig, CameraConfig, CheckConfig, ExportConfig, RenderConfig, SceneSource, ViewConfig
+from sim.config import (
+    BenchConfig,
+    CameraConfig,
+    CheckConfig,
+    ExportConfig,
+    Family,
+    RenderConfig,
+    SceneSource,
+    ViewConfig,
+)
 
 
 def _parse_seeds(text: str) -> list[int]:
@@ -258,7 +267,8 @@ def run_bench(cfg: BenchConfig) -> dict[str, Any]:
 
 
 def _source_args(p: argparse.ArgumentParser) -> None:
-    p.add_argument("--family", choices=["apartment", "furnished_room"], default="apartment", help="scene family")
+    p.add_argument("--family", choices=list(get_args(Family)), default="apartment",
+                   help="scene family (apartment_large: 7-9 rooms, 150-190 objects)")
     p.add_argument("--seed", type=int, default=0, help="generator seed")
     p.add_argument("--scene", default=None, help="load this scene JSON instead of generating")
 
@@ -304,7 +314,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--fixed", type=int, default=2)
     p = sub.add_parser("check", help="generate many scenes and run the sanity checks")
     p.add_argument("--seeds", type=_parse_seeds, default=list(range(50)), help="e.g. 0-49 or 0,3,7")
-    p.add_argument("--families", default="apartment,furnished_room")
+    p.add_argument("--families", default="apartment,furnished_room",
+                   help=f"comma-separated, of {', '.join(get_args(Family))}")
     p.add_argument("--full", action="store_true", help="also check interpenetration (slower)")
     p.add_argument("--out", default=None, help="JSON report path")
     p = sub.add_parser("bench", help="render time per frame for the ray-casting backends")

@@ -6,8 +6,8 @@ from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
-Family = Literal["apartment", "furnished_room"]
-FAMILIES: tuple[Family, ...] = ("apartment", "furnished_room")
+Family = Literal["apartment", "furnished_room", "apartment_large"]  # sim.scene.FAMILIES (append only)
+FAMILIES: tuple[Family, ...] = ("apartment", "furnished_room", "apartment_large")
 RenderBackend = Literal["embree", "open3d"]
 RENDER_BACKENDS: tuple[RenderBackend, ...] = ("embree", "open3d")
 

@@ -1,10 +1,13 @@
 """Procedural scenes of the embedded world, deterministic from ``(family, seed)``.
 
-Two families, like the paper's ReplicaCAD split:
+Two families, like the paper's ReplicaCAD split, and a larger apartment setting:
 
 * ``apartment``: 4-6 rooms (living room, kitchen, bedrooms, bathroom, office) joined by doorways, about
   100-130 objects with small items on furniture and inside open containers;
-* ``furnished_room``: one room with about 20-30 larger objects.
+* ``furnished_room``: one room with about 20-30 larger objects;
+* ``apartment_large``: the same generator on a bigger footprint (14-18 m x 9-11.5 m) with 7-9 rooms (a
+  dining room, up to three bedrooms, a second bathroom) and 150-190 objects: exploration that needs
+  more than a few rooms' worth of steps (see ``APARTMENT_SPECS``).
 
 The scene is the ground truth every quality figure is measured against: object ids, natural-language
 labels, rooms, world-frame meshes, poses, gravity-aligned oriented boxes, support parents and relations
@@ -29,7 +32,7 @@ from sim import catalog
 from sim.catalog import CATEGORIES, Model, Surface
 from sim.materials import Material, make_material
 
-FAMILIES: tuple[str, ...] = ("apartment", "furnished_room")
+FAMILIES: tuple[str, ...] = ("apartment", "furnished_room", "apartment_large")  # append only: the index seeds
 PREDICATES: tuple[str, ...] = ("on_top_of", "inside", "next_to")
 WALL_T_M = 0.1
 DOOR_W_M = 0.9
@@ -280,6 +283,27 @@ _ROOM_ORDER = {
     4: ["living_room", "bedroom", "kitchen", "bathroom"],
     5: ["living_room", "bedroom", "kitchen", "office", "bathroom"],
     6: ["living_room", "bedroom", "kitchen", "bedroom", "office", "bathroom"],
+    7: ["living_room", "bedroom", "kitchen", "dining_room", "bedroom", "office", "bathroom"],
+    8: ["living_room", "bedroom", "kitchen", "dining_room", "bedroom", "office", "bedroom", "bathroom"],
+    9: ["living_room", "bedroom", "kitchen", "dining_room", "bedroom", "office", "bedroom", "bathroom", "bathroom"],
+}
+
+
+@dataclass(frozen=True)
+class ApartmentSpec:
+    """Size of an apartment family: room counts, footprint and object count, each drawn per seed."""
+
+    rooms: tuple[int, ...]  # room counts to draw from
+    rooms_p: tuple[float, ...]  # their probabilities
+    width_m: tuple[float, float]  # footprint width range (the longer side)
+    width_small_m: tuple[float, float]  # width range when fewer than 5 rooms are drawn
+    depth_m: tuple[float, float]  # footprint depth range
+    objects: tuple[int, int]  # object count range (inclusive)
+
+
+APARTMENT_SPECS: dict[str, ApartmentSpec] = {
+    "apartment": ApartmentSpec((4, 5, 6), (0.15, 0.4, 0.45), (9.0, 12.5), (8.0, 10.5), (6.5, 8.5), (100, 130)),
+    "apartment_large": ApartmentSpec((7, 8, 9), (0.3, 0.4, 0.3), (14.0, 18.0), (14.0, 18.0), (9.0, 11.5), (150, 190)),
 }
 
 # Furniture plans per room kind: (category, rule, probability). Rules: wall, corner, center,
@@ -519,12 +543,12 @@ class _RoomPlanner:
         return {0: 0, 1: 3, 2: 1, 3: 2}[k]
 
 
-def _split_layout(rng: np.random.Generator, n_rooms: int) -> tuple[list[np.ndarray], list[tuple[float, float, int]],
-                                                                     tuple[float, float]]:
+def _split_layout(rng: np.random.Generator, n_rooms: int, spec: ApartmentSpec = APARTMENT_SPECS["apartment"]
+                  ) -> tuple[list[np.ndarray], list[tuple[float, float, int]], tuple[float, float]]:
     """Recursive splits of a rectangular footprint; returns room rects, doors (x, y, axis) and size."""
     for _attempt in range(50):
-        W = float(rng.uniform(9.0, 12.5)) if n_rooms >= 5 else float(rng.uniform(8.0, 10.5))
-        D = float(rng.uniform(6.5, 8.5))
+        W = float(rng.uniform(*spec.width_m)) if n_rooms >= 5 else float(rng.uniform(*spec.width_small_m))
+        D = float(rng.uniform(*spec.depth_m))
         rects = [np.array([0.0, 0.0, W, D])]
         doors: list[tuple[float, float, int]] = []
         ok = True
@@ -987,15 +1011,16 @@ def generate_scene(family: str, seed: int) -> Scene:
     rng = np.random.default_rng([seed & 0xFFFFFFFF, fam_code, 0xA5605])
     b = _Builder(rng)
     H = round(float(rng.uniform(2.5, 2.8)), 2)
-    if family == "apartment":
-        n_rooms = int(rng.choice([4, 5, 6], p=[0.15, 0.4, 0.45]))
-        rects, raw_doors, size = _split_layout(rng, n_rooms)
+    if family in APARTMENT_SPECS:
+        spec = APARTMENT_SPECS[family]
+        n_rooms = int(rng.choice(list(spec.rooms), p=list(spec.rooms_p)))
+        rects, raw_doors, size = _split_layout(rng, n_rooms, spec)
         areas = [(r[2] - r[0]) * (r[3] - r[1]) for r in rects]
         order = np.argsort(areas)[::-1]
         kinds = [""] * n_rooms
         for rank, idx in enumerate(order):
             kinds[int(idx)] = _ROOM_ORDER[n_rooms][rank]
-        target = int(rng.integers(100, 131))
+        target = int(rng.integers(spec.objects[0], spec.objects[1] + 1))
     else:
         W, D = float(rng.uniform(4.5, 6.5)), float(rng.uniform(4.0, 5.5))
         rects, raw_doors, size = [np.array([0.0, 0.0, W, D])], [], (W, D)

@@ -9,7 +9,17 @@ from typing import Any
 import numpy as np
 import pytest
 
-from bench.explore import main, run_episode, start_pose, summarize
+from bench.explore import (
+    main,
+    markdown,
+    reach,
+    recall_at_team_steps,
+    report_steps,
+    run_episode,
+    start_pose,
+    summarize,
+    team_starts,
+)
 from protocol.messages import Viewpoint
 
 
@@ -134,3 +144,122 @@ def test_a_calibrated_external_camera_maps_at_step_0_with_rgb_only_geometry() ->
     kw = dict(family="furnished_room", seed=1, strategy="see", steps=0, start_index=0, geometry="mvs")
     ext = run_episode(**kw, external_cameras=1)  # type: ignore[arg-type]
     assert ext["steps"][0]["n_nodes"] > 0
+
+
+def test_team_starts_dock_the_robots_near_the_first() -> None:
+    xy = np.array([[0.0, 0.0], [0.3, 0.0], [0.6, 0.0], [1.2, 0.0], [0.0, 0.7], [5.0, 5.0]])
+    geo = np.array([0.0, 0.3, 0.6, 1.2, np.inf, 7.0])  # (0, 0.7) is across a wall: unreachable from the dock
+    starts = team_starts((0.0, 0.0, 0.5), xy, geo, 3, gap_m=0.6)
+    assert starts[0] == (0.0, 0.0, 0.5)
+    assert [s[:2] for s in starts[1:]] == [(0.6, 0.0), (1.2, 0.0)]  # nearest along the floor, >= 0.6 m apart
+    yaws = [s[2] for s in starts]
+    assert yaws[1] == pytest.approx(0.5 + 2 * np.pi / 3) and yaws[2] == pytest.approx(0.5 + 4 * np.pi / 3 - 2 * np.pi)
+    assert team_starts((0.0, 0.0, 0.5), xy, geo, 1) == [(0.0, 0.0, 0.5)]
+    with pytest.raises(ValueError, match="robot 2"):
+        team_starts((0.0, 0.0, 0.0), xy[:3], geo[:3], 3, gap_m=0.6)
+
+
+def _team_ep(strategy: str, recalls: list[float], robots: int, per_step_m: float = 1.0) -> dict:
+    return {
+        "strategy": strategy,
+        "external_cameras": 0,
+        "robots": robots,
+        "n_true": 10,
+        "steps": [
+            {
+                "step": i,
+                "team_steps": i * robots,
+                "n_nodes": i,
+                "recall": r,
+                "distance_m": per_step_m * i * robots,
+                "decision_s": 0.1,
+                "robots": {f"robot{k}": {"distance_m": per_step_m * i, "frames": 1 + i} for k in range(robots)},
+            }
+            for i, r in enumerate(recalls)
+        ],
+    }
+
+
+def test_team_figures_count_every_robots_steps() -> None:
+    two = _team_ep("asp", [0.1, 0.4, 0.6, 0.85], robots=2)
+    assert recall_at_team_steps(two, 2) == 0.4 and recall_at_team_steps(two, 3) == 0.4
+    assert recall_at_team_steps(two, 6) == 0.85 and recall_at_team_steps(two, 7) is None
+    assert reach(two, 0.5) == {"wall": 2, "team": 4, "metres": 4.0}
+    assert reach(two, 0.8) == {"wall": 3, "team": 6, "metres": 6.0}
+    assert reach(two, 0.9) is None
+    one = _team_ep("asp", [0.1, 0.3, 0.5, 0.6], robots=1)
+    rows = summarize([one, two], (0, 2, 3))
+    r1, r2 = sorted(rows, key=lambda r: r["robots"])
+    assert (r1["robots"], r2["robots"]) == (1, 2)
+    assert r2["recall@2"] == pytest.approx([0.6, 0.0]) and r2["recall@team2"] == pytest.approx([0.4, 0.0])
+    assert r1["recall@team2"] == r1["recall@2"]  # one robot: team steps are wall steps
+    assert r2["recall@team3"] is not None and r1["to80%"]["runs"] == [None]
+    assert r2["to80%"] == {"mean_curve_wall": 3, "runs": [{"wall": 3, "team": 6, "metres": 6.0}]}
+    assert r2["robot_distance_m"] == {"robot0": 3.0, "robot1": 3.0} and r2["robot_frames"]["robot1"] == 4.0
+    md = markdown(rows, (0, 2, 3))
+    assert "ASP x2 robots" in md and "1/1: 6" in md and "0/1" in md
+
+
+def test_records_without_per_robot_counts_still_summarise() -> None:
+    """JSONs written before the team counts (one robot, no ``robots`` / ``team_steps`` per step)."""
+    old = _team_ep("see", [0.1, 0.6], robots=1, per_step_m=2.0)
+    del old["robots"]
+    for rec in old["steps"]:
+        del rec["robots"], rec["team_steps"]
+    (row,) = summarize([old], (0, 1))
+    assert row["robots"] == 1 and row["recall@team1"] == pytest.approx([0.6, 0.0])
+    assert row["robot_distance_m"] == {"robot0": 2.0} and "robot_frames" not in row
+
+
+def test_report_steps_include_the_last_step() -> None:
+    assert report_steps(30) == (0, 10, 20, 30)
+    assert report_steps(3) == (0, 3)
+    assert report_steps(15) == (0, 10, 15)
+
+
+def test_report_rewrites_tables_and_plot_from_episodes(tmp_path: Path) -> None:
+    src, src1 = tmp_path / "two.json", tmp_path / "one.json"
+    src.write_text(json.dumps({"episodes": [_team_ep("see", [0.1, 0.5, 0.9], 2)]}))
+    src1.write_text(json.dumps({"episodes": [_team_ep("see", [0.1, 0.6], 1)]}))
+    out = tmp_path / "again.json"
+    assert main(["--report", str(src), str(src1), "--out", str(out), "--steps", "2"]) == 0
+    assert "SEE x2 robots" in out.with_suffix(".md").read_text()
+    old = json.loads(out.read_text())["summary"]
+    assert next(r for r in old if r["robots"] == 2)["robot_frames"] == {"robot0": 3.0, "robot1": 3.0}
+    assert out.with_suffix(".png").stat().st_size > 1000
+    assert len(json.loads(out.read_text())["summary"]) == 2
+    (tmp_path / "bad.json").write_text("{}")
+    assert main(["--report", str(tmp_path / "bad.json")]) == 2
+
+
+def test_two_robots_both_move_and_both_map() -> None:
+    """A short bounded 2-robot episode: each robot drives to its own goals (kept apart by the planner's
+    claims), each gives the mapper its frames, and the team counts both robots' steps and metres."""
+    from mapper.core import MapperCore
+
+    sources: list[str] = []
+    orig = MapperCore.ingest
+
+    def spy(self: MapperCore, view: Any, force_keyframe: bool = False) -> Any:
+        sources.append(view.source_id)
+        return orig(self, view, force_keyframe)
+
+    MapperCore.ingest = spy  # type: ignore[method-assign]
+    try:
+        ep = run_episode(family="furnished_room", seed=1, strategy="see", steps=2, start_index=0, robots=2)
+    finally:
+        MapperCore.ingest = orig  # type: ignore[method-assign]
+    assert ep["robots"] == 2 and len(ep["starts"]) == 2
+    (x0, y0, _), (x1, y1, _) = ep["starts"]
+    assert np.hypot(x1 - x0, y1 - y0) >= 0.6
+    assert sources.count("robot0") == 3 and sources.count("robot1") == 3  # start view + one per step each
+    last = ep["steps"][-1]
+    assert [s["team_steps"] for s in ep["steps"]] == [0, 2, 4]
+    per = last["robots"]
+    assert per["robot0"]["distance_m"] > 0 and per["robot1"]["distance_m"] > 0
+    assert per["robot0"]["frames"] == 3 and per["robot1"]["frames"] == 3
+    assert last["distance_m"] == pytest.approx(per["robot0"]["distance_m"] + per["robot1"]["distance_m"], abs=3e-3)
+    for s in ep["steps"][1:]:
+        g0, g1 = s["robots"]["robot0"]["goal"], s["robots"]["robot1"]["goal"]
+        assert g0 is not None and g1 is not None
+        assert np.hypot(g0[0] - g1[0], g0[1] - g1[1]) >= 1.0  # planner.claim_radius_m
