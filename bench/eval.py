@@ -36,7 +36,7 @@ from typing import Any
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
-from bench.explore import core_config
+from bench.explore import core_config, steps_to
 from bench.report import machine, markdown_table
 
 EXPERIMENTS = ("static", "external", "active")
@@ -468,11 +468,6 @@ def run_active(cfg: ActiveConfig, torch_threads: int, log: Callable[[str], None]
                                "distance_mean": d.mean(0).tolist(),
                                "steps_to": {f"{int(100 * q)}%": steps_to(r.mean(0), q) for q in (0.5, 0.8)}})
     return {"config": cfg.model_dump(mode="json"), "curves": curves, "label": _label(cfg.geometry, cfg.perception)}
-
-
-def steps_to(recall: Sequence[float], level: float) -> int | None:
-    """The first step at which ``recall`` reaches ``level`` (None: never)."""
-    return next((i for i, v in enumerate(recall) if v >= level), None)
 
 
 def _episode_curves(ep: Any, steps: int) -> tuple[list[float], list[float], list[float]]:

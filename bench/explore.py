@@ -33,7 +33,7 @@ import logging
 import math
 import sys
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, get_args
@@ -140,6 +140,11 @@ class _Bot:
     @property
     def distance_m(self) -> float:
         return float(self.robot.distance_m) + self.capture_m
+
+
+def steps_to(recall: Sequence[float], level: float) -> int | None:
+    """The first step at which ``recall`` reaches ``level`` (None: never)."""
+    return next((i for i, v in enumerate(recall) if v >= level), None)
 
 
 def run_episode(
@@ -453,8 +458,6 @@ def recall_at_team_steps(ep: dict[str, Any], k: int) -> float | None:
 
 def reach(ep: dict[str, Any], level: float) -> dict[str, Any] | None:
     """When an episode's recall first reaches ``level``: wall step, team steps and team metres (None: never)."""
-    from bench.eval import steps_to
-
     recs = ep["steps"]
     i = steps_to([r["recall"] for r in recs], level)
     if i is None:
@@ -468,7 +471,6 @@ def summarize(
     """Per method (strategy, external cameras, robots): mean and std over episodes of node count, recall and
     the team's metres at the given wall steps, recall at the same numbers of team steps, when each episode
     reached 50 % / 80 % recall, and each robot's metres and frames at the end."""
-    from bench.eval import steps_to
 
     groups: dict[tuple[str, int, int], list[dict[str, Any]]] = {}
     for ep in episodes:
