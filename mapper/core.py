@@ -26,7 +26,15 @@ import numpy as np
 from mapper.association import KeyframeView
 from mapper.config import MapperCoreConfig
 from mapper.consistency import downsample, verify_depth
-from mapper.fusion import LiftStats, Object3D, ObjectMap, UpdateResult, lift_detections, outside_fraction
+from mapper.fusion import (
+    LiftStats,
+    Object3D,
+    ObjectMap,
+    UpdateResult,
+    lift_detections,
+    outside_fraction,
+    resize_mask,
+)
 from mapper.geometry.contract import Reconstructor, View
 from mapper.geometry.features import Features, LruCache, extract_features
 from mapper.geometry.posecheck import rotation_between
@@ -391,7 +399,8 @@ class MapperCore:
         with the camera centre as coarse."""
         sv = self.config.single_view
         K = intrinsics_of(view).K()
-        shown = [d.mask for d in dets]
+        h, w = view.image.shape[:2]
+        shown = [resize_mask(d.mask, h, w) for d in dets]  # a worker's masks may come at the depth's size
         boxes = place_objects(shown, K, T_world_cam, sv.params(), view.image if sv.floor_colour_check else None)
         # Only floor contacts: a guess stacked on another guess (a vase on a shelf) is too loose to keep.
         pick = [i for i in which if (b := boxes[i]) is not None and b.support < 0]
