@@ -68,7 +68,7 @@ class WorldSpec(BaseModel):
     """The embedded simulated world a stack runs in (for sim sources and for scoring)."""
 
     model_config = ConfigDict(extra="forbid")
-    family: Literal["apartment", "furnished_room"] = Field(
+    family: Literal["apartment", "furnished_room", "apartment_large"] = Field(
         default="apartment", description="scene family ({family} in args/settings)"
     )
     seed: int = Field(default=0, ge=0, description="scene seed ({seed} in args/settings)")

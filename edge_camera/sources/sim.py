@@ -22,7 +22,9 @@ from protocol.messages import Intrinsics
 
 class Config(SourceConfig):
     type: Literal["sim"] = Field(default="sim", description="fixed camera in the simulated world")
-    family: Literal["apartment", "furnished_room"] = Field(default="apartment", description="scene family")
+    family: Literal["apartment", "furnished_room", "apartment_large"] = Field(
+        default="apartment", description="scene family"
+    )
     seed: int = Field(default=0, ge=0, description="scene seed")
     n_cameras: int = Field(default=1, ge=1, le=3, description="cameras placed in the scene (1..3)")
     camera_index: int = Field(default=0, ge=0, le=2, description="which placed camera this source is")

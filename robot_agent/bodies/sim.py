@@ -21,7 +21,9 @@ from robot_agent.bodies.base import BodyConfig, BodyConfigError, BodyStatus, Cap
 
 class Config(BodyConfig):
     type: Literal["sim"] = Field(default="sim", description="robot in the simulated world")
-    family: Literal["apartment", "furnished_room"] = Field(default="apartment", description="scene family")
+    family: Literal["apartment", "furnished_room", "apartment_large"] = Field(
+        default="apartment", description="scene family"
+    )
     seed: int = Field(default=0, ge=0, description="scene seed")
     start: tuple[float, float, float] | None = Field(
         default=None, description="start pose x, y, yaw_rad (default: a viewpoint picked by start_seed)"
