@@ -254,7 +254,13 @@ def test_up_killed_hard_then_started_again_cleans_temp_folder_and_ready_file(tmp
     again = Proc(["up", str(launch), "--ready-file", str(ready)], env=env)
     procs.append(again)
     wait_for(lambda: not stale.exists(), timeout=20, what="the dead launcher's temp folder removed")
-    wait_for(lambda: ready.exists() and ready.read_text() != old, timeout=40, what="a fresh ready file")
+    def fresh() -> bool:  # the new launcher removes the stale file at any moment: read it once, or not at all
+        try:
+            return ready.read_text() != old
+        except FileNotFoundError:
+            return False
+
+    wait_for(fresh, timeout=40, what="a fresh ready file")
     os.kill(again.popen.pid, signal.SIGINT)
     assert again.wait(30) == 0, again.output
     assert not ready.exists(), "a stopped stack left its ready file"
