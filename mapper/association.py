@@ -66,9 +66,8 @@ def containment(view: KeyframeView, clouds: Sequence[np.ndarray], masks: Sequenc
         step = max(1, -(-len(pts) // max_points))
         parts.append(np.asarray(pts)[::step])
         owner.append(np.full(len(parts[-1]), k, np.intp))
-    pts_all = np.concatenate(parts) if parts else np.zeros((0, 3))
-    who = np.concatenate(owner) if owner else np.zeros(0, np.intp)
-    r, c, idx = view.visible_pixels(pts_all, margin_m, margin_rel)
+    r, c, idx = view.visible_pixels(np.concatenate(parts), margin_m, margin_rel)
+    who = np.concatenate(owner)
     vis_owner = who[idx]
     n_vis = np.bincount(vis_owner, minlength=len(clouds)).astype(np.float64)
     judged = n_vis >= min_points

@@ -307,7 +307,10 @@ class MapperCore:
         # Only the depth check reads the stored maps: do not pay for them when it is off.
         depth_map = downsample(vg.depth_m, vg.confidence, K_out, T_world_cam, dc.map_width, 0.5) if dc.enabled else None
         self.keyframes.add(view, T_world_cam, depth_m, depth_map)
-        return self._fuse(view, vg, T_world_cam, times, dets=products.detections)
+        # Measured depth: the detections are also matched to nodes in the image (confident depth only).
+        sure = np.where(vg.confidence >= self.config.fusion.min_depth_confidence, vg.depth_m, 0.0)
+        kv = KeyframeView(K_out, T_world_cam, sure)
+        return self._fuse(view, vg, T_world_cam, times, dets=products.detections, kv=kv)
 
     def _single_view(self, view: View) -> UpdateResult | None:
         """Objects of a posed view with no stereo partner, placed from the floor plane (coarse, low confidence;
@@ -332,9 +335,10 @@ class MapperCore:
 
     def _fuse(self, view: View, vg: ViewGeometry, T_world_cam: np.ndarray, times: dict[str, float],
               masks: list[Mask2D] | None = None, floor_masks: list[np.ndarray] | None = None,
-              dets: list[Detection] | None = None) -> UpdateResult:
+              dets: list[Detection] | None = None, kv: KeyframeView | None = None) -> UpdateResult:
         """2D perception (unless ``dets`` or ``masks`` are given), lifting and fusion of one keyframe's geometry.
-        ``floor_masks`` (the masks it placed on the floor) marks a single-view keyframe."""
+        ``floor_masks`` (the masks it placed on the floor) marks a single-view keyframe; ``kv`` (a measured
+        keyframe's camera and confident depth) lets fusion match detections to nodes in the image."""
         single_view = floor_masks is not None
         outside = outside_fraction(vg.points_world, vg.confidence, vg.depth_m, self.config.fusion)
         if outside > self.config.fusion.max_outside_fraction:
@@ -368,11 +372,6 @@ class MapperCore:
                     view.image, [d.mask for d in dets], [d.descriptor for d in dets], intrinsics_of(view).K(),
                     T_world_cam, floor_masks, self.config.single_view.floor_z_m)
                 self._seen.put(view.source_id, seen)
-        kv = None
-        if not single_view:  # measured depth: its detections are also matched to nodes in the image
-            h, w = vg.depth_m.shape
-            sure = np.where(vg.confidence >= self.config.fusion.min_depth_confidence, vg.depth_m, 0.0)
-            kv = KeyframeView(intrinsics_of(view).scaled(w, h).K(), T_world_cam, sure)
         res = self.objects.integrate(objs, view.source_id, view.stamp_ns or time.time_ns(), kv)
         if single_view:
             # Other cameras' placements of the same objects fix their depth, and what they saw as free space
