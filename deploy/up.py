@@ -58,6 +58,7 @@ from deploy.query import query_hint
 from deploy.secure import SecureSite, SecuritySpec, prepare
 from protocol.keys import Keys, validate_id
 from protocol.runtime import kill_with_parent
+from sim.config import Family
 
 # The liveliness role a command declares (``alive/<role>/<id>``) when it differs from the command
 # name; used when a launch entry does not name its role.
@@ -68,7 +69,7 @@ class WorldSpec(BaseModel):
     """The embedded simulated world a stack runs in (for sim sources and for scoring)."""
 
     model_config = ConfigDict(extra="forbid")
-    family: Literal["apartment", "furnished_room", "apartment_large"] = Field(
+    family: Family = Field(
         default="apartment", description="scene family ({family} in args/settings)"
     )
     seed: int = Field(default=0, ge=0, description="scene seed ({seed} in args/settings)")
