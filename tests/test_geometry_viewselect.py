@@ -100,3 +100,20 @@ def test_store_fills_with_the_nearest_views_that_have_parallax() -> None:
     store.add(_view(cam(1.50), 4))
     got = store.neighbours(_view(cam(0.0), 99), depth_m=3.0)
     assert [v.seq for v in got] == [2, 3]
+
+
+def test_second_source_covers_what_the_first_does_not() -> None:
+    """Two near-twin sources that see the left of the reference's view score best one by one; the
+    depth check needs a second view of the right part too, so the pick after the first is the one that
+    sees it, not the twin."""
+    ref = cam(0.0)
+    left, right = TARGET + np.array([-1.2, 0.0, 0.0]), TARGET + np.array([1.6, 0.0, 0.0])
+    cands = [Candidate(0, cam(0.4, target=left), INTR), Candidate(1, cam(0.55, target=left), INTR),
+             Candidate(2, cam(-0.4, target=right), INTR)]
+    scores = {s.index: s.score for s in score_sources(ref, INTR, 3.0, cands)}
+    assert min(scores[0], scores[1]) > scores[2]  # one by one, the twins win
+    chosen = [s.index for s in select_sources(ref, INTR, 3.0, cands, k=2)]
+    assert chosen[0] in (0, 1) and chosen[1] == 2
+    # With every ray weighed alike whatever covers it, the selection is by score alone: the twins.
+    flat = [s.index for s in select_sources(ref, INTR, 3.0, cands, k=2, coverage_weights=(1.0,))]
+    assert sorted(flat) == [0, 1]

@@ -62,18 +62,24 @@ def sample_rays(intr: Intrinsics, nu: int = 12, nv: int = 9) -> F64:
     return np.stack([(gu - intr.cx) / intr.fx, (gv - intr.cy) / intr.fy, np.ones_like(gu)], -1).reshape(-1, 3)
 
 
-def overlap_fraction(points_world: F64, T_world_cam: F64, intr: Intrinsics) -> float:
-    """Fraction of world points (N, 3) in front of a camera and inside its image."""
+def visible(points_world: F64, T_world_cam: F64, intr: Intrinsics) -> NDArray[np.bool_]:
+    """Which world points (N, 3) are in front of a camera and inside its image."""
     if len(points_world) == 0:
-        return 0.0
+        return np.zeros(0, dtype=bool)
     R, t = T_world_cam[:3, :3], T_world_cam[:3, 3]
     p = (points_world - t) @ R  # world -> camera: R^T (X - t)
     z = p[:, 2]
     with np.errstate(divide="ignore", invalid="ignore"):
         u = p[:, 0] / z * intr.fx + intr.cx
         v = p[:, 1] / z * intr.fy + intr.cy
-    inside = (z > 1e-6) & (u >= 0) & (u < intr.width) & (v >= 0) & (v < intr.height)
-    return float(np.mean(inside))
+    return np.asarray((z > 1e-6) & (u >= 0) & (u < intr.width) & (v >= 0) & (v < intr.height))
+
+
+def overlap_fraction(points_world: F64, T_world_cam: F64, intr: Intrinsics) -> float:
+    """Fraction of world points (N, 3) in front of a camera and inside its image."""
+    if len(points_world) == 0:
+        return 0.0
+    return float(np.mean(visible(points_world, T_world_cam, intr)))
 
 
 def triangulation_deg(baseline_m: float, depth_m: float) -> float:
@@ -120,21 +126,38 @@ def select_sources(
     k: int,
     params: ViewSelectParams = ViewSelectParams(),
     min_separation_deg: float = 1.0,
+    coverage_weights: tuple[float, ...] = (1.0, 0.5, 0.15),
 ) -> list[SourceScore]:
-    """The ``k`` best sources, skipping candidates that add no new direction: a source whose centre is within
-    ``min_separation_deg`` (seen from the reference's typical surface point) of an already chosen one
-    is redundant (two video frames 1 cm apart are one source, not two)."""
-    chosen: list[SourceScore] = []
+    """The ``k`` best sources, chosen greedily for what each adds to the ones already chosen.
+
+    Each pick maximises angle quality x rotation term x the weighted share of the reference's rays it
+    sees, a ray weighing ``coverage_weights[n]`` when ``n`` chosen sources already see it (the last
+    weight for more): a second view of an uncovered part of the image beats a fourth view of the middle,
+    which is what the depth check (agreement in 2 views) needs. The first pick is the best
+    ``score_sources`` score. A source whose centre is within ``min_separation_deg`` (seen from the
+    reference's typical surface point) of a chosen one adds no new direction and is skipped (two video
+    frames 1 cm apart are one source, not two).
+    """
+    rays = sample_rays(intr_ref)
+    X = (rays * depth_m) @ T_world_ref[:3, :3].T + T_world_ref[:3, 3]
     centre = T_world_ref[:3, :3] @ np.array([0.0, 0.0, depth_m]) + T_world_ref[:3, 3]
     by_index = {c.index: c for c in candidates}
+    scored = score_sources(T_world_ref, intr_ref, depth_m, candidates, params)
+    seen = {s.index: visible(X, by_index[s.index].T_world_cam, by_index[s.index].intrinsics) for s in scored}
+    w = np.asarray(coverage_weights, dtype=np.float64)
+    times_seen = np.zeros(len(X), dtype=np.int64)
+    chosen: list[SourceScore] = []
     dirs: list[F64] = []
-    for s in score_sources(T_world_ref, intr_ref, depth_m, candidates, params):
-        d = by_index[s.index].T_world_cam[:3, 3] - centre
+    remaining = list(scored)
+    while remaining and len(chosen) < k:
+        ray_w = w[np.minimum(times_seen, len(w) - 1)]
+        gains = [s.score / max(s.overlap, 1e-12) * float(np.mean(ray_w * seen[s.index])) for s in remaining]
+        best = remaining.pop(int(np.argmax(gains)))  # ties: the earlier (better-scored) candidate
+        d = by_index[best.index].T_world_cam[:3, 3] - centre
         d = d / max(float(np.linalg.norm(d)), 1e-12)
         if any(float(np.degrees(np.arccos(np.clip(d @ e, -1.0, 1.0)))) < min_separation_deg for e in dirs):
             continue
-        chosen.append(s)
+        chosen.append(best)
         dirs.append(d)
-        if len(chosen) == k:
-            break
+        times_seen += seen[best.index]
     return chosen
