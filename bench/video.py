@@ -153,6 +153,7 @@ def run_keyframed(rec: Any, frames: Sequence[Frame], result: ScenarioResult, lab
 
     for k, f in enumerate(frames):
         if not selector.consider(f.view):
+            store.note_frame(f.view)
             continue
         counts["keyframes"] += 1
         if not process(k):

@@ -141,6 +141,7 @@ class MapperCore:
             return None
         if not (self.selector.consider(view) or force_keyframe):
             self._count("views_not_keyframe")
+            self.keyframes.note_frame(view)
             return None
         self._count("keyframes")
         return self._finish(view, [r for r in [self._timed(view)] if r is not None])

@@ -8,7 +8,9 @@ one after ``refresh_s``) becomes a keyframe when its image changed enough.
 The window for the reconstructor is the new keyframe plus the stored keyframes of ANY source (robots and
 calibrated fixed cameras alike) that make the best stereo partners for it: triangulation angle at its
 typical depth, overlap and viewing-angle change (``mapper.geometry.viewselect``), never simply the last
-frames that arrived.
+frames that arrived. The few moving-camera frames just before a keyframe that did not become keyframes
+themselves are candidates too (``recent_sources``): at video rate they are the views that already see
+most of what the new keyframe newly sees, with parallax enough to triangulate it.
 """
 
 from __future__ import annotations
@@ -110,6 +112,8 @@ class KeyframeStore:
     def __init__(self, cfg: KeyframeConfig) -> None:
         self.cfg = cfg
         self._frames: collections.deque[_Stored] = collections.deque(maxlen=cfg.max_keyframes)
+        # Per moving source, its last few frames that were not keyframes (oldest source dropped first).
+        self._recent: collections.OrderedDict[str, collections.deque[View]] = collections.OrderedDict()
         self.params = ViewSelectParams(
             min_triangulation_deg=cfg.source_min_triangulation_deg,
             min_overlap=cfg.source_min_overlap,
@@ -120,8 +124,27 @@ class KeyframeStore:
         return len(self._frames)
 
     def views(self) -> list[View]:
-        """The stored keyframes, oldest first."""
-        return [s.view for s in self._frames]
+        """The stored keyframes, oldest first, then the recent frames that are source candidates too."""
+        return [s.view for s in self._frames] + [v for ring in self._recent.values() for v in ring]
+
+    def note_frame(self, view: View) -> None:
+        """Remember a posed frame that is not a keyframe as a source candidate, when its camera moved
+        ``recent_min_move_m`` from its source's last stored view (a static camera's frames add nothing)."""
+        n = self.cfg.recent_sources
+        if n == 0 or view.T_world_cam is None:
+            return
+        ring = self._recent.get(view.source_id)
+        last = ring[-1] if ring else next((s.view for s in reversed(self._frames)
+                                            if s.view.source_id == view.source_id), None)
+        if last is not None and last.T_world_cam is not None and float(
+                np.linalg.norm(view.T_world_cam[:3, 3] - last.T_world_cam[:3, 3])) < self.cfg.recent_min_move_m:
+            return
+        if ring is None:
+            ring = self._recent[view.source_id] = collections.deque(maxlen=n)
+        self._recent.move_to_end(view.source_id)
+        ring.append(view)
+        while len(self._recent) > self.cfg.max_keyframes:
+            self._recent.popitem(last=False)
 
     def add(self, view: View, T_world_cam: np.ndarray | None = None, depth_m: float | None = None,
             depth_map: DepthMap | None = None) -> None:
@@ -134,6 +157,8 @@ class KeyframeStore:
                 del self._frames[i]
                 break
         self._frames.append(_Stored(view, depth_m, depth_map))
+        # The source's frames before this keyframe are older views of what it sees: it replaces them.
+        self._recent.pop(view.source_id, None)
 
     def depth_of(self, view: View, default: float) -> float:
         """Typical depth recorded for a stored view, else ``default``."""
@@ -162,7 +187,7 @@ class KeyframeStore:
         cfg = self.cfg
         if cfg.window_neighbours == 0:
             return []
-        others = [s.view for s in self._frames if s.view.key != view.key]
+        others = [v for v in self.views() if v.key != view.key]
         if view.T_world_cam is None:
             posed = [f for f in reversed(others) if f.T_world_cam is not None]
             return posed[: cfg.window_neighbours]

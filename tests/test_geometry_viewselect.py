@@ -117,3 +117,38 @@ def test_second_source_covers_what_the_first_does_not() -> None:
     # With every ray weighed alike whatever covers it, the selection is by score alone: the twins.
     flat = [s.index for s in select_sources(ref, INTR, 3.0, cands, k=2, coverage_weights=(1.0,))]
     assert sorted(flat) == [0, 1]
+
+
+def test_recent_frames_of_a_moving_camera_are_sources_until_its_next_keyframe() -> None:
+    """A robot turning at video rate: its last keyframe looks elsewhere, the frames it streamed since
+    (not keyframes) already see the new keyframe's view with parallax: they are its sources."""
+    store = KeyframeStore(KeyframeConfig(window_neighbours=2, recent_sources=2))
+    away = TARGET + np.array([-3.0, 0.0, 0.0])
+    store.add(_view(cam(-0.5, target=away), 0))  # the last keyframe: it sees none of the new view
+    for k in range(1, 5):  # frames on the way, 10 cm apart, turning towards the target
+        store.note_frame(_view(cam(-0.5 + 0.1 * k, target=TARGET), k))
+    assert [v.seq for v in store.views()] == [0, 3, 4]  # the ring keeps the last 2
+    got = store.neighbours(_view(cam(0.0), 5), depth_m=3.0)
+    assert {v.seq for v in got} == {3, 4}
+    # The next keyframe of that robot replaces its recent frames.
+    store.add(_view(cam(0.0), 5))
+    assert [v.seq for v in store.views()] == [0, 5]
+    # Without the option only the old keyframe that looks elsewhere is left (the nearest-view fill).
+    plain = KeyframeStore(KeyframeConfig(window_neighbours=2, recent_sources=0))
+    plain.add(_view(cam(-0.5, target=away), 0))
+    for k in range(1, 5):
+        plain.note_frame(_view(cam(-0.5 + 0.1 * k, target=TARGET), k))
+    assert [v.seq for v in plain.neighbours(_view(cam(0.0), 5), depth_m=3.0)] == [0]
+
+
+def test_a_static_cameras_frames_are_not_kept_and_sources_are_bounded() -> None:
+    cfg = KeyframeConfig(recent_sources=2, max_keyframes=3)
+    store = KeyframeStore(cfg)
+    store.add(_view(cam(0.0), 0, source="cam-01"))
+    for k in range(1, 6):  # a fixed camera: same pose every frame
+        store.note_frame(_view(cam(0.0), k, source="cam-01"))
+    store.note_frame(View(_view(cam(0.0), 9).image, "no-pose", INTR, None, seq=9))
+    assert [v.seq for v in store.views()] == [0]
+    for i in range(6):  # more moving sources than max_keyframes: the oldest are forgotten
+        store.note_frame(_view(cam(0.1 * i), i, source=f"robot{i}"))
+    assert sorted({v.source_id for v in store.views()}) == ["cam-01", "robot3", "robot4", "robot5"]
