@@ -254,6 +254,12 @@ class Counters:
         with self._lock:
             return self._values.get(name, 0.0)
 
+    def ema(self, name: str, value: float, alpha: float = 0.2) -> None:
+        """Move ``name`` towards ``value`` (exponential moving average); the first value is taken as is."""
+        with self._lock:
+            old = self._values.get(name, 0.0)
+            self._values[name] = float(value) if old == 0.0 else (1 - alpha) * old + alpha * value
+
     def snapshot(self) -> dict[str, float]:
         with self._lock:
             return dict(self._values)
