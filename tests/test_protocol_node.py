@@ -87,7 +87,8 @@ def test_the_session_is_retried_with_the_backoff_until_stopped() -> None:
     assert result == [0] and not ran
 
 
-def test_declarations_are_undone_newest_first_then_the_session_closes(peer: tuple[ZenohSettings, zenoh.Session]) -> None:
+def test_declarations_are_undone_newest_first_then_the_session_closes(
+    peer: tuple[ZenohSettings, zenoh.Session]) -> None:
     settings, _ = peer
     log: list[str] = []
     node = Node(settings, KEYS, "t", "n1", stop=threading.Event())
