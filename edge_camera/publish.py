@@ -15,8 +15,7 @@ from edge_camera.config import EdgeCameraConfig, PublishConfig
 from edge_camera.sources.base import Grab
 from protocol.codec import encode
 from protocol.jpeg import encode_jpeg
-from protocol.messages import FrameHeader, Intrinsics, OracleFrame, rows
-from protocol.oracle import depth_to_png, ids_to_png
+from protocol.messages import FrameHeader, Intrinsics, rows
 from protocol.transport import put_frame
 
 if TYPE_CHECKING:
@@ -122,16 +121,7 @@ class FramePublisher:
         header = self.header_for(grab, size)
         t1 = time.perf_counter()
         if grab.oracle is not None and self.oracle_pub is not None:
-            o = grab.oracle
-            oracle = OracleFrame(
-                source_id=self.config.id,
-                seq=self.seq,
-                stamp_ns=grab.stamp_ns,
-                T_world_cam_true=rows(o.T_world_cam_true),
-                ids_png=ids_to_png(_resize_nearest(o.instance_id, size)),
-                depth_png=depth_to_png(_resize_nearest(o.depth_m, size)),
-                labels={str(k): v for k, v in o.labels.items()},
-            )
+            oracle = grab.oracle.message(self.config.id, self.seq, grab.stamp_ns, lambda im: _resize_nearest(im, size))
             # The ORACLE sample goes first, so a consumer holding a frame can already match it.
             self.oracle_pub.put(encode(oracle))
         put_frame(self.frame_pub, header, jpeg)

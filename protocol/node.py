@@ -28,6 +28,7 @@ import threading
 from collections.abc import Callable
 from typing import TYPE_CHECKING, Any, Protocol, TypeVar
 
+from protocol.codec import MSGPACK_MIME
 from protocol.keys import Keys
 from protocol.messages import Message
 from protocol.session import Backoff, ReconnectConfig, ZenohSettings, open_session_retrying
@@ -138,17 +139,15 @@ class Node:
         self._stack.callback(_undeclare, entity, self.log)
         return entity
 
-    def publisher(self, key: str, *, message: type[Message] | None = None, important: bool = True) -> zenoh.Publisher:
+    def publisher(self, key: str, *, message: type[Message] | None = None, important: bool = True,
+                  mime: str = MSGPACK_MIME, block: bool | None = None) -> zenoh.Publisher:
         """A codec-message publisher (:func:`~protocol.transport.declare_message_publisher`)."""
-        return self.declared(declare_message_publisher(self.session, key, important=important, message=message))
+        return self.declared(declare_message_publisher(self.session, key, important=important, message=message,
+                                                       mime=mime, block=block))
 
-    def frame_publisher(self, key: str) -> zenoh.Publisher:
+    def frame_publisher(self, key: str, *, block: bool = False) -> zenoh.Publisher:
         """A JPEG frame publisher (:func:`~protocol.transport.declare_frame_publisher`)."""
-        return self.declared(declare_frame_publisher(self.session, key))
-
-    def declare_publisher(self, key: str, **options: Any) -> zenoh.Publisher:
-        """A publisher with zenoh's own options (encoding, congestion control, priority)."""
-        return self.declared(self.session.declare_publisher(key, **options))
+        return self.declared(declare_frame_publisher(self.session, key, block=block))
 
     def latest(self, publisher: zenoh.Publisher) -> LatestValue:
         """``publisher`` whose newest payload also answers queries on its key (late joiners)."""
