@@ -30,8 +30,8 @@ from protocol.codec import DecodeError, encode
 from protocol.jpeg import JpegError, decode_jpeg
 from protocol.keys import Keys
 from protocol.messages import WorkAck, WorkFrame, WorkJob, WorkResult
-from protocol.session import open_session_retrying
-from protocol.transport import Counters, StatusReporter, declare_message_publisher, decode_message_sample
+from protocol.node import Node
+from protocol.transport import Counters, decode_message_sample
 
 if TYPE_CHECKING:
     import zenoh
@@ -180,36 +180,30 @@ class WorkerNode:
         return out
 
     # -- main loop -------------------------------------------------------------------------------------
-    def run(self, stop: threading.Event) -> int:
+    def run(self, stop: threading.Event | None = None) -> int:
+        """Take jobs until ``stop`` is set (default: SIGINT/SIGTERM)."""
+        c = self.config
+        return Node(c.zenoh, self.keys, ROLE, c.id, counters=self.counters, status_period_s=c.status_period_s,
+                    stop=stop, logger=log).run(self._serve)
+
+    def _serve(self, node: Node) -> None:
         cfg = self.config
-        session = open_session_retrying(cfg.zenoh, stop, log)
-        if session is None:
-            return 0
-        with session:
-            self._session = session
-            self._pubs = {
-                "ack": declare_message_publisher(session, self.keys.work_ack(cfg.id), message=WorkAck),
-                "result": declare_message_publisher(session, self.keys.work_result(cfg.id), message=WorkResult),
-            }
-            sub = session.declare_subscriber(self.keys.work_job(cfg.id), self._on_job)
-            # Declared once it can take jobs: the mapper sends to live workers only.
-            token = session.liveliness().declare_token(self.keys.alive(ROLE, cfg.id))
-            reporter = StatusReporter(session, self.keys.status(ROLE, cfg.id), ROLE, cfg.id, self.counters,
-                                      cfg.status_period_s, extra=self._extra)
-            log.info("worker %s: taking keyframe jobs on %s", cfg.id, self.keys.work_job(cfg.id))
-            try:
-                with reporter:
-                    while not stop.is_set():
-                        job = self._next(0.2)
-                        if job is not None:
-                            self._put("result", self.do(job))
-                            with self._cond:
-                                self._jobs.popleft()
-            finally:
-                token.undeclare()
-                sub.undeclare()
-        log.info("worker %s stopped after %d jobs", cfg.id, int(self.counters.get("jobs_done")))
-        return 0
+        self._session = node.session
+        node.on_exit(lambda: log.info("worker %s stopped after %d jobs", cfg.id, int(self.counters.get("jobs_done"))))
+        self._pubs = {
+            "ack": node.publisher(self.keys.work_ack(cfg.id), message=WorkAck),
+            "result": node.publisher(self.keys.work_result(cfg.id), message=WorkResult),
+        }
+        node.subscribe(self.keys.work_job(cfg.id), self._on_job)
+        node.alive()  # once it can take jobs: the mapper sends to live workers only
+        node.status(extra=self._extra)
+        log.info("worker %s: taking keyframe jobs on %s", cfg.id, self.keys.work_job(cfg.id))
+        while node.running:
+            job = self._next(0.2)
+            if job is not None:
+                self._put("result", self.do(job))
+                with self._cond:
+                    self._jobs.popleft()
 
     def _next(self, timeout_s: float) -> WorkJob | None:
         """The oldest held job (it stays held, counting against queue_depth, until answered)."""
@@ -223,8 +217,5 @@ def run(config: WorkerConfig, stop: threading.Event | None = None) -> int:
     """Run a worker until SIGINT/SIGTERM (or ``stop``)."""
     import torch
 
-    from protocol.runtime import install_stop_handlers
-
     torch.set_num_threads(config.torch_threads)
-    stop = stop or install_stop_handlers()
     return WorkerNode(config).run(stop)
