@@ -12,7 +12,7 @@ from __future__ import annotations
 import collections
 import logging
 import threading
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, TypeVar
 
 from planner.config import PlannerNodeConfig
 from planner.core import Planner
@@ -32,6 +32,7 @@ MAX_ROBOTS = 64
 MAX_PENDING_DELTAS = 256
 MAX_PENDING_SNAPSHOTS = 8
 ROBOT_ROLE = "robot-agent"  # the role in a robot agent's liveliness token
+R = TypeVar("R", RobotState, ViewpointSet)
 
 
 class PlannerInbox:
@@ -120,41 +121,41 @@ class PlannerInbox:
             self.counters.add("bad_keys")
             return None
 
-    def on_state(self, sample: zenoh.Sample) -> None:
-        st = self._decode(sample, RobotState)
+    def _robot_message(self, sample: zenoh.Sample, cls: type[R], what: str) -> tuple[str, R] | None:
+        """A robot's message with the robot its key names, or None (counted) when bad or naming another robot."""
+        msg = self._decode(sample, cls)
         rid = self._robot_id(sample)
-        if st is None or rid is None:
-            return
-        if st.robot_id != rid:
+        if msg is None or rid is None:
+            return None
+        if msg.robot_id != rid:
             self.counters.add("decode_errors")
-            self.bad_input.warning("wrong_robot", "state on %s names robot %r; ignored", sample.key_expr, st.robot_id)
-            return
+            self.bad_input.warning("wrong_robot", "%s on %s names robot %r; ignored", what, sample.key_expr,
+                                   msg.robot_id)
+            return None
+        return rid, msg
+
+    def _hold(self, table: dict[str, R], rid: str, msg: R, gone: str | None = None) -> None:
+        """Keep ``msg`` as robot ``rid``'s newest (for at most MAX_ROBOTS robots) and wake the planning thread;
+        with ``gone`` (a counter), not for a robot whose token went away."""
         with self._lock:
-            if rid in self._gone:
-                self.counters.add("states_of_gone_robots")
+            if gone is not None and rid in self._gone:
+                self.counters.add(gone)
                 return
-            if rid not in self.states and len(self.states) >= MAX_ROBOTS:
+            if rid not in table and len(table) >= MAX_ROBOTS:
                 self.counters.add("robots_refused")
                 return
-            self.states[rid] = st
+            table[rid] = msg
         self._wake.set()
 
+    def on_state(self, sample: zenoh.Sample) -> None:
+        got = self._robot_message(sample, RobotState, "state")
+        if got is not None:
+            self._hold(self.states, *got, gone="states_of_gone_robots")
+
     def on_viewpoints(self, sample: zenoh.Sample) -> None:
-        vps = self._decode(sample, ViewpointSet)
-        rid = self._robot_id(sample)
-        if vps is None or rid is None:
-            return
-        if vps.robot_id != rid:
-            self.counters.add("decode_errors")
-            self.bad_input.warning("wrong_robot", "viewpoints on %s name robot %r; ignored", sample.key_expr,
-                                   vps.robot_id)
-            return
-        with self._lock:
-            if rid not in self.viewpoints and len(self.viewpoints) >= MAX_ROBOTS:
-                self.counters.add("robots_refused")
-                return
-            self.viewpoints[rid] = vps
-        self._wake.set()
+        got = self._robot_message(sample, ViewpointSet, "viewpoints")
+        if got is not None:
+            self._hold(self.viewpoints, *got)
 
     def on_alive(self, sample: zenoh.Sample) -> None:
         """Robot liveliness: a robot whose token goes away (it stopped, crashed or lost its link) is
