@@ -17,7 +17,7 @@ from edge_camera.sources import create_source
 from edge_camera.sources.base import FrameSource, SourceConfigError
 from protocol.keys import Keys
 from protocol.messages import OracleFrame
-from protocol.node import Node
+from protocol.node import Node, Process
 from protocol.session import Backoff
 from protocol.transport import Counters, StatusReporter
 
@@ -25,7 +25,7 @@ log = logging.getLogger("argus.edge_camera")
 ROLE = "edge-camera"
 
 
-class EdgeCamera:
+class EdgeCamera(Process):
     """One camera process. ``run(stop)`` blocks until ``stop`` is set; tests call it directly."""
 
     def __init__(self, config: EdgeCameraConfig) -> None:
@@ -36,14 +36,10 @@ class EdgeCamera:
         self.source: FrameSource = create_source(config.source)
         self.counters = Counters()
         self.source_open = False
+        self.node = Node(config.zenoh, self.keys, ROLE, config.id, counters=self.counters,
+                         status_period_s=config.status_period_s, reconnect=config.reconnect, logger=log)
 
-    def run(self, stop: threading.Event | None = None) -> int:
-        """Publish until ``stop`` is set (default: SIGINT/SIGTERM); the session is retried with ``reconnect``."""
-        c = self.config
-        return Node(c.zenoh, self.keys, ROLE, c.id, counters=self.counters, status_period_s=c.status_period_s,
-                    stop=stop, reconnect=c.reconnect, logger=log).run(self._serve)
-
-    def _serve(self, node: Node) -> None:
+    def serve(self, node: Node) -> None:
         cid = self.config.id
         node.alive()
         oracle = getattr(self.config.source, "oracle", False)

@@ -33,7 +33,7 @@ from mapper.work.offload import Finished, Offloader
 from protocol.codec import encode
 from protocol.keys import Keys
 from protocol.messages import GraphDelta, GraphNode, GraphSnapshot, OracleFrame, PointMap
-from protocol.node import Node
+from protocol.node import Node, Process
 from protocol.ratelog import RateLimitedLog
 from protocol.transport import Counters, Frame, StatusReporter, message_encoding
 
@@ -46,7 +46,7 @@ BAD_INPUT_LOG_PERIOD_S = 10.0
 """Bad-input warnings: each reason at most once per this many seconds, then one summary line with counts."""
 
 
-class MapperNode:
+class MapperNode(Process):
     """One mapper process. ``run(stop)`` blocks until ``stop`` is set; tests may call it directly."""
 
     def __init__(self, config: MapperConfig, core: MapperCore | None = None) -> None:
@@ -66,6 +66,8 @@ class MapperNode:
         self.core.reserve = lambda version, next_id: self.keeper.reserve(version, next_id, self.core)
         self.offloader: Offloader | None = None
         self._robots = LruCache(config.max_sources)  # source ids of robot frames (their keyframes are marked)
+        self.node = Node(config.zenoh, self.keys, ROLE, config.id, counters=self.counters,
+                         status_period_s=config.status_period_s, logger=log)
         if config.workers.enabled and not self.intake.needs_oracle:  # jobs carry no ORACLE samples
             self.offloader = Offloader(config.workers, config, self.keys, self.counters, runs_perception(config))
             self.core.offload = self.offloader.offload
@@ -121,13 +123,7 @@ class MapperNode:
             out["update_s_max"] = float(np.max(times))
         return out
 
-    def run(self, stop: threading.Event | None = None) -> int:
-        """Map and serve until ``stop`` is set (default: SIGINT/SIGTERM); the router may start after the mapper."""
-        c = self.config
-        return Node(c.zenoh, self.keys, ROLE, c.id, counters=self.counters, status_period_s=c.status_period_s,
-                    stop=stop, logger=log).run(self._serve)
-
-    def _serve(self, node: Node) -> None:
+    def serve(self, node: Node) -> None:
         cfg, k = self.config, self.keys
         node.on_exit(self._stopped)
         node.alive()

@@ -19,7 +19,7 @@ from planner.inbox import MAX_ROBOTS, ROBOT_ROLE, PlannerInbox, log
 from planner.schedule import Pending, goal_due
 from protocol.codec import DecodeError, M, decode, encode
 from protocol.messages import GraphSnapshot, NbvGoal, RobotState, ViewpointSet
-from protocol.node import Node
+from protocol.node import Node, Process
 
 if TYPE_CHECKING:
     import zenoh
@@ -27,13 +27,14 @@ if TYPE_CHECKING:
 ROLE = "planner"
 
 
-class PlannerNode(PlannerInbox):
+class PlannerNode(PlannerInbox, Process):
     """One planner process. ``run(stop)`` blocks until ``stop`` is set; tests may call it directly."""
 
     def __init__(self, config: PlannerNodeConfig, planner: Planner | None = None) -> None:
         super().__init__(config, planner)
         self._pubs: dict[str, Any] = {}
-        self._node: Node | None = None
+        self.node = Node(config.zenoh, self.keys, ROLE, config.node_id, counters=self.counters,
+                         status_period_s=config.status_period_s, logger=log)
 
     # --- planning thread ---------------------------------------------------------------------
     def robots_to_plan(self, now_s: float) -> dict[str, tuple[RobotState, ViewpointSet]]:
@@ -108,13 +109,12 @@ class PlannerNode(PlannerInbox):
         return sent
 
     def _reporter_error(self, msg: str) -> None:
-        if self._node is not None:
-            self._node.error(msg)
+        self.node.error(msg)
 
     def _publish_goal(self, goal: Any) -> None:
         pub = self._pubs.get(goal.robot_id)
-        if pub is None and self._node is not None:
-            pub = self._pubs[goal.robot_id] = self._node.publisher(self.keys.robot_goal(goal.robot_id), message=NbvGoal)
+        if pub is None and self.node.is_open:
+            pub = self._pubs[goal.robot_id] = self.node.publisher(self.keys.robot_goal(goal.robot_id), message=NbvGoal)
         if pub is None:
             return
         try:
@@ -159,16 +159,9 @@ class PlannerNode(PlannerInbox):
         self._wake.set()
 
     # --- process -----------------------------------------------------------------------------
-    def run(self, stop: threading.Event | None = None) -> int:
-        """Plan until ``stop`` is set (default: SIGINT/SIGTERM)."""
-        c = self.config
-        return Node(c.zenoh, self.keys, ROLE, c.node_id, counters=self.counters, status_period_s=c.status_period_s,
-                    stop=stop, logger=log).run(self._serve)
-
-    def _serve(self, node: Node) -> None:
+    def serve(self, node: Node) -> None:
         k = self.keys
-        self._node = node
-        node.on_exit(self._stopped)
+        node.on_exit(lambda: log.info("planner stopped (%d goals sent)", int(self.counters.get("goals_sent"))))
         for key, callback in ((k.graph_snapshot, self.on_snapshot), (k.graph_delta, self.on_delta),
                               (k.map_points, self.on_map), (k.all_robot_states, self.on_state),
                               (k.all_robot_viewpoints, self.on_viewpoints)):
@@ -181,10 +174,6 @@ class PlannerNode(PlannerInbox):
         self._initial_queries(node.session)
         node.alive()  # once the start-up queries are answered
         self._loop(node.stop, node.session)
-
-    def _stopped(self) -> None:
-        self._node = None
-        log.info("planner stopped (%d goals sent)", int(self.counters.get("goals_sent")))
 
     def _loop(self, stop: threading.Event, session: zenoh.Session) -> None:
         last_query = time.monotonic()

@@ -17,7 +17,8 @@ logic plus a few lines::
 
     Node(config.zenoh, keys, "robot-agent", rid, counters=counters).run(serve)
 
-``run`` returns 0 after a stop, also a stop that came before the session could be opened.
+``run`` returns 0 after a stop, also a stop that came before the session could be opened. A process class
+derives from :class:`Process`: it makes its node in ``__init__`` and serves in ``serve(node)``.
 """
 
 from __future__ import annotations
@@ -52,11 +53,11 @@ class Stopped(Exception):
 
 
 class Node:
-    """A process's Zenoh session and everything declared on it; a context manager.
+    """A process's Zenoh session and everything declared on it; a context manager, or ``run(body, stop)``.
 
-    ``stop``: the event that ends the process (default: one set on SIGINT/SIGTERM, installed here, so
-    construct the node in the main thread). ``reconnect``: the back-off between attempts to open the
-    session; each retry counts ``session_attempts`` in ``counters``.
+    ``stop``: the event that ends the process (default: one set on SIGINT/SIGTERM, installed when the node
+    opens, so open it in the main thread). ``reconnect``: the back-off between attempts to open the
+    session; each retry counts ``session_attempts`` in ``counters``. Nothing happens until it is opened.
     """
 
     def __init__(
@@ -72,14 +73,10 @@ class Node:
         reconnect: ReconnectConfig | None = None,
         logger: logging.Logger | None = None,
     ) -> None:
-        if stop is None:
-            from protocol.runtime import install_stop_handlers
-
-            stop = install_stop_handlers()
         self.settings, self.keys, self.role, self.node_id = settings, keys, role, node_id
         self.counters = counters if counters is not None else Counters()
         self.status_period_s = status_period_s
-        self.stop = stop
+        self._stop = stop
         self.reconnect = reconnect or ReconnectConfig()
         self.log = logger or log
         self.reporter: StatusReporter | None = None
@@ -88,16 +85,20 @@ class Node:
 
     # -- lifetime ----------------------------------------------------------------------------------
     def __enter__(self) -> Node:
+        if self._stop is None:
+            from protocol.runtime import install_stop_handlers
+
+            self._stop = install_stop_handlers()
         backoff = Backoff(self.reconnect)
 
         def next_wait_s() -> float:
             self.counters.add("session_attempts")
             return backoff.next_wait_s()
 
-        session = open_session_retrying(self.settings, self.stop, self.log, next_wait_s)
+        session = open_session_retrying(self.settings, self._stop, self.log, next_wait_s)
         if session is None:
             raise Stopped
-        self._session = session
+        self._session, self.reporter = session, None
         return self
 
     def __exit__(self, *exc: object) -> None:
@@ -109,8 +110,12 @@ class Node:
             if session is not None:
                 session.close()
 
-    def run(self, body: Callable[[Node], None]) -> int:
-        """Open the session, run ``body(self)``, shut down in order; 0 (a clean exit) after a stop."""
+    def run(self, body: Callable[[Node], None], stop: threading.Event | None = None) -> int:
+        """Open the session, run ``body(self)`` until it returns (it watches :attr:`running`), shut down in
+        order; 0 (a clean exit) after a stop, also one before the session could be opened. ``stop`` replaces
+        the node's stop event."""
+        if stop is not None:
+            self._stop = stop
         try:
             with self:
                 body(self)
@@ -119,10 +124,21 @@ class Node:
         return 0
 
     @property
+    def stop(self) -> threading.Event:
+        """The stop event (set once the node is opened)."""
+        if self._stop is None:
+            raise RuntimeError(f"{self.role} {self.node_id}: not started")
+        return self._stop
+
+    @property
     def session(self) -> zenoh.Session:
         if self._session is None:
             raise RuntimeError(f"{self.role} {self.node_id}: the session is not open")
         return self._session
+
+    @property
+    def is_open(self) -> bool:
+        return self._session is not None
 
     @property
     def running(self) -> bool:
@@ -188,3 +204,17 @@ def _undeclare(entity: _Undeclarable, logger: logging.Logger) -> None:
         entity.undeclare()
     except Exception as e:  # noqa: BLE001 - shutdown goes on: the session may already be closing
         logger.debug("undeclare failed: %s", e)
+
+
+class Process:
+    """A long-running process: its node (made in the subclass's ``__init__``, nothing opened) and its ``serve``."""
+
+    node: Node
+
+    def serve(self, node: Node) -> None:
+        """Declare what the process needs on ``node``, then work while ``node.running``."""
+        raise NotImplementedError
+
+    def run(self, stop: threading.Event | None = None) -> int:
+        """Serve until ``stop`` is set (default: SIGINT/SIGTERM); the router may start later. 0 after a stop."""
+        return self.node.run(self.serve, stop)

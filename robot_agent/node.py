@@ -23,7 +23,7 @@ from protocol.codec import encode
 from protocol.jpeg import encode_jpeg
 from protocol.keys import Keys
 from protocol.messages import GoalStatus, OracleFrame, RobotState, ViewpointSet
-from protocol.node import Node
+from protocol.node import Node, Process
 from protocol.transport import message_encoding, put_frame
 from robot_agent.bodies.base import RobotBody
 from robot_agent.config import RobotAgentConfig
@@ -35,7 +35,7 @@ if TYPE_CHECKING:
 ROLE = "robot-agent"
 
 
-class RobotAgent(RobotControl):
+class RobotAgent(RobotControl, Process):
     """One robot process. ``run(stop)`` blocks until ``stop`` is set; tests may call it directly."""
 
     def __init__(self, config: RobotAgentConfig, body: RobotBody | None = None) -> None:
@@ -43,6 +43,8 @@ class RobotAgent(RobotControl):
         self.keys = Keys(config.site, config.key_prefix)
         self._viewpoints_bytes = encode(self.viewpoint_set)
         self._ack_pubs: list[tuple[Any, bool]] = []  # (publisher, as JSON), set by declare_publishers
+        self.node = Node(config.zenoh, self.keys, ROLE, config.id, counters=self.counters,
+                         status_period_s=config.status_period_s, logger=log)
 
     # --- Zenoh callbacks (other threads) -----------------------------------------------------
     def _on_goal_sample(self, sample: zenoh.Sample) -> None:
@@ -134,13 +136,7 @@ class RobotAgent(RobotControl):
                           (node.publisher(k.robot_goal_status_json(rid), message=GoalStatus,
                                           mime="application/json"), True)]
 
-    def run(self, stop: threading.Event | None = None) -> int:
-        """Serve until ``stop`` is set (default: SIGINT/SIGTERM)."""
-        c = self.config
-        return Node(c.zenoh, self.keys, ROLE, c.id, counters=self.counters, status_period_s=c.status_period_s,
-                    stop=stop, logger=log).run(self._serve)
-
-    def _serve(self, node: Node) -> None:
+    def serve(self, node: Node) -> None:
         rid = self.config.id
         node.alive()
         self.declare_publishers(node)

@@ -30,7 +30,7 @@ from protocol.codec import DecodeError, encode
 from protocol.jpeg import JpegError, decode_jpeg
 from protocol.keys import Keys
 from protocol.messages import WorkAck, WorkFrame, WorkJob, WorkResult
-from protocol.node import Node
+from protocol.node import Node, Process
 from protocol.transport import Counters, decode_message_sample
 
 if TYPE_CHECKING:
@@ -71,7 +71,7 @@ class Backends:
         return self.config, self.parts
 
 
-class WorkerNode:
+class WorkerNode(Process):
     """One worker process. ``run(stop)`` blocks until ``stop`` is set; tests may call it directly."""
 
     def __init__(self, config: WorkerConfig) -> None:
@@ -85,6 +85,8 @@ class WorkerNode:
         self._session: zenoh.Session | None = None
         self._pubs: dict[str, Any] = {}
         self.job_times_s: collections.deque[float] = collections.deque(maxlen=64)
+        self.node = Node(config.zenoh, self.keys, ROLE, config.id, counters=self.counters,
+                         status_period_s=config.status_period_s, logger=log)
 
     # -- Zenoh thread --------------------------------------------------------------------------------
     def _on_job(self, sample: zenoh.Sample) -> None:
@@ -180,13 +182,7 @@ class WorkerNode:
         return out
 
     # -- main loop -------------------------------------------------------------------------------------
-    def run(self, stop: threading.Event | None = None) -> int:
-        """Take jobs until ``stop`` is set (default: SIGINT/SIGTERM)."""
-        c = self.config
-        return Node(c.zenoh, self.keys, ROLE, c.id, counters=self.counters, status_period_s=c.status_period_s,
-                    stop=stop, logger=log).run(self._serve)
-
-    def _serve(self, node: Node) -> None:
+    def serve(self, node: Node) -> None:
         cfg = self.config
         self._session = node.session
         node.on_exit(lambda: log.info("worker %s stopped after %d jobs", cfg.id, int(self.counters.get("jobs_done"))))
