@@ -16,8 +16,7 @@ from __future__ import annotations
 
 import logging
 import threading
-import time
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING
 
 import numpy as np
 
@@ -27,18 +26,18 @@ from mapper.geometry.contract import View
 from mapper.geometry.features import LruCache
 from mapper.inbox import FrameIntake
 from mapper.keeper import StateKeeper
+from mapper.outbox import GraphOutbox
 from mapper.queries import GraphQueries
 from mapper.work.compute import compute_keyframe, runs_perception
 from mapper.work.offload import Finished, Offloader
-from protocol.codec import encode
 from protocol.keys import Keys
-from protocol.messages import GraphDelta, GraphNode, GraphSnapshot, OracleFrame, PointMap
+from protocol.messages import GraphDelta, OracleFrame
 from protocol.node import Node, Process
 from protocol.ratelog import RateLimitedLog
-from protocol.transport import Counters, Frame, StatusReporter, message_encoding
+from protocol.transport import Counters, Frame, StatusReporter
 
 if TYPE_CHECKING:
-    import zenoh
+    pass
 
 log = logging.getLogger(__name__)
 ROLE = "mapper"
@@ -56,9 +55,7 @@ class MapperNode(Process):
         self.counters = Counters()
         self.intake = FrameIntake(config, self.keys, self.counters, RateLimitedLog(log, BAD_INPUT_LOG_PERIOD_S))
         self.queries = GraphQueries(self.core, self.keys, self.counters, self.intake.refuse)
-        self._rerun: Any = None
-        self._last_snapshot: tuple[tuple[str, int], float] = (("", -1), 0.0)
-        self._last_map = (-1, 0.0)
+        self.outbox = GraphOutbox(self.core, config, self.keys, self.counters)
         self._reporter: StatusReporter | None = None
         self._state_shown: tuple[bool, str | None] = (False, None)  # the keeper's health last put in the status
         self.keeper = StateKeeper(config.state_dir, config.save_period_s, self.counters)
@@ -83,31 +80,6 @@ class MapperNode(Process):
             rep.last_error = self.keeper.last_error or rep.last_error
             self._state_shown = (failing, self.keeper.last_error)
 
-    # -- publishing ----------------------------------------------------------------------------------
-    def _publish_delta(self, session: zenoh.Session, pubs: dict[str, Any], delta: GraphDelta) -> None:
-        pubs["delta"].put(encode(delta))
-        for n in delta.upserted:
-            session.put(self.keys.graph_node(n.node_id), encode(n), encoding=message_encoding(GraphNode))
-        for node_id in delta.removed:
-            session.delete(self.keys.graph_node(node_id))
-        self.counters.add("deltas")
-
-    def _publish_periodic(self, pubs: dict[str, Any], force: bool = False) -> None:
-        now = time.monotonic()
-        version = self.core.version
-        pc = self.config.publish
-        seen, when = self._last_snapshot
-        if (self.core.epoch, version) != seen and (force or now - when >= pc.snapshot_period_s):
-            snap = self.core.snapshot()
-            pubs["snapshot"].put(encode(snap))
-            self._last_snapshot = ((snap.epoch, snap.version), now)
-            self.counters.add("snapshots")
-        v, when = self._last_map
-        if version != v and (force or now - when >= pc.point_map_period_s) and len(self.core.voxels):
-            pubs["map"].put(encode(self.core.point_map(pc.point_map_max_points)))
-            self._last_map = (version, now)
-            self.counters.add("point_maps")
-
     # -- main loop -------------------------------------------------------------------------------------
     def _extra_counters(self) -> dict[str, float]:
         out = dict(self.core.counters)
@@ -127,12 +99,7 @@ class MapperNode(Process):
         cfg, k = self.config, self.keys
         node.on_exit(self._stopped)
         node.alive()
-        pubs = {
-            "delta": node.publisher(k.graph_delta, message=GraphDelta),
-            "snapshot": node.publisher(k.graph_snapshot, message=GraphSnapshot),
-            # the point map answers queries with its newest value (late joiners)
-            "map": node.latest(node.publisher(k.map_points, important=False, message=PointMap)),
-        }
+        self.outbox.open(node)
         node.subscribe(k.all_frames, self.intake.on_frame)
         if self.intake.needs_oracle:
             node.subscribe(k.all_oracle, self.intake.on_oracle)
@@ -143,23 +110,22 @@ class MapperNode(Process):
             node.on_exit(self.offloader.close)
         node.on_exit(lambda: self.keeper.close(self.core))
         self._reporter = node.status(extra=self._extra_counters)
-        self._open_rerun()
         log.info(
             "mapper %s: geometry=%s segmenter=%s embedder=%s%s, graph epoch %s version %d",
             cfg.id, cfg.geometry.backend, cfg.perception.segmenter, cfg.perception.embedder,
             " (ORACLE inputs)" if self.intake.needs_oracle else "", self.core.epoch, self.core.version,
         )
-        self._publish_periodic(pubs, force=True)
+        self.outbox.periodic(force=True)
         while node.running:
             # Results of workers arrive in between frames: poll them often while jobs are out.
             busy = self.offloader is not None and self.offloader.busy()
-            self._step(node.session, pubs, timeout_s=0.02 if busy else 0.2)
+            self._step(timeout_s=0.02 if busy else 0.2)
 
     def _stopped(self) -> None:
-        self._close_rerun()
+        self.outbox.close()
         log.info("mapper stopped at graph version %d", self.core.version)
 
-    def _step(self, session: zenoh.Session, pubs: dict[str, Any], timeout_s: float) -> None:
+    def _step(self, timeout_s: float) -> None:
         for frame, oracle in self.intake.ready(timeout_s):
             # Decoded one at a time, just before processing: decoded pixels in flight stay in the budget.
             rgb = self.intake.decode(frame)
@@ -170,21 +136,21 @@ class MapperNode(Process):
             finally:
                 self.intake.release(frame)
             if delta is not None:
-                self._publish_delta(session, pubs, delta)
+                self.outbox.delta(delta)
         if self.offloader is not None:
-            self._finish_jobs(session, pubs, self.offloader)
-        self._publish_periodic(pubs)
+            self._finish_jobs(self.offloader)
+        self.outbox.periodic()
         self.intake.bad_input.flush()
         self.save()
 
-    def _finish_jobs(self, session: zenoh.Session, pubs: dict[str, Any], offloader: Offloader) -> None:
+    def _finish_jobs(self, offloader: Offloader) -> None:
         """Keyframes back from workers (or left to the mapper) into the graph, then jobs out."""
         todo = offloader.step()
         while True:
             for done in todo:
                 delta = self._finish(done)
                 if delta is not None:
-                    self._publish_delta(session, pubs, delta)
+                    self.outbox.delta(delta)
             todo = offloader.send()  # given-up jobs come back here: done now
             if not todo:
                 break
@@ -207,7 +173,7 @@ class MapperNode(Process):
 
     def _after(self, view: View, delta: GraphDelta | None) -> GraphDelta | None:
         if self.core.last is not None and self.core.last.view is view:
-            self._log_rerun()
+            self.outbox.rerun()
         if delta is None and self._robots.get(view.source_id) is not None:
             delta = self.core.mark_processed(view)  # a planner may be waiting for this frame
         return delta
@@ -225,32 +191,6 @@ class MapperNode(Process):
                 log.warning("keyframe %s#%d failed: %s: %s", p.view.source_id, p.view.seq, type(e).__name__, e)
                 return None
         return self._after(done.view, self.core.complete(done.view, products))
-
-    # -- Rerun -----------------------------------------------------------------------------------------
-    def _open_rerun(self) -> None:
-        rc = self.config.rerun
-        if rc.file is None and not rc.serve:
-            return
-        from mapper.rerun_log import RerunLogger
-
-        try:
-            self._rerun = RerunLogger(rc)
-        except Exception as e:  # noqa: BLE001 - visualisation must never stop mapping
-            log.error("Rerun output disabled: %s", e)
-            self._rerun = None
-
-    def _log_rerun(self) -> None:
-        if self._rerun is None:
-            return
-        try:
-            self._rerun.log(self.core)
-        except Exception as e:  # noqa: BLE001
-            self.counters.add("rerun_errors")
-            log.debug("Rerun logging failed: %s", e)
-
-    def _close_rerun(self) -> None:
-        if self._rerun is not None:
-            self._rerun.close()
 
 
 def run(config: MapperConfig, stop: threading.Event | None = None) -> int:

@@ -256,8 +256,8 @@ def valid_frame(node: MapperNode, eye: list[float], seq: int, source: str = "rob
 
 
 def step(node: MapperNode) -> None:
-    pubs = {"delta": Sink(), "snapshot": Sink(), "map": Sink()}
-    node._step(Sink(), pubs, timeout_s=0.0)  # type: ignore[arg-type]
+    node.outbox.session, node.outbox.pubs = Sink(), {"delta": Sink(), "snapshot": Sink(), "map": Sink()}
+    node._step(timeout_s=0.0)
 
 
 @pytest.fixture
