@@ -197,5 +197,8 @@ def run(config: MapperConfig, stop: threading.Event | None = None) -> int:
     """Run the mapper until SIGINT/SIGTERM (or ``stop``)."""
     import torch
 
+    from protocol.runtime import install_stop_handlers
+
     torch.set_num_threads(config.torch_threads)
-    return MapperNode(config).run(stop)
+    # Before the (slow) construction: a stop while models load is a clean exit too.
+    return MapperNode(config).run(stop or install_stop_handlers())

@@ -213,5 +213,8 @@ def run(config: WorkerConfig, stop: threading.Event | None = None) -> int:
     """Run a worker until SIGINT/SIGTERM (or ``stop``)."""
     import torch
 
+    from protocol.runtime import install_stop_handlers
+
     torch.set_num_threads(config.torch_threads)
-    return WorkerNode(config).run(stop)
+    # Before the (slow) construction: a stop while models load is a clean exit too.
+    return WorkerNode(config).run(stop or install_stop_handlers())
