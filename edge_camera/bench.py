@@ -27,7 +27,7 @@ import cv2
 import numpy as np
 
 from edge_camera.config import EdgeCameraConfig, PublishConfig
-from edge_camera.node import FramePublisher
+from edge_camera.publish import FramePublisher
 from edge_camera.sources import create_source, parse_source_config
 from protocol.keys import Keys
 from protocol.session import ZenohSettings, open_session

@@ -9,6 +9,7 @@ from pydantic import BaseModel, ConfigDict, Field, SerializeAsAny, field_validat
 
 from edge_camera.sources import parse_source_config
 from edge_camera.sources.base import SourceConfig
+from protocol.session import ReconnectConfig
 from protocol.tomlconfig import AgentConfig
 
 
@@ -24,15 +25,6 @@ class PublishConfig(BaseModel):
         default=None, gt=0, le=8192, description="resize frames to this height (none: keep the aspect ratio)"
     )
     jpeg_quality: int = Field(default=85, ge=1, le=100, description="JPEG quality 1..100")
-
-
-class ReconnectConfig(BaseModel):
-    """Back-off between attempts to reopen a failed source (or reach the router)."""
-
-    model_config = ConfigDict(extra="forbid")
-    initial_s: float = Field(default=0.5, gt=0, description="first wait after a fault")
-    max_s: float = Field(default=10.0, gt=0, description="longest wait between attempts")
-    factor: float = Field(default=2.0, ge=1.0, description="wait multiplier per consecutive failure")
 
 
 class EdgeCameraConfig(AgentConfig):

@@ -1,288 +1,70 @@
 """The I/O shell of ``argus planner``: graph, map, robot states and viewpoints in; one goal per robot out.
 
-Zenoh callbacks only decode into bounded holders (newest map, newest state and viewpoint set per
-robot, bounded queues of graph snapshots and deltas) and wake the planning thread. That thread follows
-the graph with :class:`protocol.graph.GraphFollower` (snapshot + deltas; a new mapper epoch is adopted
-at once, a gap or another epoch's delta re-queries the snapshot, and a run of stale snapshots from a
-live mapper overrides a forged or lost future version), decides which robots need a goal
-(arrived, failed or refused on their goal; idle; or a large graph change while moving), calls the
-pure :class:`~planner.core.Planner` and publishes :class:`NbvGoal`\\ s with BLOCK and high priority.
+What comes in is held by :class:`planner.inbox.PlannerInbox` (bounded, fed by Zenoh callbacks). The planning
+thread follows the graph, decides which robots need a goal (:func:`planner.schedule.goal_due`: arrived,
+failed or refused on their goal; idle; or a large graph change while moving; an arrived robot once the graph
+covers its arrival frame), calls the pure :class:`~planner.core.Planner` and publishes :class:`NbvGoal`\\ s
+with BLOCK and high priority.
 """
 
 from __future__ import annotations
 
-import collections
-import logging
-import math
 import threading
 import time
-from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
 from planner.config import PlannerNodeConfig
 from planner.core import Planner
+from planner.inbox import MAX_ROBOTS, ROBOT_ROLE, PlannerInbox, log
+from planner.schedule import Pending, goal_due
 from protocol.codec import DecodeError, M, decode, encode
-from protocol.graph import GraphFollower
-from protocol.keys import Keys
-from protocol.messages import GraphDelta, GraphSnapshot, NbvGoal, PointMap, RobotState, ViewpointSet
-from protocol.ratelog import RateLimitedLog
-from protocol.session import open_session_retrying
-from protocol.transport import Counters, StatusReporter, declare_message_publisher
+from protocol.messages import GraphSnapshot, NbvGoal, RobotState, ViewpointSet
+from protocol.node import Node, Process
 
 if TYPE_CHECKING:
     import zenoh
 
-log = logging.getLogger("argus.planner")
 ROLE = "planner"
-MAX_ROBOTS = 64
-MAX_PENDING_DELTAS = 256
-MAX_PENDING_SNAPSHOTS = 8
-TRIGGER_STATES = ("arrived", "failed", "refused")
-ROBOT_ROLE = "robot-agent"  # the role in a robot agent's liveliness token
 
 
-@dataclass
-class _Pending:
-    goal_id: str
-    vp_id: int | None
-    sent_s: float
-    n_nodes: int
-
-
-class PlannerNode:
+class PlannerNode(PlannerInbox, Process):
     """One planner process. ``run(stop)`` blocks until ``stop`` is set; tests may call it directly."""
 
     def __init__(self, config: PlannerNodeConfig, planner: Planner | None = None) -> None:
-        self.config = config
-        self.keys = Keys(config.site, config.prefix)
-        self.planner = planner or Planner(config.planner)
-        self.counters = Counters()
-        self.bad_input = RateLimitedLog(log)  # bad-input warnings: first per reason, then a summary per period
-        self._lock = threading.Lock()
-        self._wake = threading.Event()
-        self.follower = GraphFollower()
-        self._deltas: collections.deque[GraphDelta] = collections.deque(maxlen=MAX_PENDING_DELTAS)
-        # Every snapshot counts (stale ones in a row resync the follower), so they queue rather than overwrite.
-        self._snapshots: collections.deque[GraphSnapshot] = collections.deque(maxlen=MAX_PENDING_SNAPSHOTS)
-        self.point_map: PointMap | None = None
-        self.states: dict[str, RobotState] = {}
-        # Per robot waiting for its arrival frame to be fused: (that frame's seq, when the wait began).
-        self._fusion_wait: dict[str, tuple[int | None, float]] = {}
-        self.viewpoints: dict[str, ViewpointSet] = {}
-        self.pending: dict[str, _Pending] = {}
-        self._gone: set[str] = set()  # robots whose liveliness token went away (until it comes back)
+        super().__init__(config, planner)
         self._pubs: dict[str, Any] = {}
-        self._session: zenoh.Session | None = None
-
-    @property
-    def graph(self) -> GraphSnapshot:
-        """The graph followed (see :class:`GraphFollower`)."""
-        return self.follower.graph
-
-    @graph.setter
-    def graph(self, snap: GraphSnapshot) -> None:
-        self.follower.graph = snap
-
-    @property
-    def _need_snapshot(self) -> bool:
-        return self.follower.need_snapshot
-
-    # --- callbacks (Zenoh threads) -----------------------------------------------------------
-    def _decode(self, sample: zenoh.Sample, cls: type[M]) -> M | None:
-        try:
-            return decode(sample.payload.to_bytes(), cls)
-        except DecodeError as e:
-            self.counters.add("decode_errors")
-            self.bad_input.warning("decode_errors", "dropping bad %s on %s: %s", cls.KIND, sample.key_expr, e)
-        except Exception as e:  # noqa: BLE001 - a callback must never raise into zenoh
-            self.counters.add("decode_errors")
-            self.bad_input.warning("decode_errors", "dropping %s on %s: %s", cls.KIND, sample.key_expr, e)
-        return None
-
-    def on_snapshot(self, sample: zenoh.Sample) -> None:
-        snap = self._decode(sample, GraphSnapshot)
-        if snap is not None:
-            self.offer_snapshot(snap)
-
-    def offer_snapshot(self, snap: GraphSnapshot) -> None:
-        with self._lock:
-            if len(self._snapshots) == self._snapshots.maxlen:
-                self.counters.add("snapshots_dropped")
-            self._snapshots.append(snap)
-        self.counters.add("snapshots_in")
-        self._wake.set()
-
-    def on_delta(self, sample: zenoh.Sample) -> None:
-        delta = self._decode(sample, GraphDelta)
-        if delta is None:
-            return
-        with self._lock:
-            if len(self._deltas) == self._deltas.maxlen:
-                self.counters.add("deltas_dropped")
-                self._deltas.clear()  # the follower sees the gap and re-queries the snapshot
-            self._deltas.append(delta)
-        self.counters.add("deltas_in")
-        self._wake.set()
-
-    def on_map(self, sample: zenoh.Sample) -> None:
-        pm = self._decode(sample, PointMap)
-        if pm is not None:
-            with self._lock:
-                self.point_map = pm
-            self.counters.add("maps_in")
-
-    def _robot_id(self, sample: zenoh.Sample) -> str | None:
-        try:
-            return self.keys.parse_robot(str(sample.key_expr))[0]
-        except ValueError:
-            self.counters.add("bad_keys")
-            return None
-
-    def on_state(self, sample: zenoh.Sample) -> None:
-        st = self._decode(sample, RobotState)
-        rid = self._robot_id(sample)
-        if st is None or rid is None:
-            return
-        if st.robot_id != rid:
-            self.counters.add("decode_errors")
-            self.bad_input.warning("wrong_robot", "state on %s names robot %r; ignored", sample.key_expr, st.robot_id)
-            return
-        with self._lock:
-            if rid in self._gone:
-                self.counters.add("states_of_gone_robots")
-                return
-            if rid not in self.states and len(self.states) >= MAX_ROBOTS:
-                self.counters.add("robots_refused")
-                return
-            self.states[rid] = st
-        self._wake.set()
-
-    def on_viewpoints(self, sample: zenoh.Sample) -> None:
-        vps = self._decode(sample, ViewpointSet)
-        rid = self._robot_id(sample)
-        if vps is None or rid is None:
-            return
-        if vps.robot_id != rid:
-            self.counters.add("decode_errors")
-            self.bad_input.warning("wrong_robot", "viewpoints on %s name robot %r; ignored", sample.key_expr,
-                                   vps.robot_id)
-            return
-        with self._lock:
-            if rid not in self.viewpoints and len(self.viewpoints) >= MAX_ROBOTS:
-                self.counters.add("robots_refused")
-                return
-            self.viewpoints[rid] = vps
-        self._wake.set()
-
-    def on_alive(self, sample: zenoh.Sample) -> None:
-        """Robot liveliness: a robot whose token goes away (it stopped, crashed or lost its link) is
-        forgotten (state, viewpoints, pending goal, claim), so the others are planned without it; when it
-        comes back its state and viewpoints arrive afresh."""
-        try:
-            role, rid = self.keys.parse_alive(str(sample.key_expr))
-        except ValueError:
-            self.counters.add("bad_keys")
-            return
-        if role != ROBOT_ROLE:
-            return
-        if str(sample.kind).endswith("DELETE"):
-            self.forget_robot(rid)
-        else:
-            with self._lock:
-                self._gone.discard(rid)
-            self.counters.add("robots_joined")
-            log.info("robot %s is alive", rid)
-
-    def forget_robot(self, rid: str) -> None:
-        with self._lock:
-            if len(self._gone) < MAX_ROBOTS:
-                self._gone.add(rid)  # its last samples may still be on their way: ignored until it is back
-            known = self.states.pop(rid, None) is not None
-            self.viewpoints.pop(rid, None)
-            self.pending.pop(rid, None)
-            self._fusion_wait.pop(rid, None)
-            self.planner.release(rid)
-        if known:
-            self.counters.add("robots_lost")
-            log.warning("robot %s went away (liveliness); planning for the remaining robots", rid)
-        self._wake.set()
+        self.node = Node(config.zenoh, self.keys, ROLE, config.node_id, counters=self.counters,
+                         status_period_s=config.status_period_s, logger=log)
 
     # --- planning thread ---------------------------------------------------------------------
-    def _follow_graph(self) -> None:
-        with self._lock:
-            snaps = list(self._snapshots)
-            self._snapshots.clear()
-            deltas = list(self._deltas)
-            self._deltas.clear()
-        f = self.follower
-        adopted = False
-        for snap in snaps:
-            held = f.graph.version
-            outcome = f.offer_snapshot(snap)
-            adopted = adopted or outcome != "stale"
-            if outcome == "resynced":
-                log.warning("%d snapshots in a row were older than the graph held (v%d): following v%d of epoch %s",
-                            f.resync_after, held, f.graph.version, f.graph.epoch or "''")
-        for d in sorted(deltas, key=lambda d: d.version):
-            if adopted and d.epoch == f.graph.epoch and d.version <= f.graph.version:
-                continue  # covered by the snapshot just adopted: not a sign of a stale graph
-            if f.offer_delta(d) in ("gap", "other_epoch"):
-                break
-        for name, value in f.counters.items():
-            self.counters.set(name, value)
-
     def robots_to_plan(self, now_s: float) -> dict[str, tuple[RobotState, ViewpointSet]]:
         """Robots that need a (new) goal now, with their state and viewpoints."""
         out = {}
-        n_nodes = len(self.graph.nodes)
+        n_nodes, cfg = len(self.graph.nodes), self.config
         with self._lock:
             items = [(rid, st, self.viewpoints.get(rid)) for rid, st in self.states.items()]
         for rid, st, vps in items:
             if vps is None or not vps.viewpoints or st.status == "budget_exhausted":
                 continue
             p = self.pending.get(rid)
-            need = False
-            if st.status in TRIGGER_STATES:
-                if p is None or st.goal_id == p.goal_id:
-                    need = True
-                    if p is not None and st.status in ("failed", "refused"):
-                        self.planner.mark_failed(rid, p.vp_id)
-                        self.counters.add("goals_failed")
-                else:
-                    need = now_s - p.sent_s > self.config.resend_s  # our goal seems lost
-            elif st.status == "idle":
-                need = p is None or now_s - p.sent_s > self.config.resend_s
-            elif st.status == "moving" and p is not None:
-                need = n_nodes - p.n_nodes >= self.config.replan_new_nodes
-                if need:
-                    self.counters.add("replans_graph_change")
-            if need and not self._arrival_fused(rid, st, now_s):
-                need = False
-            if need:
+            due = goal_due(st, p, n_nodes, now_s, cfg.resend_s, cfg.replan_new_nodes)
+            if due == "failed" and p is not None:
+                self.planner.mark_failed(rid, p.vp_id)
+                self.counters.add("goals_failed")
+            elif due == "graph_change":
+                self.counters.add("replans_graph_change")
+            if due is not None and self._arrival_fused(rid, st, now_s):
                 out[rid] = (st, vps)
         return out
 
     def _arrival_fused(self, rid: str, st: RobotState, now_s: float) -> bool:
-        """Whether the graph covers an arrived robot's arrival frame, or waiting for it has timed out
-        (``fusion_wait_s``): the next goal is chosen on a map that includes what the robot just saw."""
-        if st.status != "arrived" or st.last_frame_seq is None or self.config.fusion_wait_s <= 0:
-            return True
-        if self.graph.frames.get(rid, -1) >= st.last_frame_seq:
-            self._fusion_wait.pop(rid, None)
-            return True
-        seq, since = self._fusion_wait.get(rid, (None, now_s))
-        if seq != st.last_frame_seq:
-            self._fusion_wait[rid] = (st.last_frame_seq, now_s)
-            self.counters.add("fusion_waits")
-            return False
-        if now_s - since < self.config.fusion_wait_s:
-            return False
-        if since != -math.inf:  # the first time this wait runs out
-            self._fusion_wait[rid] = (seq, -math.inf)
-            self.counters.add("fusion_wait_timeouts")
+        ready, event = self.fusion_wait.ready(rid, st, self.graph.frames.get(rid, -1), now_s)
+        if event is not None:
+            self.counters.add(event)
+        if event == "fusion_wait_timeouts":
             log.warning("robot %s: no graph version covers its arrival frame %d after %.1f s; planning anyway",
-                        rid, st.last_frame_seq, now_s - since)
-        return True
+                        rid, st.last_frame_seq, self.fusion_wait.waited_s)
+        return ready
 
     def plan_once(self, now_s: float | None = None) -> list:
         """Follow the graph, plan for the robots that need it, publish; returns the goals sent."""
@@ -300,7 +82,7 @@ class PlannerNode:
             log.exception("planning failed")
             self._reporter_error(f"planning failed: {e}")
             for rid in robots:  # back off instead of retrying in a tight loop
-                self.pending[rid] = _Pending("", None, now_s, len(self.graph.nodes))
+                self.pending[rid] = Pending("", None, now_s, len(self.graph.nodes))
             return []
         info = self.planner.info
         self.counters.add("decisions")
@@ -319,41 +101,27 @@ class PlannerNode:
                 p.n_nodes = len(self.graph.nodes)  # same goal after the graph change: keep going
                 continue
             self._publish_goal(g)
-            self.pending[g.robot_id] = _Pending(g.goal_id, g.vp_id, now_s, len(self.graph.nodes))
+            self.pending[g.robot_id] = Pending(g.goal_id, g.vp_id, now_s, len(self.graph.nodes))
             self.counters.set("gain_last", g.expected_gain)
             sent.append(g)
-        for rid in robots:
-            if rid not in {g.robot_id for g in goals}:
-                self.pending[rid] = _Pending(
-                    "", None, now_s, len(self.graph.nodes)
-                )  # nothing to do: back off
+        for rid in robots.keys() - {g.robot_id for g in goals}:
+            self.pending[rid] = Pending("", None, now_s, len(self.graph.nodes))  # nothing to do: back off
         return sent
 
     def _reporter_error(self, msg: str) -> None:
-        rep = getattr(self, "_reporter", None)
-        if rep is not None:
-            rep.last_error = msg
+        self.node.error(msg)
 
     def _publish_goal(self, goal: Any) -> None:
         pub = self._pubs.get(goal.robot_id)
-        if pub is None and self._session is not None:
-            pub = self._pubs[goal.robot_id] = declare_message_publisher(
-                self._session, self.keys.robot_goal(goal.robot_id), important=True, message=NbvGoal
-            )
+        if pub is None and self.node.is_open:
+            pub = self._pubs[goal.robot_id] = self.node.publisher(self.keys.robot_goal(goal.robot_id), message=NbvGoal)
         if pub is None:
             return
         try:
             pub.put(encode(goal))
             self.counters.add("goals_sent")
-            log.info(
-                "goal %s -> (%.2f, %.2f) gain %.2f: %s (%.0f ms)",
-                goal.goal_id,
-                goal.x,
-                goal.y,
-                goal.expected_gain,
-                goal.reason,
-                self.planner.info.decision_s * 1e3,
-            )
+            log.info("goal %s -> (%.2f, %.2f) gain %.2f: %s (%.0f ms)", goal.goal_id, goal.x, goal.y,
+                     goal.expected_gain, goal.reason, self.planner.info.decision_s * 1e3)
         except Exception as e:  # noqa: BLE001 - a closing session must not kill the loop
             self.counters.add("publish_errors")
             log.warning("goal publish failed: %s", e)
@@ -391,51 +159,21 @@ class PlannerNode:
         self._wake.set()
 
     # --- process -----------------------------------------------------------------------------
-    def run(self, stop: threading.Event) -> int:
-        session = open_session_retrying(self.config.zenoh, stop, log)
-        if session is None:
-            return 0
+    def serve(self, node: Node) -> None:
         k = self.keys
-        with session:
-            self._session = session
-            subs = [
-                session.declare_subscriber(k.graph_snapshot, self.on_snapshot),
-                session.declare_subscriber(k.graph_delta, self.on_delta),
-                session.declare_subscriber(k.map_points, self.on_map),
-                session.declare_subscriber(k.all_robot_states, self.on_state),
-                session.declare_subscriber(k.all_robot_viewpoints, self.on_viewpoints),
-                session.liveliness().declare_subscriber(k.all_alive_of(ROBOT_ROLE), self.on_alive),
-            ]
-            self._reporter = StatusReporter(
-                session,
-                k.status(ROLE, self.config.node_id),
-                ROLE,
-                self.config.node_id,
-                self.counters,
-                self.config.status_period_s,
-                extra=lambda: {"robots": len(self.states), "graph_nodes": len(self.graph.nodes),
-                               "graph_version": self.graph.version},
-            )
-            log.info(
-                "planner %s up: strategy %s, sampler %s",
-                self.config.node_id,
-                self.config.planner.strategy,
-                self.config.planner.sampler.kind,
-            )
-            try:
-                with self._reporter:
-                    self._initial_queries(session)
-                    token = session.liveliness().declare_token(k.alive(ROLE, self.config.node_id))
-                    try:
-                        self._loop(stop, session)
-                    finally:
-                        token.undeclare()
-            finally:
-                for s in subs:
-                    s.undeclare()
-                self._session = None
-        log.info("planner stopped (%d goals sent)", int(self.counters.get("goals_sent")))
-        return 0
+        node.on_exit(lambda: log.info("planner stopped (%d goals sent)", int(self.counters.get("goals_sent"))))
+        for key, callback in ((k.graph_snapshot, self.on_snapshot), (k.graph_delta, self.on_delta),
+                              (k.map_points, self.on_map), (k.all_robot_states, self.on_state),
+                              (k.all_robot_viewpoints, self.on_viewpoints)):
+            node.subscribe(key, callback)
+        node.watch_alive(k.all_alive_of(ROBOT_ROLE), self.on_alive)
+        node.status(extra=lambda: {"robots": len(self.states), "graph_nodes": len(self.graph.nodes),
+                                   "graph_version": self.graph.version})
+        c = self.config
+        log.info("planner %s up: strategy %s, sampler %s", c.node_id, c.planner.strategy, c.planner.sampler.kind)
+        self._initial_queries(node.session)
+        node.alive()  # once the start-up queries are answered
+        self._loop(node.stop, node.session)
 
     def _loop(self, stop: threading.Event, session: zenoh.Session) -> None:
         last_query = time.monotonic()
@@ -459,7 +197,4 @@ class PlannerNode:
 
 def run(config: PlannerNodeConfig, stop: threading.Event | None = None) -> int:
     """Run the planner until ``stop`` (default: SIGINT/SIGTERM)."""
-    from protocol.runtime import install_stop_handlers
-
-    node = PlannerNode(config)
-    return node.run(stop if stop is not None else install_stop_handlers())
+    return PlannerNode(config).run(stop)

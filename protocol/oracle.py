@@ -2,12 +2,14 @@
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
 import cv2
 import numpy as np
 
 from protocol.jpeg import MAX_PIXELS, JpegError
+from protocol.messages import OracleFrame, rows
 
 _PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 
@@ -73,3 +75,19 @@ class OracleCapture:
     instance_id: np.ndarray
     depth_m: np.ndarray
     labels: dict[int, str] = field(default_factory=dict)
+
+    def message(self, source_id: str, seq: int, stamp_ns: int,
+                resize: Callable[[np.ndarray], np.ndarray] | None = None) -> OracleFrame:
+        """The :class:`OracleFrame` of frame ``source_id``/``seq``; ``resize`` (nearest-neighbour: ids stay ids)
+        brings the images to the size the frame was sent at."""
+        same: Callable[[np.ndarray], np.ndarray] = lambda image: image  # noqa: E731
+        fit = resize or same
+        return OracleFrame(
+            source_id=source_id,
+            seq=seq,
+            stamp_ns=stamp_ns,
+            T_world_cam_true=rows(self.T_world_cam_true),
+            ids_png=ids_to_png(fit(self.instance_id)),
+            depth_png=depth_to_png(fit(self.depth_m)),
+            labels={str(k): v for k, v in self.labels.items()},
+        )

@@ -104,6 +104,32 @@ def check_listen(endpoints: list[str], insecure: bool) -> None:
     log.warning("INSECURE: listening on %s without TLS or authentication (--insecure)", ", ".join(exposed))
 
 
+class ReconnectConfig(BaseModel):
+    """Back-off between attempts to reach the router (or to reopen a failed source)."""
+
+    model_config = ConfigDict(extra="forbid")
+    initial_s: float = Field(default=0.5, gt=0, description="first wait after a fault")
+    max_s: float = Field(default=10.0, gt=0, description="longest wait between attempts")
+    factor: float = Field(default=2.0, ge=1.0, description="wait multiplier per consecutive failure")
+
+
+class Backoff:
+    """Exponential back-off: ``initial_s``, then times ``factor`` per failure, capped at ``max_s``."""
+
+    def __init__(self, config: ReconnectConfig) -> None:
+        self.config = config
+        self.failures = 0
+
+    def next_wait_s(self) -> float:
+        c = self.config
+        wait = min(c.max_s, c.initial_s * c.factor**self.failures)
+        self.failures += 1
+        return wait
+
+    def reset(self) -> None:
+        self.failures = 0
+
+
 class ZenohSettings(BaseModel):
     """How a process joins the Zenoh network."""
 
@@ -220,17 +246,11 @@ def open_session_retrying(
 ) -> zenoh.Session | None:
     """Open a session, retrying until it works or ``stop`` is set (then ``None``).
 
-    Waits ``next_wait_s()`` between attempts (default: 0.5 s doubling to 10 s) and logs one line each.
-    Every long-running process starts this way, so it may start before its router.
+    Waits ``next_wait_s()`` between attempts (default: :class:`Backoff`, 0.5 s doubling to 10 s) and logs one
+    line each. Every long-running process starts this way (:class:`protocol.node.Node`), so it may start
+    before its router.
     """
-    wait = 0.25
-
-    def doubling() -> float:
-        nonlocal wait
-        wait = min(10.0, wait * 2)
-        return wait
-
-    pause = next_wait_s or doubling
+    pause = next_wait_s or Backoff(ReconnectConfig()).next_wait_s
     while not stop.is_set():
         try:
             return open_session(settings)

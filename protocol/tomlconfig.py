@@ -12,12 +12,19 @@ Overrides use dotted paths; a value is parsed as a TOML value when it can be (``
 from __future__ import annotations
 
 import argparse
+import importlib
+import sys
 import tomllib
 import types
+from collections.abc import Callable
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Annotated, Any, Literal, TypeVar, Union, get_args, get_origin
+from typing import TYPE_CHECKING, Annotated, Any, Literal, NamedTuple, TypeVar, Union, get_args, get_origin
 
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, field_validator
+
+if TYPE_CHECKING:
+    from protocol.plugins import BackendRegistry
 
 from protocol.keys import SiteName, validate_id
 from protocol.session import ZenohSettings, default_endpoints, default_site
@@ -198,3 +205,92 @@ class AgentConfig(BaseModel):
     @classmethod
     def _chunk(cls, v: str) -> str:
         return validate_id(v)
+
+
+class Flag(NamedTuple):
+    """One of a process's own command-line flags and the config path it sets (a path value is set as a string)."""
+
+    name: str
+    path: str
+    help: str
+    type: Callable[[str], Any] = str
+    choices: tuple[str, ...] | None = None
+    metavar: str | None = None
+
+    @property
+    def dest(self) -> str:
+        return self.name.lstrip("-").replace("-", "_")
+
+
+@dataclass(frozen=True)
+class ProcessCommand:
+    """One process's command line: the flags every process shares (:func:`process_parser`), its own
+    :class:`Flag` s, and the module whose ``run(config)`` it starts (imported only then)."""
+
+    name: str
+    description: str
+    epilog: str
+    what: str
+    config_help: str
+    set_example: str
+    node_module: str
+    flags: tuple[Flag, ...] = ()
+    listen: bool = False
+    id_field: str = "id"
+
+    def parser(self) -> argparse.ArgumentParser:
+        p = process_parser(f"argus {self.name}", self.description, self.epilog, what=self.what,
+                           config_help=self.config_help, set_example=self.set_example, listen=self.listen)
+        for f in self.flags:
+            p.add_argument(f.name, type=f.type, choices=f.choices, default=None, metavar=f.metavar, help=f.help)
+        return p
+
+    def values(self, a: argparse.Namespace) -> dict[str, Any]:
+        """Config paths of the shared flags and of this process's own (unset flags are ``None``)."""
+        values = process_values(a, self.id_field)
+        for f in self.flags:
+            value = getattr(a, f.dest)
+            values[f.path] = str(value) if isinstance(value, Path) else value
+        return values
+
+    def describe(self, model: type[BaseModel], backends: BackendRegistry | None = None) -> str:
+        """``--describe``: every field of ``model``; with ``backends``, the fields of its table per backend type."""
+        lines = [f"argus {self.name} configuration (TOML):", ""]
+        if backends is None:
+            return "\n".join(lines + describe(model))
+        lines += [ln for ln in describe(model) if not ln.startswith(f"{backends.table} ")]
+        return "\n".join(lines + backends.describe(describe))
+
+    def start(
+        self,
+        a: argparse.Namespace,
+        model: type[C],
+        describe_all: Callable[[], str] | None = None,
+        *,
+        values: dict[str, Any] | None = None,
+        config_errors: tuple[type[Exception], ...] = (),
+        errors: tuple[type[Exception], ...] = (),
+    ) -> int:
+        """The end of every process's ``main``: ``--describe`` prints ``describe_all()`` (default: every field of
+        ``model``); otherwise load the config
+        (file, then flags and ``values``, then ``--set``), log as ``<name>[<id>]`` and call ``run(config)`` of the
+        node module. A bad config, or one of ``config_errors`` raised while the process builds its parts, is one
+        line on stderr and exit status 2 (``errors`` likewise, without the words "configuration error")."""
+        from protocol.runtime import setup_logging
+
+        if a.describe:
+            print(describe_all() if describe_all is not None else self.describe(model))
+            return 0
+        try:
+            config = load_config(model, a.config, {**self.values(a), **(values or {})}, a.overrides)
+        except ConfigError as e:
+            print(f"argus {self.name}: {e}", file=sys.stderr)
+            return 2
+        setup_logging(f"{self.name}[{getattr(config, self.id_field)}]", getattr(config, "log_level", "INFO"))
+        try:
+            return int(importlib.import_module(self.node_module).run(config))
+        except errors as e:
+            print(f"argus {self.name}: {e}", file=sys.stderr)
+        except config_errors as e:
+            print(f"argus {self.name}: configuration error: {e}", file=sys.stderr)
+        return 2

@@ -39,14 +39,15 @@ class Frame:
     received_ns: int
 
 
-def declare_frame_publisher(session: zenoh.Session, key: str) -> zenoh.Publisher:
-    """Publisher for frames: ``image/jpeg``, congestion control DROP (a slow link drops, never blocks)."""
+def declare_frame_publisher(session: zenoh.Session, key: str, *, block: bool = False) -> zenoh.Publisher:
+    """Publisher for frames: ``image/jpeg``, congestion control DROP (a slow link drops, never blocks);
+    ``block``: BLOCK (frames that must not be lost, e.g. a robot's arrival frame)."""
     import zenoh
 
     return session.declare_publisher(
         key,
         encoding=zenoh.Encoding.IMAGE_JPEG,
-        congestion_control=zenoh.CongestionControl.DROP,
+        congestion_control=zenoh.CongestionControl.BLOCK if block else zenoh.CongestionControl.DROP,
         priority=zenoh.Priority.DATA,
     )
 
@@ -62,16 +63,24 @@ def message_encoding(cls: type[Message] | None = None, mime: str = MSGPACK_MIME)
 
 
 def declare_message_publisher(
-    session: zenoh.Session, key: str, *, important: bool = True, message: type[Message] | None = None
+    session: zenoh.Session,
+    key: str,
+    *,
+    important: bool = True,
+    message: type[Message] | None = None,
+    mime: str = MSGPACK_MIME,
+    block: bool | None = None,
 ) -> zenoh.Publisher:
     """Publisher for codec messages of class ``message`` (named in the sample encoding, see
-    :func:`message_encoding`). ``important`` (goals, deltas): BLOCK and a higher priority."""
+    :func:`message_encoding`; ``mime`` ``application/json`` for a JSON view). ``important`` (goals, deltas):
+    BLOCK and a higher priority; ``block`` overrides the congestion control alone (default: ``important``)."""
     import zenoh
 
+    blocking = important if block is None else block
     return session.declare_publisher(
         key,
-        encoding=message_encoding(message),
-        congestion_control=zenoh.CongestionControl.BLOCK if important else zenoh.CongestionControl.DROP,
+        encoding=message_encoding(message, mime),
+        congestion_control=zenoh.CongestionControl.BLOCK if blocking else zenoh.CongestionControl.DROP,
         priority=zenoh.Priority.INTERACTIVE_HIGH if important else zenoh.Priority.DATA,
     )
 
@@ -253,6 +262,12 @@ class Counters:
     def get(self, name: str) -> float:
         with self._lock:
             return self._values.get(name, 0.0)
+
+    def ema(self, name: str, value: float, alpha: float = 0.2) -> None:
+        """Move ``name`` towards ``value`` (exponential moving average); the first value is taken as is."""
+        with self._lock:
+            old = self._values.get(name, 0.0)
+            self._values[name] = float(value) if old == 0.0 else (1 - alpha) * old + alpha * value
 
     def snapshot(self) -> dict[str, float]:
         with self._lock:

@@ -26,10 +26,11 @@ from typing import Any
 import numpy as np
 
 from protocol.messages import NbvGoal
+from protocol.node import Node
 from protocol.session import ZenohSettings, open_session
 from robot_agent.bodies import parse_body_config
 from robot_agent.config import FramesConfig, MotionConfig, RobotAgentConfig
-from robot_agent.node import RobotAgent
+from robot_agent.node import ROLE, RobotAgent
 
 
 def _free_port() -> int:
@@ -57,10 +58,11 @@ def bench_frames(body: str, n: int, width: int, height: int, oracle: bool) -> di
     def on_frame(_sample: Any) -> None:
         received[0] += 1
 
-    with open_session(cfg.zenoh) as session, open_session(ZenohSettings(mode="peer", connect=[ep])) as sub_s:
+    node = Node(cfg.zenoh, agent.keys, ROLE, cfg.id, stop=threading.Event())
+    with node, open_session(ZenohSettings(mode="peer", connect=[ep])) as sub_s:
         sub = sub_s.declare_subscriber(agent.keys.robot_frame("bench"), on_frame)
         time.sleep(0.5)  # let the subscription reach the publisher (a benchmark, not a test)
-        agent.declare_publishers(session)
+        agent.declare_publishers(node)
         rows = [agent.publish_frame() for _ in range(n + 2)][2:]
         deadline = time.monotonic() + 5
         while received[0] < n + 2 and time.monotonic() < deadline:

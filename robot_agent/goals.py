@@ -1,5 +1,5 @@
 """Pure goal and budget logic of the robot agent (no I/O): reading goal payloads, judging goals,
-the exploration budget and the rate limit on published refusals."""
+the exploration budget, the rate limit on published refusals and the one-slot goal mailbox."""
 
 from __future__ import annotations
 
@@ -152,3 +152,32 @@ class RefusalLimiter:
         with self._lock:
             n, self._suppressed = self._suppressed, 0
             return n
+
+
+class GoalMailbox:
+    """One slot, newest wins; ``superseded`` counts goals replaced before the loop took them.
+
+    Each goal is held with the receipt number its answer (GoalStatus.received) will carry.
+    """
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._goal: tuple[NbvGoal, int] | None = None
+        self.superseded = 0
+
+    def put(self, goal: NbvGoal, received: int = 0) -> tuple[NbvGoal, int] | None:
+        """Hold ``goal``; returns the goal (and receipt number) it replaced, if any."""
+        with self._lock:
+            old, self._goal = self._goal, (goal, received)
+            if old is not None:
+                self.superseded += 1
+            return old
+
+    def take_with_receipt(self) -> tuple[NbvGoal, int] | None:
+        with self._lock:
+            item, self._goal = self._goal, None
+            return item
+
+    def take(self) -> NbvGoal | None:
+        item = self.take_with_receipt()
+        return item[0] if item is not None else None

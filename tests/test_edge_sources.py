@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 
 from edge_camera.calibration import CalibrationError, load_calibration
-from edge_camera.config import EdgeCameraConfig, PublishConfig, ReconnectConfig
-from edge_camera.node import Backoff, FramePublisher, output_size
+from edge_camera.config import EdgeCameraConfig, PublishConfig
+from edge_camera.publish import FramePublisher, output_size
 from edge_camera.sources import SOURCES, create_source, parse_source_config
 from edge_camera.sources.base import FrameSource, SourceConfigError, SourceError
 from protocol.tomlconfig import ConfigError, load_config
@@ -215,13 +215,6 @@ def test_header_scales_calibration_to_the_published_size(tmp_path):
 )
 def test_output_size(w, h, pw, ph, out):
     assert output_size(w, h, PublishConfig(width=pw, height=ph)) == out
-
-
-def test_backoff_grows_and_caps():
-    b = Backoff(ReconnectConfig(initial_s=0.5, max_s=3.0, factor=2.0))
-    assert [b.next_wait_s() for _ in range(5)] == [0.5, 1.0, 2.0, 3.0, 3.0]
-    b.reset()
-    assert b.next_wait_s() == 0.5
 
 
 def test_config_file_and_overrides(tmp_path):

@@ -281,13 +281,13 @@ def check_frame(args: tuple[str, bytes, bytes | None]) -> None:
     key, jpeg, att = args
     node = mapper_node()
     sample = Sample(key, zenoh.ZBytes(jpeg), None if att is None else zenoh.ZBytes(att))
-    node._admit(sample)  # type: ignore[arg-type]  # the callback's body: must never raise
-    for _, f in node.slots.take_all():
-        rgb = node._decode(f)
+    node.intake.admit(sample)  # type: ignore[arg-type]  # the callback's body: must never raise
+    for _, f in node.intake.slots.take_all():
+        rgb = node.intake.decode(f)
         if rgb is not None:
-            node._release(f)
+            node.intake.release(f)
             assert rgb.shape == (f.header.height, f.header.width, 3)
-    assert node.decode_budget.in_flight == 0
+    assert node.intake.decode_budget.in_flight == 0
 
 
 # --- queries ---------------------------------------------------------------------------------------------

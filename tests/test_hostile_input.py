@@ -17,11 +17,12 @@ import numpy as np
 import pytest
 import zenoh
 
-from mapper import node as mapper_node
+from mapper import inbox as mapper_inbox
 from mapper.config import GeometryConfig, MapperConfig, PerceptionConfig
 from mapper.core import MapperCore
+from mapper.inbox import DecodeBudget
 from mapper.intake import InputLimits, frame_problem, intrinsics_problem, pose_problem, view_problem
-from mapper.node import DecodeBudget, MapperNode
+from mapper.node import MapperNode
 from protocol.codec import encode
 from protocol.jpeg import MIN_BYTES_PER_MPIXEL_FLOOR, JpegError, decode_jpeg, encode_jpeg, jpeg_problem
 from protocol.keys import Keys
@@ -227,17 +228,17 @@ def mapper(oracle: bool = True, **limits: Any) -> MapperNode:
                             limits=InputLimits(**limits))
     cfg = core_cfg if oracle else MapperConfig(site=SITE, limits=InputLimits(**limits))
     node = MapperNode(cfg, core=MapperCore(core_cfg))
-    assert node.needs_oracle == oracle
+    assert node.intake.needs_oracle == oracle
     return node
 
 
 def frame(node: MapperNode, h: FrameHeader, jpeg: bytes) -> None:
-    node._on_frame(Sample(KEYS.robot_frame(h.source_id), zenoh.ZBytes(jpeg), zenoh.ZBytes(encode(h))))
+    node.intake.on_frame(Sample(KEYS.robot_frame(h.source_id), zenoh.ZBytes(jpeg), zenoh.ZBytes(encode(h))))
 
 
 def raw_frame(node: MapperNode, source: str, jpeg: bytes, header_body: dict[str, Any]) -> None:
     att = msgpack.packb(["ARG1", "frame_header", 1, 0, header_body], use_bin_type=True)
-    node._on_frame(Sample(KEYS.robot_frame(source), zenoh.ZBytes(jpeg), zenoh.ZBytes(att)))
+    node.intake.on_frame(Sample(KEYS.robot_frame(source), zenoh.ZBytes(jpeg), zenoh.ZBytes(att)))
 
 
 def valid_frame(node: MapperNode, eye: list[float], seq: int, source: str = "robot1",
@@ -248,28 +249,28 @@ def valid_frame(node: MapperNode, eye: list[float], seq: int, source: str = "rob
     o = OracleFrame(source_id=source, seq=seq, stamp_ns=v.stamp_ns, T_world_cam_true=v.oracle.T_world_cam_true,
                     ids_png=ids_to_png(v.oracle.instance_id), depth_png=depth_to_png(v.oracle.depth_m),
                     labels={str(k): lab for k, lab in LABELS.items()})
-    node._on_oracle(Sample(KEYS.oracle("robot", source), zenoh.ZBytes(encode(o))))
+    node.intake.on_oracle(Sample(KEYS.oracle("robot", source), zenoh.ZBytes(encode(o))))
     h = header(source, seq, T_world_cam=(v.T_world_cam if pose is None else pose).tolist())
     frame(node, h, encode_jpeg(v.image))
     return h
 
 
 def step(node: MapperNode) -> None:
-    pubs = {"delta": Sink(), "snapshot": Sink(), "map": Sink()}
-    node._step(Sink(), pubs, timeout_s=0.0)  # type: ignore[arg-type]
+    node.outbox.session, node.outbox.pubs = Sink(), {"delta": Sink(), "snapshot": Sink(), "map": Sink()}
+    node._step(timeout_s=0.0)
 
 
 @pytest.fixture
 def decodes(monkeypatch: pytest.MonkeyPatch) -> list[tuple[int, int]]:
     """Every JPEG the mapper decodes (its claimed size)."""
     seen: list[tuple[int, int]] = []
-    real = mapper_node.decode_jpeg
+    real = mapper_inbox.decode_jpeg
 
     def counting(data: bytes, expected_size: tuple[int, int], **kw: Any) -> np.ndarray:
         seen.append(expected_size)
         return real(data, expected_size, **kw)
 
-    monkeypatch.setattr(mapper_node, "decode_jpeg", counting)
+    monkeypatch.setattr(mapper_inbox, "decode_jpeg", counting)
     return seen
 
 
@@ -281,14 +282,14 @@ def test_forty_bomb_frames_are_refused_unread_and_a_real_frame_still_maps(decode
         frame(node, header(f"evil{i}", 1, width=w, height=h, intrinsics=None), jpeg_claiming(w, h))
     c = node.counters.snapshot()
     assert c["frames_too_large"] == 20 and c["frames_implausible_jpeg"] == 20 and c["decode_errors"] == 40
-    assert len(node.slots) == 0 and node.slots.bytes == 0  # not one took a ring slot
+    assert len(node.intake.slots) == 0 and node.intake.slots.bytes == 0  # not one took a ring slot
     step(node)
-    assert decodes == [] and node.decode_budget.peak == 0
+    assert decodes == [] and node.intake.decode_budget.peak == 0
     # A real frame afterwards is decoded (alone, within the budget) and maps.
     valid_frame(node, EYES[0], 1)
     step(node)
     assert decodes == [(INTR.width, INTR.height)]
-    assert node.decode_budget.peak == INTR.width * INTR.height and node.decode_budget.in_flight == 0
+    assert node.intake.decode_budget.peak == INTR.width * INTR.height and node.intake.decode_budget.in_flight == 0
     assert node.counters.get("frames_processed") == 1 and len(node.core.store.nodes) > 0
 
 
@@ -297,11 +298,11 @@ def test_with_the_byte_floor_off_frames_are_still_decoded_one_at_a_time(decodes:
                   decode_budget_pixels=9_000_000)
     for i in range(4):
         frame(node, header(f"evil{i}", 1, width=3000, height=3000, intrinsics=None), jpeg_claiming(3000, 3000))
-    assert len(node.slots) == 4
+    assert len(node.intake.slots) == 4
     step(node)
     assert len(decodes) == 4  # libjpeg "decodes" each (filling grey)...
-    assert node.decode_budget.peak == 9_000_000  # ...one at a time: never two 9 MP images in flight
-    assert node.decode_budget.in_flight == 0
+    assert node.intake.decode_budget.peak == 9_000_000  # ...one at a time: never two 9 MP images in flight
+    assert node.intake.decode_budget.in_flight == 0
 
 
 def test_impossible_intrinsics_and_poses_are_refused_with_counters_and_create_no_node() -> None:
@@ -332,11 +333,11 @@ def test_impossible_intrinsics_and_poses_are_refused_with_counters_and_create_no
 def test_a_flood_of_bad_frames_logs_one_line_per_reason_then_a_summary(caplog: pytest.LogCaptureFixture) -> None:
     node = mapper()
     now = [0.0]
-    node.bad_input = RateLimitedLog(logging.getLogger("mapper.node"), 10.0, clock=lambda: now[0])
+    node.intake.bad_input = RateLimitedLog(logging.getLogger("mapper.node"), 10.0, clock=lambda: now[0])
     with caplog.at_level(logging.WARNING, logger="mapper.node"):
         for i in range(1000):
             frame(node, header(f"evil{i % 50}", i, width=6000, height=6000, intrinsics=None), jpeg_claiming(6000, 6000))
-            node._on_frame(Sample(KEYS.robot_frame("evil"), zenoh.ZBytes(b"x"), zenoh.ZBytes(b"\x93garbage")))
+            node.intake.on_frame(Sample(KEYS.robot_frame("evil"), zenoh.ZBytes(b"x"), zenoh.ZBytes(b"\x93garbage")))
         now[0] = 10.0
         step(node)  # flushes the summary
     lines = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
@@ -357,7 +358,7 @@ def test_an_oversized_payload_is_refused_before_it_is_copied() -> None:
         def to_bytes(self) -> bytes:
             raise AssertionError("the payload was copied")
 
-    node._on_frame(Sample(KEYS.robot_frame("big"), Payload(), zenoh.ZBytes(encode(header("big", 1)))))  # type: ignore[arg-type]
+    node.intake.on_frame(Sample(KEYS.robot_frame("big"), Payload(), zenoh.ZBytes(encode(header("big", 1)))))  # type: ignore[arg-type]
     assert node.counters.get("frames_too_large") == 1 and node.counters.get("frame_errors") == 0
 
 

@@ -14,8 +14,8 @@ from protocol.poses import camera_pose_from_base
 from robot_agent.bodies import BODIES, create_body, parse_body_config
 from robot_agent.bodies.base import BodyConfigError, RobotBody
 from robot_agent.config import RobotAgentConfig
-from robot_agent.goals import Budget, goal_problem
-from robot_agent.node import GoalMailbox, RobotAgent
+from robot_agent.goals import Budget, GoalMailbox, goal_problem
+from robot_agent.node import RobotAgent
 
 
 def goal(**kw) -> NbvGoal:

@@ -266,7 +266,7 @@ def mapper_node():
 def test_json_view_answers_like_the_msgpack_keys(mapper_node) -> None:  # noqa: ANN001
     k = mapper_node.keys
     q = FakeQuery(k.graph_json(k.graph_snapshot))
-    mapper_node._on_json_query(q)
+    mapper_node.queries.on_json_query(q)
     ((key, payload, enc),) = q.replies
     major, minor = GraphSnapshot.SCHEMA
     assert key == "argus/s/graph/json/snapshot" and enc == f"application/json;argus/graph_snapshot/{major}.{minor}"
@@ -277,15 +277,15 @@ def test_json_view_answers_like_the_msgpack_keys(mapper_node) -> None:  # noqa: 
     assert GraphSnapshot.model_validate_json(payload).nodes[1].label == "table"  # JSON validates back too
 
     q = FakeQuery(k.graph_json(k.graph_nodes), "label=chair")
-    mapper_node._on_json_query(q)
+    mapper_node.queries.on_json_query(q)
     assert [n["node_id"] for n in json.loads(q.replies[0][1])["nodes"]] == ["n1"]
 
     q = FakeQuery(k.graph_json(k.graph_node("n2")))
-    mapper_node._on_json_query(q)
+    mapper_node.queries.on_json_query(q)
     assert json.loads(q.replies[0][1])["label"] == "table" and q.replies[0][2].startswith("application/json;")
 
     q = FakeQuery(k.graph_json_all)
-    mapper_node._on_json_query(q)
+    mapper_node.queries.on_json_query(q)
     assert sorted(r[0] for r in q.replies) == ["argus/s/graph/json/node/n1", "argus/s/graph/json/node/n2",
                                                "argus/s/graph/json/snapshot"]
 
@@ -293,12 +293,12 @@ def test_json_view_answers_like_the_msgpack_keys(mapper_node) -> None:  # noqa: 
 def test_json_view_refuses_bad_selectors_and_never_answers_msgpack_wildcards(mapper_node) -> None:  # noqa: ANN001
     k = mapper_node.keys
     q = FakeQuery(k.graph_json(k.graph_nodes), "colour=red")
-    mapper_node._on_json_query(q)
+    mapper_node.queries.on_json_query(q)
     assert q.replies == [] and "colour" in q.errors[0]
     q = FakeQuery(k.graph_all)  # graph/** reaches both queryables; only the msgpack one answers it
-    mapper_node._on_json_query(q)
+    mapper_node.queries.on_json_query(q)
     assert q.replies == [] and q.errors == []
-    mapper_node._on_query(q)
+    mapper_node.queries.on_query(q)
     assert {r[2] for r in q.replies} == {"application/msgpack;argus/graph_snapshot/1.2",
                                         "application/msgpack;argus/graph_node/1.0"}
     assert decode(q.replies[0][1], GraphSnapshot).version == 7

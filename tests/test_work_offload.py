@@ -295,7 +295,8 @@ def test_keyframes_finished_together_keep_their_jpegs_for_later_windows() -> Non
                                     node.core.config, p.views, p.target)
         o._inbox.append(("result", encode(encode_products(products, p.job, "w"))))
     deltas = FakePublisher()
-    node._finish_jobs(session, {"delta": deltas}, o)  # type: ignore[arg-type]
+    node.outbox.session, node.outbox.pubs = session, {"delta": deltas}
+    node._finish_jobs(o)
     assert deltas.payloads
     stored = {v.key for v in node.core.keyframes.views()}
     assert {("r1", int(j.split("#")[1])) for j in out} <= stored

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import sys
 
-from protocol.tomlconfig import ConfigError, describe, load_config, process_parser, process_values
+from protocol.tomlconfig import ProcessCommand
 
 EPILOG = """The mapper stays the single writer of the graph; a worker does the heavy per-keyframe work: it
 reconstructs the keyframe with its source keyframes (their JPEGs fetched from the mapper's keyframe store),
@@ -30,27 +30,17 @@ Status: argus/<site>/status/worker/<id> (jobs_in, jobs_done, jobs_failed, jobs_b
 image_cache_hits, job_s_mean). Exit status: 0 after SIGINT/SIGTERM, 2 on a configuration error."""
 
 
+COMMAND = ProcessCommand(
+    "worker", "Do the mapper's heavy per-keyframe work (geometry, 2D perception).", EPILOG, what="worker",
+    config_help="TOML config file", set_example="torch_threads=1", node_module="mapper.work.worker",
+)
+
+
 def main(argv: list[str] | None = None) -> int:
-    p = process_parser("argus worker", "Do the mapper's heavy per-keyframe work (geometry, 2D perception).",
-                       EPILOG, what="worker", config_help="TOML config file", set_example="torch_threads=1")
-    a = p.parse_args(argv)
+    a = COMMAND.parser().parse_args(argv)
     from mapper.work.config import WorkerConfig
 
-    if a.describe:
-        print("argus worker configuration (TOML):\n")
-        print("\n".join(describe(WorkerConfig)))
-        return 0
-    try:
-        config = load_config(WorkerConfig, a.config, process_values(a), a.overrides)
-    except ConfigError as e:
-        print(f"argus worker: {e}", file=sys.stderr)
-        return 2
-    from protocol.runtime import setup_logging
-
-    setup_logging(f"worker[{config.id}]", config.log_level)
-    from mapper.work.worker import run
-
-    return run(config)
+    return COMMAND.start(a, WorkerConfig)
 
 
 if __name__ == "__main__":

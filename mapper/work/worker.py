@@ -30,8 +30,8 @@ from protocol.codec import DecodeError, encode
 from protocol.jpeg import JpegError, decode_jpeg
 from protocol.keys import Keys
 from protocol.messages import WorkAck, WorkFrame, WorkJob, WorkResult
-from protocol.session import open_session_retrying
-from protocol.transport import Counters, StatusReporter, declare_message_publisher, decode_message_sample
+from protocol.node import Node, Process
+from protocol.transport import Counters, decode_message_sample
 
 if TYPE_CHECKING:
     import zenoh
@@ -71,7 +71,7 @@ class Backends:
         return self.config, self.parts
 
 
-class WorkerNode:
+class WorkerNode(Process):
     """One worker process. ``run(stop)`` blocks until ``stop`` is set; tests may call it directly."""
 
     def __init__(self, config: WorkerConfig) -> None:
@@ -85,6 +85,8 @@ class WorkerNode:
         self._session: zenoh.Session | None = None
         self._pubs: dict[str, Any] = {}
         self.job_times_s: collections.deque[float] = collections.deque(maxlen=64)
+        self.node = Node(config.zenoh, self.keys, ROLE, config.id, counters=self.counters,
+                         status_period_s=config.status_period_s, logger=log)
 
     # -- Zenoh thread --------------------------------------------------------------------------------
     def _on_job(self, sample: zenoh.Sample) -> None:
@@ -180,36 +182,24 @@ class WorkerNode:
         return out
 
     # -- main loop -------------------------------------------------------------------------------------
-    def run(self, stop: threading.Event) -> int:
+    def serve(self, node: Node) -> None:
         cfg = self.config
-        session = open_session_retrying(cfg.zenoh, stop, log)
-        if session is None:
-            return 0
-        with session:
-            self._session = session
-            self._pubs = {
-                "ack": declare_message_publisher(session, self.keys.work_ack(cfg.id), message=WorkAck),
-                "result": declare_message_publisher(session, self.keys.work_result(cfg.id), message=WorkResult),
-            }
-            sub = session.declare_subscriber(self.keys.work_job(cfg.id), self._on_job)
-            # Declared once it can take jobs: the mapper sends to live workers only.
-            token = session.liveliness().declare_token(self.keys.alive(ROLE, cfg.id))
-            reporter = StatusReporter(session, self.keys.status(ROLE, cfg.id), ROLE, cfg.id, self.counters,
-                                      cfg.status_period_s, extra=self._extra)
-            log.info("worker %s: taking keyframe jobs on %s", cfg.id, self.keys.work_job(cfg.id))
-            try:
-                with reporter:
-                    while not stop.is_set():
-                        job = self._next(0.2)
-                        if job is not None:
-                            self._put("result", self.do(job))
-                            with self._cond:
-                                self._jobs.popleft()
-            finally:
-                token.undeclare()
-                sub.undeclare()
-        log.info("worker %s stopped after %d jobs", cfg.id, int(self.counters.get("jobs_done")))
-        return 0
+        self._session = node.session
+        node.on_exit(lambda: log.info("worker %s stopped after %d jobs", cfg.id, int(self.counters.get("jobs_done"))))
+        self._pubs = {
+            "ack": node.publisher(self.keys.work_ack(cfg.id), message=WorkAck),
+            "result": node.publisher(self.keys.work_result(cfg.id), message=WorkResult),
+        }
+        node.subscribe(self.keys.work_job(cfg.id), self._on_job)
+        node.alive()  # once it can take jobs: the mapper sends to live workers only
+        node.status(extra=self._extra)
+        log.info("worker %s: taking keyframe jobs on %s", cfg.id, self.keys.work_job(cfg.id))
+        while node.running:
+            job = self._next(0.2)
+            if job is not None:
+                self._put("result", self.do(job))
+                with self._cond:
+                    self._jobs.popleft()
 
     def _next(self, timeout_s: float) -> WorkJob | None:
         """The oldest held job (it stays held, counting against queue_depth, until answered)."""
@@ -226,5 +216,5 @@ def run(config: WorkerConfig, stop: threading.Event | None = None) -> int:
     from protocol.runtime import install_stop_handlers
 
     torch.set_num_threads(config.torch_threads)
-    stop = stop or install_stop_handlers()
-    return WorkerNode(config).run(stop)
+    # Before the (slow) construction: a stop while models load is a clean exit too.
+    return WorkerNode(config).run(stop or install_stop_handlers())

@@ -1,0 +1,263 @@
+"""Frames from their arrival to a decoded :class:`View`: the mapper's intake (no session, no graph).
+
+Each frame sample is checked as it arrives, before it takes a ring slot (``config.limits``,
+:mod:`mapper.intake`): compressed size, pixel count, the JPEG's own size against its header, compressed
+bytes per pixel, intrinsics and the camera position against the site's box; a refused frame is counted
+under its reason and never decoded. Its pose is checked too (:func:`protocol.poses.check_pose`): a
+nearly rigid one is projected onto SO(3) (counter ``poses_projected``); any other is dropped with its
+frame (``frames_bad_pose``). A header that does not decode (a non-finite pose or intrinsics, a wrong
+shape) counts as ``header_errors``. Every kind of bad input is logged as a WARNING, rate-limited.
+
+Memory is bounded: compressed frames wait in a newest-frames ring per source (``ring_depth``, under
+``limits.max_buffered_frame_bytes``), plus the same bound for frames waiting for their ORACLE sample, and
+frames are decoded one at a time, just before processing, under ``limits.decode_budget_pixels``.
+"""
+
+from __future__ import annotations
+
+import collections
+import dataclasses
+import threading
+import time
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+from mapper.config import MapperConfig
+from mapper.geometry.contract import OracleData, View
+from mapper.intake import IMAGE_REASONS, frame_problem
+from protocol.codec import DecodeError
+from protocol.jpeg import JpegError, decode_jpeg
+from protocol.keys import Keys
+from protocol.messages import OracleFrame
+from protocol.oracle import decode_u16_png, png_to_depth
+from protocol.poses import PoseError, check_pose
+from protocol.ratelog import RateLimitedLog
+from protocol.transport import Counters, Frame, LatestSlots, decode_frame_sample, decode_message_sample
+
+if TYPE_CHECKING:
+    import zenoh
+
+
+def needs_oracle(config: MapperConfig) -> bool:
+    """Whether the configured backends read simulator ground truth (ORACLE keys)."""
+    from mapper.perception.registry import ORACLE_BACKENDS
+
+    p = config.perception
+    return config.geometry.backend == "oracle" or p.segmenter in ORACLE_BACKENDS or p.embedder in ORACLE_BACKENDS
+
+
+def oracle_data(msg: OracleFrame) -> OracleData:
+    """Decode an OracleFrame's PNGs (raises JpegError on corrupt images)."""
+    depth = png_to_depth(msg.depth_png) if msg.depth_png is not None else None
+    ids = decode_u16_png(msg.ids_png).astype(np.int32) if msg.ids_png is not None else None
+    if depth is None:
+        depth = np.zeros(ids.shape if ids is not None else (1, 1), dtype=np.float32)
+    labels: dict[int, str] = {}
+    for k, v in msg.labels.items():
+        try:
+            labels[int(k)] = v
+        except ValueError:
+            continue
+    return OracleData(
+        depth_m=depth, T_world_cam_true=np.asarray(msg.T_world_cam_true), instance_id=ids, labels=labels
+    )
+
+
+class DecodeBudget:
+    """Decoded pixels in flight across all sources: a frame is decoded only when its pixels fit."""
+
+    def __init__(self, max_pixels: int) -> None:
+        self.max_pixels = max_pixels
+        self.in_flight = 0
+        self.peak = 0
+        self._lock = threading.Lock()
+
+    def acquire(self, pixels: int) -> bool:
+        """Reserve ``pixels``; False (nothing reserved) when they do not fit in the budget."""
+        with self._lock:
+            if self.in_flight + pixels > self.max_pixels:
+                return False
+            self.in_flight += pixels
+            self.peak = max(self.peak, self.in_flight)
+            return True
+
+    def release(self, pixels: int) -> None:
+        with self._lock:
+            self.in_flight = max(0, self.in_flight - pixels)
+
+
+class FrameIntake:
+    """The frame path up to a View. Callbacks (``on_frame``, ``on_oracle``) run on Zenoh threads; ``ready``,
+    ``decode``, ``release`` and ``view`` on the mapper's thread."""
+
+    def __init__(self, config: MapperConfig, keys: Keys, counters: Counters, bad_input: RateLimitedLog) -> None:
+        self.config, self.keys, self.counters, self.bad_input = config, keys, counters, bad_input
+        lim = config.limits
+        self.slots: LatestSlots[Frame] = LatestSlots(
+            depth=config.ring_depth, max_keys=config.max_sources, max_bytes=lim.max_buffered_frame_bytes,
+            size=lambda f: len(f.jpeg),
+        )
+        self.needs_oracle = needs_oracle(config)
+        self._oracle: collections.OrderedDict[tuple[str, int], OracleFrame] = collections.OrderedDict()
+        self._oracle_lock = threading.Lock()
+        # Frames (still compressed) waiting for their ORACLE sample, with their deadline; bounded in count and bytes.
+        self._pending: collections.deque[tuple[Frame, float]] = collections.deque(maxlen=2 * config.max_sources)
+        self.decode_budget = DecodeBudget(lim.decode_budget_pixels)
+
+    def extra_counters(self) -> dict[str, float]:
+        """The intake's share of the mapper's Status counters."""
+        return {
+            "frames_dropped": self.counters.get("frames_dropped") + self.slots.dropped,
+            "sources_refused": self.slots.refused_keys,
+            "sources_evicted": self.slots.evicted_keys,
+            "frame_bytes_buffered": self.slots.bytes,
+            "decoded_pixels_in_flight": self.decode_budget.in_flight,
+            "decoded_pixels_peak": self.decode_budget.peak,
+        }
+
+    def refuse(self, reason: str, msg: str, *args: object) -> None:
+        """Count a refused input under ``reason`` (and ``decode_errors`` when its image was refused unread) and
+        log it (rate-limited)."""
+        self.counters.add(reason)
+        if reason in IMAGE_REASONS:
+            self.counters.add("decode_errors")
+        self.bad_input.warning(reason, msg, *args)
+
+    def on_frame(self, sample: zenoh.Sample) -> None:
+        self.counters.add("frames_in")
+        try:
+            self.admit(sample)
+        except Exception as e:  # noqa: BLE001 - a callback must never raise into zenoh
+            self.refuse("frame_errors", "frame on %s failed: %s: %s", sample.key_expr, type(e).__name__, e)
+
+    def admit(self, sample: zenoh.Sample) -> None:
+        """Check a frame sample as it arrives; only an acceptable frame takes a ring slot."""
+        lim = self.config.limits
+        size = len(sample.payload)
+        if size > lim.max_frame_bytes:  # refused before the payload is copied out of Zenoh
+            self.refuse("frames_too_large", "refused a %d-byte frame on %s (limits.max_frame_bytes = %d)",
+                         size, sample.key_expr, lim.max_frame_bytes)
+            return
+        try:
+            frame = decode_frame_sample(sample)
+            kind, source_id = self.keys.parse_frame(frame.key)
+            if source_id != frame.header.source_id or kind != frame.header.source_kind:
+                raise DecodeError(f"header names {frame.header.source_id!r}, key {frame.key!r}")
+        except (DecodeError, ValueError) as e:
+            self.refuse("header_errors", "bad frame sample on %s: %s", sample.key_expr, e)
+            return
+        h = frame.header
+        problem = frame_problem(h, frame.jpeg, lim)
+        if problem is not None:
+            self.refuse(problem[0], "refused a frame from %s#%d: %s", h.source_id, h.seq, problem[1])
+            return
+        # Checked on arrival: a bad-pose frame never takes a ring slot from its source's good frames.
+        checked = self._checked_pose(frame)
+        if checked is not None:
+            self.slots.put(checked.key, checked)
+
+    def _checked_pose(self, frame: Frame) -> Frame | None:
+        """``frame`` with its pose projected onto SO(3) when slightly off (``poses_projected``), or None
+        when the pose is unusable (``frames_bad_pose``, a rate-limited warning); the frame is dropped.
+
+        Shape and finiteness were already checked by the codec (a header failing them is a header error).
+        """
+        h = frame.header
+        if h.T_world_cam is None:
+            return frame
+        try:
+            checked = check_pose(h.T_world_cam, source=f"{h.source_id} frame {h.seq} pose")
+        except PoseError as e:
+            self.refuse("frames_bad_pose", "dropped a frame: %s", e)
+            return None
+        if not checked.projected:
+            return frame
+        self.counters.add("poses_projected")
+        return dataclasses.replace(frame, header=h.model_copy(update={"T_world_cam": checked.T.tolist()}))
+
+    def on_oracle(self, sample: zenoh.Sample) -> None:
+        try:
+            msg = decode_message_sample(sample, OracleFrame)
+        except DecodeError as e:
+            self.refuse("oracle_errors", "bad oracle sample on %s: %s", sample.key_expr, e)
+            return
+        with self._oracle_lock:
+            self._oracle[(msg.source_id, msg.seq)] = msg
+            while len(self._oracle) > self.config.max_oracle_cache:
+                self._oracle.popitem(last=False)
+
+    def _take_oracle(self, frame: Frame) -> OracleFrame | None:
+        with self._oracle_lock:
+            return self._oracle.pop((frame.header.source_id, frame.header.seq), None)
+
+    def decode(self, frame: Frame) -> np.ndarray | None:
+        """The frame's RGB image (its pixels are held in ``decode_budget`` until :meth:`release`), or None."""
+        h = frame.header
+        lim = self.config.limits
+        if not self.decode_budget.acquire(h.width * h.height):
+            self.refuse("frames_over_decode_budget", "no decode budget for %s#%d (%dx%d)",
+                         h.source_id, h.seq, h.width, h.height)
+            return None
+        try:
+            # The size is checked against the header before any pixel is decoded (no memory bombs).
+            rgb = decode_jpeg(frame.jpeg, expected_size=(h.width, h.height), max_pixels=lim.max_frame_pixels,
+                              min_bytes_per_mpixel=lim.min_jpeg_bytes_per_mpixel)
+            if rgb.shape[:2] != (h.height, h.width):
+                raise JpegError(f"JPEG is {rgb.shape}, header says {h.width}x{h.height}")
+        except JpegError as e:
+            self.release(frame)
+            self.refuse("decode_errors", "bad JPEG from %s#%d: %s", h.source_id, h.seq, e)
+            return None
+        return rgb
+
+    def release(self, frame: Frame) -> None:
+        self.decode_budget.release(frame.header.width * frame.header.height)
+
+    def view(self, frame: Frame, rgb: np.ndarray, oracle: OracleFrame | None) -> View | None:
+        h = frame.header
+        try:
+            od = oracle_data(oracle) if oracle is not None else None
+            return View(
+                image=rgb,
+                source_id=h.source_id,
+                intrinsics=h.intrinsics,
+                T_world_cam=None if h.T_world_cam is None else np.asarray(h.T_world_cam),
+                pose_trusted=h.pose_trusted,
+                stamp_ns=h.stamp_ns,
+                seq=h.seq,
+                oracle=od,
+            )
+        except (ValueError, JpegError) as e:
+            self.refuse("decode_errors", "unusable frame from %s#%d: %s", h.source_id, h.seq, e)
+            return None
+
+    def ready(self, timeout_s: float) -> list[tuple[Frame, OracleFrame | None]]:
+        """Frames ready to process, still compressed (with their ORACLE sample when one is needed)."""
+        fresh = [f for _, f in self.slots.take_all(timeout=timeout_s)]
+        if not self.needs_oracle:
+            return [(f, None) for f in fresh]
+        now = time.monotonic()
+        for f in fresh:
+            if len(self._pending) == self._pending.maxlen:
+                self.counters.add("frames_dropped")
+            self._pending.append((f, now + self.config.oracle_wait_s))
+        # The frames waiting have the same byte bound as the receive rings: the oldest go first.
+        held = sum(len(f.jpeg) for f, _ in self._pending)
+        while held > self.config.limits.max_buffered_frame_bytes:
+            f, _ = self._pending.popleft()
+            held -= len(f.jpeg)
+            self.counters.add("frames_dropped")
+        ready: list[tuple[Frame, OracleFrame | None]] = []
+        waiting: collections.deque[tuple[Frame, float]] = collections.deque(maxlen=self._pending.maxlen)
+        while self._pending:
+            f, deadline = self._pending.popleft()
+            o = self._take_oracle(f)
+            if o is not None:
+                ready.append((f, o))
+            elif now >= deadline:
+                self.counters.add("frames_without_oracle")
+            else:
+                waiting.append((f, deadline))
+        self._pending = waiting
+        return ready

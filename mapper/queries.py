@@ -1,0 +1,95 @@
+"""Graph queries the mapper answers: ``graph/snapshot``, ``graph/nodes?label=..;near=..;radius=..;id=..;
+since_version=..``, ``graph/node/<id>`` and wildcards such as ``graph/**`` (msgpack envelopes), and the same
+keys below ``graph/json/`` (JSON objects). A bad query gets an error reply, never a crash."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from typing import TYPE_CHECKING
+
+from mapper.core import MapperCore
+from protocol.codec import encode
+from protocol.keys import Keys
+from protocol.messages import GraphSnapshot, Message
+from protocol.query import GraphQuery
+from protocol.transport import Counters, message_encoding
+
+if TYPE_CHECKING:
+    import zenoh
+
+
+class GraphQueries:
+    """Answers queries from ``core`` (callbacks on Zenoh threads); ``refuse(reason, msg, *args)`` counts and logs
+    a bad one."""
+
+    def __init__(self, core: MapperCore, keys: Keys, counters: Counters,
+                 refuse: Callable[..., None]) -> None:
+        self.core, self.keys, self.counters, self.refuse = core, keys, counters, refuse
+
+    def on_query(self, query: zenoh.Query) -> None:
+        self._guarded_answer(query, json_view=False)
+
+    def on_json_query(self, query: zenoh.Query) -> None:
+        self._guarded_answer(query, json_view=True)
+
+    def _guarded_answer(self, query: zenoh.Query, json_view: bool) -> None:
+        try:
+            self._answer(query, json_view)
+        except Exception as e:  # noqa: BLE001 - a bad query gets an error reply, never a crash
+            self.refuse("query_errors", "bad query %s?%s: %s: %s", query.key_expr, query.parameters,
+                         type(e).__name__, e)
+            try:
+                query.reply_err(f"{type(e).__name__}: {e}")
+            except Exception:  # noqa: BLE001 - the querier may be gone
+                pass
+
+    def _answer(self, query: zenoh.Query, json_view: bool = False) -> None:
+        """Reply with msgpack envelopes, or (``json_view``, keys under ``graph/json/``) with JSON objects."""
+        import zenoh
+
+        t0 = time.perf_counter()
+        key = str(query.key_expr)
+        if json_view:
+            if not zenoh.KeyExpr(self.keys.graph_json_all).includes(zenoh.KeyExpr(key)):
+                return  # e.g. graph/**: the msgpack queryable answers that; formats never mix in one reply set
+            self.counters.add("json_queries")
+            for reply_key, msg in self._select(self.keys.from_graph_json(key), str(query.parameters)):
+                query.reply(self.keys.graph_json(reply_key), msg.model_dump_json(),
+                            encoding=message_encoding(type(msg), "application/json"))
+        else:
+            self.counters.add("queries")
+            for reply_key, msg in self._select(key, str(query.parameters)):
+                query.reply(reply_key, encode(msg), encoding=message_encoding(type(msg)))
+        self.counters.set("last_query_ms", (time.perf_counter() - t0) * 1e3)
+
+    def _select(self, key: str, params: str) -> list[tuple[str, Message]]:
+        """What a query on ``key`` (under ``graph/``) answers: ``(reply key, message)`` pairs."""
+        import zenoh
+
+        if key == self.keys.graph_snapshot:
+            return [(key, self.core.snapshot())]
+        if key == self.keys.graph_nodes:
+            q = GraphQuery.from_parameters(params)
+            nodes = self.core.query(q)
+            ids = {n.node_id for n in nodes}
+            snap = self.core.snapshot()
+            edges = [e for e in snap.edges if e.subject_id in ids and e.object_id in ids]
+            return [(key, GraphSnapshot(epoch=snap.epoch, version=snap.version, stamp_ns=snap.stamp_ns,
+                                        nodes=nodes, edges=edges))]
+        try:
+            node_id = self.keys.parse_node(key)
+        except ValueError:
+            node_id = None
+        if node_id is not None:
+            return [(key, n) for n in self.core.query(GraphQuery(id=node_id))]
+        # A wildcard such as graph/**: answer with everything it covers, each under its own key.
+        asked = zenoh.KeyExpr(key)
+        out: list[tuple[str, Message]] = []
+        if asked.intersects(zenoh.KeyExpr(self.keys.graph_snapshot)):
+            out.append((self.keys.graph_snapshot, self.core.snapshot()))
+        for n in self.core.nodes():
+            nk = self.keys.graph_node(n.node_id)
+            if asked.intersects(zenoh.KeyExpr(nk)):
+                out.append((nk, n))
+        return out
