@@ -266,8 +266,6 @@ def place_objects(masks: Sequence[np.ndarray], K: F64, T_world_cam: F64,
     for i, m in enumerate(masks):
         owner[m & (owner < 0)] = i
     R, t = T_world_cam[:3, :3], T_world_cam[:3, 3]
-    T_cam_world = np.eye(4)
-    T_cam_world[:3, :3], T_cam_world[:3, 3] = R.T, -R.T @ t
     boxes: list[PlacedBox | None] = [None] * n
     # Per mask: contact columns and what lies just below each.
     contacts: list[tuple[F64, F64, np.ndarray] | None] = []
@@ -302,28 +300,10 @@ def place_objects(masks: Sequence[np.ndarray], K: F64, T_world_cam: F64,
                 pts, support = _support_points(us, vs, below, boxes, K, R, t, p)
             if pts is None or len(pts) < p.min_contact_columns:
                 continue
-            base_z = float(np.median(pts[:, 2]))
-            centre, ext, yaw, axis = _footprint(pts[:, :2], t[:2], p)
-            if float(np.max(ext)) > p.max_extent_m:
+            box = box_from_contacts(pts, masks[i], (owner >= 0) & (owner != i), K, T_world_cam, support, p)
+            if box is None:
                 continue
-            top_v = float(np.flatnonzero(masks[i].any(axis=1))[0]) - 0.5  # the top edge of the top pixel
-            fits = [(centre, ext, yaw)]
-            if axis is not None:
-                # One visible bottom edge: its depth is whatever makes the box's silhouette match the mask.
-                deepest = min(max(2.0 * float(np.max(ext)), 1.0), p.max_extent_m)
-                depths = np.linspace(max(float(np.min(ext)), p.min_extent_m), deepest, 12)
-                fits = [_deepen((centre, ext, yaw), axis, float(d)) for d in depths]
-            best: tuple[float, PlacedBox] | None = None
-            others = (owner >= 0) & (owner != i)
-            for box_xy in fits:
-                height = _height(box_xy, base_z, top_v, K, T_cam_world, p)
-                cand = PlacedBox(np.array([*box_xy[0], base_z + 0.5 * height]), np.array([*box_xy[1], height]),
-                                 box_xy[2], support, len(pts))
-                score = _silhouette_score(cand, masks[i], others, K, T_cam_world) if len(fits) > 1 else 1.0
-                if best is None or score > best[0]:
-                    best = (score, cand)
-            assert best is not None
-            boxes[i] = best[1]
+            boxes[i] = box
             placed_any = True
         if not placed_any and level > 0:
             break
@@ -367,6 +347,37 @@ def _floor_looking(cols: list[tuple[F64, F64] | None], image: np.ndarray, p: Sin
         ok = (np.abs(x - mu) / sd).max(axis=1) <= max_sigma
         out.append((u[ok], v[ok]))
     return out
+
+
+def box_from_contacts(pts: F64, mask: np.ndarray, others: np.ndarray, K: F64, T_world_cam: F64, support: int,
+                      p: SingleViewParams = SingleViewParams()) -> PlacedBox | None:
+    """The upright box standing on the contact points ``pts`` (N, 3; where the mask's lowest pixels meet
+    its support) whose top projects to the mask's top row; None when its footprint is too long to be one
+    object. A footprint seen edge-on gets the depth whose silhouette best matches the mask, where pixels
+    of ``others`` (other masks, which may hide the object) count neither way."""
+    t = T_world_cam[:3, 3]
+    T_cam_world = np.eye(4)
+    T_cam_world[:3, :3], T_cam_world[:3, 3] = T_world_cam[:3, :3].T, -T_world_cam[:3, :3].T @ t
+    base_z = float(np.median(pts[:, 2]))
+    centre, ext, yaw, axis = _footprint(pts[:, :2], t[:2], p)
+    if float(np.max(ext)) > p.max_extent_m:
+        return None
+    top_v = float(np.flatnonzero(mask.any(axis=1))[0]) - 0.5  # the top edge of the top pixel
+    fits = [(centre, ext, yaw)]
+    if axis is not None:
+        # One visible bottom edge: its depth is whatever makes the box's silhouette match the mask.
+        deepest = min(max(2.0 * float(np.max(ext)), 1.0), p.max_extent_m)
+        depths = np.linspace(max(float(np.min(ext)), p.min_extent_m), deepest, 12)
+        fits = [_deepen((centre, ext, yaw), axis, float(d)) for d in depths]
+    best: tuple[float, PlacedBox] | None = None
+    for box_xy in fits:
+        height = _height(box_xy, base_z, top_v, K, T_cam_world, p)
+        cand = PlacedBox(np.array([*box_xy[0], base_z + 0.5 * height]), np.array([*box_xy[1], height]),
+                         box_xy[2], support, len(pts))
+        score = _silhouette_score(cand, mask, others, K, T_cam_world) if len(fits) > 1 else 1.0
+        if best is None or score > best[0]:
+            best = (score, cand)
+    return None if best is None else best[1]
 
 
 def _floor_points(us: F64, vs: F64, K: F64, R: F64, t: F64, p: SingleViewParams) -> F64 | None:
