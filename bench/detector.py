@@ -28,7 +28,7 @@ from mapper.fusion import FusionConfig, ObjectMap, lift_detections
 from mapper.perception.base import ViewGeometry
 from mapper.perception.detector import DetectorEmbedder, DetectorSegmenter, draw_boxes
 
-SEQUENCES = ("labelfusion", "tum-fr1-xyz")
+SEQUENCES = ("labelfusion", "tum-fr1-xyz", "hololens-dvmvs")
 
 
 def view_geometry(frame: Frame) -> ViewGeometry:
@@ -96,9 +96,9 @@ def run_sequence(name: str, out: Path | None, seg: DetectorSegmenter, emb: Detec
         t0 = time.perf_counter()
         boxes = seg.detect(f.view.image)
         t1 = time.perf_counter()
-        masks = seg.segment(f.view, view_geometry(f))
+        masks = seg.masks(f.view.image, boxes, view_geometry(f))
         t_detect.append(t1 - t0)
-        t_masks.append(time.perf_counter() - t1 - (t1 - t0))  # segment() detects again: masks only
+        t_masks.append(time.perf_counter() - t1)
         dets = emb.embed(f.view, masks)
         g = view_geometry(f)
         objs, stats = lift_detections(dets, g.points_world, g.confidence, g.depth_m, fusion)
@@ -154,15 +154,25 @@ def main(argv: Sequence[str] | None = None) -> int:
     p.add_argument("--quick", action="store_true", help="accepted for `argus bench all` (the run is already short)")
     p.add_argument("--sequences", nargs="+", default=list(SEQUENCES), choices=SEQUENCES, help="real sequences")
     p.add_argument("--score-threshold", type=float, default=None, help="detector score threshold (default: its own)")
+    p.add_argument("--option", action="append", default=[], metavar="KEY=VALUE",
+                   help="a detector option (DetectorConfig field; VALUE as JSON, e.g. tile_grid=0 or zoom_out=[0.6])")
     a = p.parse_args(list(argv) if argv is not None else None)
     opts = {} if a.score_threshold is None else {"score_threshold": a.score_threshold}
+    for kv in a.option:
+        key, sep, value = kv.partition("=")
+        if not sep:
+            p.error(f"--option {kv!r}: expected KEY=VALUE")
+        try:
+            opts[key] = json.loads(value)
+        except json.JSONDecodeError:
+            opts[key] = value
     seg, emb = DetectorSegmenter(**opts), DetectorEmbedder()
     if a.out is not None:
         a.out.mkdir(parents=True, exist_ok=True)
     todo = [s for s in a.sequences if available(s)]
     for s in sorted(set(a.sequences) - set(todo)):
         print(f"argus bench detector: {s} not found under {DATA_ROOT}, skipped")
-    report = {"detector": seg.description, "score_threshold": seg.config.score_threshold,
+    report = {"detector": seg.description, "config": seg.config.model_dump(mode="json"),
               "sequences": [run_sequence(s, a.out, seg, emb) for s in todo]}
     md = markdown(report)
     print(md)
