@@ -324,3 +324,14 @@ def test_default_tiles_find_the_chair_the_frame_pass_misses() -> None:
     cup = next(b for b in multi if b.label == "Coffee cup")
     assert 280 < cup.x0 < cup.x1 < 360 and 260 < cup.y0 < cup.y1 < 350, cup
     assert [b.label for b in multi].count("Desk") == 1
+
+
+@pytest.mark.skipif(not bundled_model().is_file(), reason="detector weights not fetched (make install)")
+@pytest.mark.skipif(not TUM.is_dir(), reason="real frames ../shared/data/tum-fr1-xyz absent")
+def test_class_evidence_names_what_the_model_sees_on_a_known_object() -> None:
+    img = cv2.imread(str(TUM / "frame-000000.color.png"))[:, :, ::-1].copy()
+    seg = make_segmenter("detector")
+    ev = seg.class_evidence(img, (280, 66, 610, 334))  # type: ignore[attr-defined]  # the monitor
+    assert next(iter(ev)) == "Computer monitor" and ev["Computer monitor"] >= 0.6
+    assert list(ev.values()) == sorted(ev.values(), reverse=True)
+    assert seg.class_evidence(img, (0, 0, 2, 2)) == {}  # type: ignore[attr-defined]  # no candidate box there

@@ -1,6 +1,9 @@
 """``detector`` segmenter and embedder: closed-set class labels on real cameras, offline, on a CPU.
 
-A single-shot detector finds labelled boxes; each box becomes a mask by GrabCut (initialised with the
+A single-shot detector finds labelled boxes, by default in the whole frame and in four overlapping tiles of it
+enlarged to the network's input (small and partly hidden objects get more pixels; a zoomed-out pass and
+closer looks at unsure boxes are options; see :mod:`mapper.perception.detector_passes`), merged by per-class
+non-maximum suppression; each box becomes a mask by GrabCut (initialised with the
 box, run on a small crop) or, when ``mask_method = "box"``, the filled box; when the view's
 reconstruction is given the mask also keeps only pixels near the box's median depth. The masks carry the
 class as ``Mask2D.hint_label``; the ``detector`` embedder turns that into the detection's label and
@@ -40,6 +43,7 @@ from mapper.perception.detector_passes import (
     crop_window,
     cut_by_inner_edge,
     frame_window,
+    iou_matrix,
     nms,
     proposals,
     tile_windows,
@@ -277,8 +281,24 @@ class DetectorSegmenter:
 
     def _detect_window(self, image: np.ndarray, win: Window, floor: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Candidate boxes (image pixels), classes and scores of one pass (scores at least ``floor``)."""
-        cfg, side = self.config, self.config.input_size
+        cfg = self.config
         H, W = image.shape[:2]
+        boxes, probs = self._run_window(image, win)
+        cls = probs.argmax(axis=1)
+        scores = probs[np.arange(len(cls)), cls]
+        keep = scores >= floor
+        boxes, cls, scores = boxes[keep], cls[keep], scores[keep]
+        if win.kind in ("tile", "crop"):
+            rx0, ry0, rx1, ry1 = win.region
+            margin = cfg.tile_edge_margin * max(rx1 - rx0, ry1 - ry0)
+            whole = np.array([not cut_by_inner_edge(b, win, W, H, margin) for b in boxes], dtype=bool)
+            boxes, cls, scores = boxes[whole], cls[whole], scores[whole]
+        return boxes, cls, scores
+
+    def _run_window(self, image: np.ndarray, win: Window) -> tuple[np.ndarray, np.ndarray]:
+        """One network run on the window: every candidate box (image pixels) and its class scores (N, C),
+        background zeroed."""
+        cfg, side = self.config, self.config.input_size
         fill = float(np.clip(cfg.input_mean, 0, 255))  # the canvas reads as zero input
         net_in = cv2.warpAffine(np.ascontiguousarray(image), win.matrix(pixel_centres=True), (side, side),
                                 flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=(fill,) * 3)
@@ -286,18 +306,27 @@ class DetectorSegmenter:
                                      mean=(cfg.input_mean,) * 3, swapRB=cfg.swap_rb, crop=False)
         self._net.setInput(blob)
         if cfg.output_format == "ssd-raw":
-            boxes, cls, scores = self._raw_outputs(self._ssd_outputs())
+            boxes, probs = self._raw_outputs(self._ssd_outputs())
         else:
             boxes, cls, scores = detection_output_rows(np.asarray(self._net.forward()))
-        keep = scores >= floor
-        boxes = win.to_image(boxes[keep] * side)
-        cls, scores = cls[keep], scores[keep]
-        if win.kind in ("tile", "crop"):
-            rx0, ry0, rx1, ry1 = win.region
-            margin = cfg.tile_edge_margin * max(rx1 - rx0, ry1 - ry0)
-            whole = np.array([not cut_by_inner_edge(b, win, W, H, margin) for b in boxes], dtype=bool)
-            boxes, cls, scores = boxes[whole], cls[whole], scores[whole]
-        return boxes, cls, scores
+            probs = np.zeros((len(cls), max(len(self.labels), int(cls.max(initial=0)) + 1)))
+            probs[np.arange(len(cls)), np.clip(cls, 0, None)] = scores
+        probs[:, 0] = 0.0  # background
+        return win.to_image(boxes * side), probs
+
+    def class_evidence(self, image: np.ndarray, box: Sequence[float], min_iou: float = 0.5) -> dict[str, float]:
+        """For checking what the model makes of a known object: over every pass and every candidate box
+        overlapping ``box`` (image pixels) by at least ``min_iou``, each class's best score, best first."""
+        H, W = image.shape[:2]
+        best = np.zeros(len(self.labels))
+        for win in self.windows(W, H):
+            boxes, probs = self._run_window(image, win)
+            near = iou_matrix(boxes, np.asarray(box, np.float64).reshape(1, 4))[:, 0] >= min_iou
+            if near.any():
+                n = min(len(best), probs.shape[1])
+                best[:n] = np.maximum(best[:n], probs[near, :n].max(axis=0))
+        order = np.argsort(-best)
+        return {self.labels[k]: round(float(best[k]), 3) for k in order if best[k] > 0}
 
     def _ssd_outputs(self) -> list[np.ndarray]:
         """Box encodings (A, 4) and class logits (A, C)."""
@@ -313,7 +342,8 @@ class DetectorSegmenter:
                             for c, k in zip(logits, per_cell, strict=True)]),
         ]
 
-    def _raw_outputs(self, outs: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def _raw_outputs(self, outs: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+        """Decoded boxes (A, 4, normalised) and class probabilities (A, C)."""
         assert self._anchors is not None
         n_anchor = len(self._anchors)
         flat = [np.asarray(o).reshape(n_anchor, -1) for o in outs]
@@ -321,10 +351,7 @@ class DetectorSegmenter:
         logits = next((o for o in flat if o.shape[1] != 4), None)
         if enc is None or logits is None:
             raise RuntimeError(f"detector outputs {[o.shape for o in outs]} are not SSD box encodings + class logits")
-        probs = 1.0 / (1.0 + np.exp(-logits))
-        probs[:, 0] = 0.0  # background
-        cls = probs.argmax(axis=1)
-        return decode_ssd(enc, self._anchors), cls, probs[np.arange(n_anchor), cls]
+        return decode_ssd(enc, self._anchors), 1.0 / (1.0 + np.exp(-logits))
 
     def _select(self, boxes: np.ndarray, cls: np.ndarray, scores: np.ndarray, W: int, H: int) -> list[Box]:
         """Boxes (already above their pass's threshold) of reportable classes and sizes, per-class NMS."""
