@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -62,7 +63,7 @@ def test_mapper_with_rgb_only_geometry_and_the_detector_labels_the_desk() -> Non
 def test_truth_summary_counts_boxes_on_true_objects_and_the_models_best_classes() -> None:
     from bench.detector import truth_summary
 
-    per_frame = [
+    per_frame: list[dict[str, Any]] = [
         {"boxes": [{"label": "Box", "true_object": 7}, {"label": "Desk", "true_object": 0}],
          "true_objects": {7: {"box": [0, 0, 5, 5], "labels": ["Box"], "evidence": {"Box": 0.5, "Book": 0.2}},
                           9: {"box": [5, 5, 9, 9], "labels": [], "evidence": {"Mug": 0.3}}}},

@@ -258,7 +258,8 @@ def test_a_tile_box_cut_by_an_inner_edge_is_dropped_but_not_at_the_frame_edge() 
 def test_crop_window_centres_the_box_with_context() -> None:
     win = crop_window((100, 200, 200, 250), 2.0, 640, 480, 300)  # 200 px square around the box centre
     assert win.kind == "crop" and win.region == (50.0, 125.0, 250.0, 325.0)
-    np.testing.assert_allclose(_forward(win, np.array([[150.0, 225.0], [100.0, 200.0]])), [[150, 150], [75, 112.5]])
+    np.testing.assert_allclose(_forward(win, np.array([[150.0, 225.0], [100.0, 200.0]])),
+                               np.array([[150, 150], [75, 112.5]]))
     np.testing.assert_allclose(win.to_image(np.array([[75, 112.5, 225, 187.5]])), [[100, 200, 200, 250]])
     edge = crop_window((0, 0, 100, 100), 2.0, 640, 480, 300)  # sticks out of the frame: region clipped
     assert edge.region == (0.0, 0.0, 150.0, 150.0)
