@@ -336,3 +336,22 @@ def test_class_evidence_names_what_the_model_sees_on_a_known_object() -> None:
     assert next(iter(ev)) == "Computer monitor" and ev["Computer monitor"] >= 0.6
     assert list(ev.values()) == sorted(ev.values(), reverse=True)
     assert seg.class_evidence(img, (0, 0, 2, 2)) == {}  # type: ignore[attr-defined]  # no candidate box there
+
+
+def test_grabcut_runs_on_a_crop_of_at_most_grabcut_side_and_never_enlarges_it(monkeypatch: pytest.MonkeyPatch) -> None:
+    import mapper.perception.detector as det
+
+    seen: list[tuple[int, ...]] = []
+    real = det.cv2.grabCut
+
+    def spy(img: np.ndarray, *args: object) -> object:
+        seen.append(img.shape[:2])
+        return real(img, *args)  # type: ignore[arg-type]
+
+    monkeypatch.setattr(det.cv2, "grabCut", spy)
+    img = np.full((480, 640, 3), 200, np.uint8)
+    cv2.circle(img, (320, 240), 150, (30, 40, 200), -1)
+    box_mask(img, Box(160, 80, 480, 400, 1, "big", 0.9), DetectorConfig(grabcut_side=64))
+    box_mask(img, Box(300, 220, 340, 260, 1, "small", 0.9), DetectorConfig(grabcut_side=64))
+    assert max(seen[0]) == 64  # a 400 px crop shrunk to 64
+    assert seen[1] == (50, 50)  # a 50 px crop (40 px box + margins) kept as it is, not enlarged to 64
