@@ -24,6 +24,7 @@ from typing import Any
 
 import cv2
 import numpy as np
+from pydantic import ValidationError
 
 from bench.video import DATA_ROOT, Frame, available, load_sequence, read_image
 from mapper.fusion import FusionConfig, ObjectMap, lift_detections
@@ -230,7 +231,10 @@ def main(argv: Sequence[str] | None = None) -> int:
             opts[key] = value
     if a.threads is not None:
         cv2.setNumThreads(a.threads)
-    seg, emb = DetectorSegmenter(**opts), DetectorEmbedder()
+    try:
+        seg, emb = DetectorSegmenter(**opts), DetectorEmbedder()
+    except ValidationError as e:
+        p.error(f"detector options: {e.errors()[0]['loc']}: {e.errors()[0]['msg']}")
     if a.out is not None:
         a.out.mkdir(parents=True, exist_ok=True)
     todo = [s for s in a.sequences if available(s)]

@@ -77,3 +77,14 @@ def test_truth_summary_counts_boxes_on_true_objects_and_the_models_best_classes(
     assert "| 9 | 0/2 | - | Mug 0.20, Cat 0.10 |" in lines
     assert "boxes on no true object: 1 (Desk)" in lines
     assert truth_summary([{"boxes": []}]) == []
+
+
+def test_bad_detector_options_are_one_clear_error(capsys: pytest.CaptureFixture[str]) -> None:
+    from bench.detector import main
+
+    for bad in (["--option", "bogus=1"], ["--option", "tile_grid=9"], ["--option", "no-equals-sign"]):
+        with pytest.raises(SystemExit) as e:
+            main([*bad, "--sequences", "tum-fr1-xyz"])
+        assert e.value.code == 2
+    err = capsys.readouterr().err
+    assert "bogus" in err and "tile_grid" in err and "KEY=VALUE" in err and "Traceback" not in err
