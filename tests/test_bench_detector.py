@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -57,3 +58,33 @@ def test_mapper_with_rgb_only_geometry_and_the_detector_labels_the_desk() -> Non
     # recorded-depth positions from `argus bench detector` (median of the fused points)
     assert np.linalg.norm(nodes["Desk"] - [0.554, 0.533, 0.754]) < 0.3
     assert np.linalg.norm(nodes["Computer monitor"] - [0.494, 0.915, 1.043]) < 0.35
+
+
+def test_truth_summary_counts_boxes_on_true_objects_and_the_models_best_classes() -> None:
+    from bench.detector import truth_summary
+
+    per_frame: list[dict[str, Any]] = [
+        {"boxes": [{"label": "Box", "true_object": 7}, {"label": "Desk", "true_object": 0}],
+         "true_objects": {7: {"box": [0, 0, 5, 5], "labels": ["Box"], "evidence": {"Box": 0.5, "Book": 0.2}},
+                          9: {"box": [5, 5, 9, 9], "labels": [], "evidence": {"Mug": 0.3}}}},
+        {"boxes": [],
+         "true_objects": {7: {"box": [0, 0, 5, 5], "labels": [], "evidence": {"Book": 0.4, "Box": 0.3}},
+                          9: {"box": [5, 5, 9, 9], "labels": [], "evidence": {"Mug": 0.1, "Cat": 0.2}}}},
+    ]
+    lines = truth_summary(per_frame)
+    # median over frames, 0 where a class is not among a frame's best: Box (0.5, 0.3) 0.4, Book (0.2, 0.4) 0.3
+    assert "| 7 | 1/2 | Box | Box 0.40, Book 0.30 |" in lines
+    assert "| 9 | 0/2 | - | Mug 0.20, Cat 0.10 |" in lines
+    assert "boxes on no true object: 1 (Desk)" in lines
+    assert truth_summary([{"boxes": []}]) == []
+
+
+def test_bad_detector_options_are_one_clear_error(capsys: pytest.CaptureFixture[str]) -> None:
+    from bench.detector import main
+
+    for bad in (["--option", "bogus=1"], ["--option", "tile_grid=9"], ["--option", "no-equals-sign"]):
+        with pytest.raises(SystemExit) as e:
+            main([*bad, "--sequences", "tum-fr1-xyz"])
+        assert e.value.code == 2
+    err = capsys.readouterr().err
+    assert "bogus" in err and "tile_grid" in err and "KEY=VALUE" in err and "Traceback" not in err

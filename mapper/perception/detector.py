@@ -1,6 +1,9 @@
 """``detector`` segmenter and embedder: closed-set class labels on real cameras, offline, on a CPU.
 
-A single-shot detector finds labelled boxes; each box becomes a mask by GrabCut (initialised with the
+A single-shot detector finds labelled boxes, by default in the whole frame and in four overlapping tiles of it
+enlarged to the network's input (small and partly hidden objects get more pixels; a zoomed-out pass and
+closer looks at unsure boxes are options; see :mod:`mapper.perception.detector_passes`), merged by per-class
+non-maximum suppression; each box becomes a mask by GrabCut (initialised with the
 box, run on a small crop) or, when ``mask_method = "box"``, the filled box; when the view's
 reconstruction is given the mask also keeps only pixels near the box's median depth. The masks carry the
 class as ``Mask2D.hint_label``; the ``detector`` embedder turns that into the detection's label and
@@ -35,6 +38,17 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from mapper.perception.base import Detection, Mask2D, ViewGeometry, label_descriptor, unit
 from mapper.perception.classical import AppearanceEmbedder
+from mapper.perception.detector_passes import (
+    Window,
+    crop_window,
+    cut_by_inner_edge,
+    frame_window,
+    iou_matrix,
+    nms,
+    proposals,
+    tile_windows,
+    zoom_out_window,
+)
 from mapper.perception.sam import BackendUnavailable
 
 if TYPE_CHECKING:
@@ -78,6 +92,35 @@ class DetectorConfig(BaseModel):
     input_mean: float = Field(default=127.5, description="subtracted from pixel values before scaling")
     swap_rb: bool = Field(default=False, description="feed BGR instead of RGB")
     score_threshold: float = Field(default=0.4, ge=0.0, le=1.0, description="keep boxes at least this sure")
+    extra_pass_threshold: float | None = Field(
+        default=0.45, ge=0.0, le=1.0,
+        description="score threshold of boxes from the extra passes (zoom-out, tiles, closer looks); each pass is "
+        "one more chance of a false box, so a stricter threshold keeps precision (None: score_threshold)",
+    )
+    zoom_out: list[float] = Field(
+        default_factory=list,
+        description="extra passes, one per entry: the frame shrunk to this fraction (0-1] of the network input, "
+        "centred on a neutral canvas (close, large objects fall inside the trained object sizes)",
+    )
+    tile_grid: int = Field(
+        default=2, ge=0, le=4,
+        description="extra zoomed-in passes: a tile_grid x tile_grid grid of overlapping tiles, each enlarged "
+        "to the whole input (0 = none; each tile costs one more network run)",
+    )
+    tile_overlap: float = Field(default=0.25, ge=0.0, lt=1.0, description="overlap of neighbouring tiles (of a tile)")
+    zoom_proposals: int = Field(
+        default=0, ge=0, le=8,
+        description="extra zoomed-in passes on this many of the frame pass's unsure boxes (score >= "
+        "proposal_score, any class): a square crop around each, proposal_context times its size, is run again "
+        "(each costs one more network run)",
+    )
+    proposal_score: float = Field(default=0.2, ge=0.0, le=1.0, description="least score of a box worth a closer look")
+    proposal_context: float = Field(default=1.6, ge=1.0, le=4.0, description="crop side / box side of a closer look")
+    tile_edge_margin: float = Field(
+        default=0.05, ge=0.0, lt=0.5,
+        description="a tile's box reaching this close (tile fraction) to an edge inside the frame is dropped: "
+        "the object runs on into the next tile",
+    )
     nms_iou: float = Field(default=0.45, ge=0.0, le=1.0, description="per-class non-maximum suppression IoU")
     max_detections: int = Field(default=20, ge=1, le=200, description="boxes kept per image, best first")
     min_box_frac: float = Field(default=0.002, ge=0.0, le=1.0, description="drop boxes smaller (image fraction)")
@@ -88,7 +131,10 @@ class DetectorConfig(BaseModel):
     mask_method: Literal["grabcut", "box"] = Field(
         default="grabcut", description="how a box becomes a mask: GrabCut (colour) or the filled box"
     )
-    grabcut_side: int = Field(default=96, ge=16, le=512, description="GrabCut runs on the crop scaled to this side")
+    grabcut_side: int = Field(
+        default=64, ge=16, le=512,
+        description="GrabCut runs on the crop shrunk to at most this side (cost grows fast: 96 costs ~2.5x 64)",
+    )
     grabcut_iterations: int = Field(default=3, ge=1, le=10, description="GrabCut iterations")
     depth_rel_tolerance: float = Field(
         default=0.25, gt=0.0,
@@ -210,20 +256,80 @@ class DetectorSegmenter:
         ]
         self._anchors = ssd_anchors(cfg.input_size) if cfg.output_format == "ssd-raw" else None
 
+    def windows(self, width: int, height: int) -> list[Window]:
+        """The passes run on a ``width`` x ``height`` image: the frame, then zoom-outs, then tiles."""
+        cfg, side = self.config, self.config.input_size
+        wins = [frame_window(width, height, side)]
+        wins += [zoom_out_window(width, height, side, f) for f in cfg.zoom_out]
+        if cfg.tile_grid >= 2:
+            wins += tile_windows(width, height, side, cfg.tile_grid, cfg.tile_overlap)
+        return wins
+
     def detect(self, image: np.ndarray) -> list[Box]:
-        """Labelled boxes of an (H, W, 3) uint8 RGB image, best first, after per-class NMS."""
+        """Labelled boxes of an (H, W, 3) uint8 RGB image, best first, after per-class NMS over all passes."""
         cfg = self.config
         H, W = image.shape[:2]
-        blob = cv2.dnn.blobFromImage(
-            np.ascontiguousarray(image), scalefactor=cfg.input_scale, size=(cfg.input_size, cfg.input_size),
-            mean=(cfg.input_mean,) * 3, swapRB=cfg.swap_rb, crop=False,
-        )
+        extra = cfg.score_threshold if cfg.extra_pass_threshold is None else cfg.extra_pass_threshold
+        floor = min(cfg.score_threshold, cfg.proposal_score) if cfg.zoom_proposals else cfg.score_threshold
+        found = [self._detect_window(image, w, floor if w.kind == "frame" else extra) for w in self.windows(W, H)]
+        if cfg.zoom_proposals:
+            b, c, s = found[0]
+            for k in proposals(b, s, cfg.zoom_proposals, cfg.nms_iou, W, H, cfg.proposal_context):
+                win = crop_window(b[k], cfg.proposal_context, W, H, cfg.input_size)
+                found.append(self._detect_window(image, win, extra))
+            sure = s >= cfg.score_threshold
+            found[0] = (b[sure], c[sure], s[sure])
+        boxes = np.concatenate([f[0] for f in found])
+        return self._select(boxes, np.concatenate([f[1] for f in found]), np.concatenate([f[2] for f in found]), W, H)
+
+    def _detect_window(self, image: np.ndarray, win: Window, floor: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """Candidate boxes (image pixels), classes and scores of one pass (scores at least ``floor``)."""
+        cfg = self.config
+        H, W = image.shape[:2]
+        boxes, probs = self._run_window(image, win)
+        cls = probs.argmax(axis=1)
+        scores = probs[np.arange(len(cls)), cls]
+        keep = scores >= floor
+        boxes, cls, scores = boxes[keep], cls[keep], scores[keep]
+        if win.kind in ("tile", "crop"):
+            rx0, ry0, rx1, ry1 = win.region
+            margin = cfg.tile_edge_margin * max(rx1 - rx0, ry1 - ry0)
+            whole = np.array([not cut_by_inner_edge(b, win, W, H, margin) for b in boxes], dtype=bool)
+            boxes, cls, scores = boxes[whole], cls[whole], scores[whole]
+        return boxes, cls, scores
+
+    def _run_window(self, image: np.ndarray, win: Window) -> tuple[np.ndarray, np.ndarray]:
+        """One network run on the window: every candidate box (image pixels) and its class scores (N, C),
+        background zeroed."""
+        cfg, side = self.config, self.config.input_size
+        fill = float(np.clip(cfg.input_mean, 0, 255))  # the canvas reads as zero input
+        net_in = cv2.warpAffine(np.ascontiguousarray(image), win.matrix(pixel_centres=True), (side, side),
+                                flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=(fill,) * 3)
+        blob = cv2.dnn.blobFromImage(net_in, scalefactor=cfg.input_scale, size=(side, side),
+                                     mean=(cfg.input_mean,) * 3, swapRB=cfg.swap_rb, crop=False)
         self._net.setInput(blob)
         if cfg.output_format == "ssd-raw":
-            boxes, cls, scores = self._raw_outputs(self._ssd_outputs())
+            boxes, probs = self._raw_outputs(self._ssd_outputs())
         else:
             boxes, cls, scores = detection_output_rows(np.asarray(self._net.forward()))
-        return self._select(boxes * np.array([W, H, W, H]), cls, scores, H * W)
+            probs = np.zeros((len(cls), max(len(self.labels), int(cls.max(initial=0)) + 1)))
+            probs[np.arange(len(cls)), np.clip(cls, 0, None)] = scores
+        probs[:, 0] = 0.0  # background
+        return win.to_image(boxes * side), probs
+
+    def class_evidence(self, image: np.ndarray, box: Sequence[float], min_iou: float = 0.5) -> dict[str, float]:
+        """For checking what the model makes of a known object: over every pass and every candidate box
+        overlapping ``box`` (image pixels) by at least ``min_iou``, each class's best score, best first."""
+        H, W = image.shape[:2]
+        best = np.zeros(len(self.labels))
+        for win in self.windows(W, H):
+            boxes, probs = self._run_window(image, win)
+            near = iou_matrix(boxes, np.asarray(box, np.float64).reshape(1, 4))[:, 0] >= min_iou
+            if near.any():
+                n = min(len(best), probs.shape[1])
+                best[:n] = np.maximum(best[:n], probs[near, :n].max(axis=0))
+        order = np.argsort(-best)
+        return {self.labels[k]: round(float(best[k]), 3) for k in order if best[k] > 0}
 
     def _ssd_outputs(self) -> list[np.ndarray]:
         """Box encodings (A, 4) and class logits (A, C)."""
@@ -239,7 +345,8 @@ class DetectorSegmenter:
                             for c, k in zip(logits, per_cell, strict=True)]),
         ]
 
-    def _raw_outputs(self, outs: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def _raw_outputs(self, outs: list[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+        """Decoded boxes (A, 4, normalised) and class probabilities (A, C)."""
         assert self._anchors is not None
         n_anchor = len(self._anchors)
         flat = [np.asarray(o).reshape(n_anchor, -1) for o in outs]
@@ -247,35 +354,32 @@ class DetectorSegmenter:
         logits = next((o for o in flat if o.shape[1] != 4), None)
         if enc is None or logits is None:
             raise RuntimeError(f"detector outputs {[o.shape for o in outs]} are not SSD box encodings + class logits")
-        probs = 1.0 / (1.0 + np.exp(-logits))
-        probs[:, 0] = 0.0  # background
-        cls = probs.argmax(axis=1)
-        return decode_ssd(enc, self._anchors), cls, probs[np.arange(n_anchor), cls]
+        return decode_ssd(enc, self._anchors), 1.0 / (1.0 + np.exp(-logits))
 
-    def _select(self, boxes: np.ndarray, cls: np.ndarray, scores: np.ndarray, area: int) -> list[Box]:
+    def _select(self, boxes: np.ndarray, cls: np.ndarray, scores: np.ndarray, W: int, H: int) -> list[Box]:
+        """Boxes (already above their pass's threshold) of reportable classes and sizes, per-class NMS."""
         cfg = self.config
         names = [self.labels[c] if 0 <= c < len(self.labels) else str(c) for c in cls]
         wh = np.clip(boxes[:, 2:] - boxes[:, :2], 0, None)
-        frac = wh[:, 0] * wh[:, 1] / max(area, 1)
-        ok = (scores >= cfg.score_threshold) & (frac >= cfg.min_box_frac) & (frac <= cfg.max_box_frac)
+        frac = wh[:, 0] * wh[:, 1] / max(W * H, 1)
+        ok = (frac >= cfg.min_box_frac) & (frac <= cfg.max_box_frac)
         ok &= np.array([bool(n) and n not in cfg.ignore_labels for n in names], dtype=bool)
+        idx = np.nonzero(ok)[0]
         found: list[Box] = []
-        for c in np.unique(cls[ok]):
-            idx = np.nonzero(ok & (cls == c))[0]
-            rects = [[float(b[0]), float(b[1]), float(b[2] - b[0]), float(b[3] - b[1])] for b in boxes[idx]]
-            keep = cv2.dnn.NMSBoxes(rects, scores[idx].astype(float).tolist(), cfg.score_threshold, cfg.nms_iou)
-            for k in np.asarray(keep, dtype=int).reshape(-1):
-                j = idx[k]
-                x0, y0, x1, y1 = (float(v) for v in boxes[j])
-                found.append(Box(x0, y0, x1, y1, class_id=int(c), label=names[j], score=float(scores[j])))
+        for k in nms(boxes[idx], scores[idx], cls[idx], cfg.nms_iou):
+            j = idx[k]
+            x0, y0, x1, y1 = (float(np.clip(v, 0, lim)) for v, lim in zip(boxes[j], (W, H, W, H), strict=True))
+            found.append(Box(x0, y0, x1, y1, class_id=int(cls[j]), label=names[j], score=float(scores[j])))
         found.sort(key=lambda b: -b.score)
         return found[: cfg.max_detections]
 
     def segment(self, view: View, geometry: ViewGeometry | None = None) -> list[Mask2D]:
-        image = view.image
-        H, W = image.shape[:2]
+        return self.masks(view.image, self.detect(view.image), geometry)
+
+    def masks(self, image: np.ndarray, boxes: Sequence[Box], geometry: ViewGeometry | None = None) -> list[Mask2D]:
+        """One mask per box (in order; boxes whose mask comes out empty are left out)."""
         out = []
-        for k, b in enumerate(self.detect(image)):
+        for k, b in enumerate(boxes):
             mask = box_mask(image, b, self.config)
             if geometry is not None:
                 mask = depth_gate(mask, geometry, self.config.depth_rel_tolerance)
@@ -304,7 +408,7 @@ def box_mask(image: np.ndarray, box: Box, cfg: DetectorConfig) -> np.ndarray:
     mx, my = max(2, (x1 - x0) // 8), max(2, (y1 - y0) // 8)
     cx0, cy0, cx1, cy1 = max(0, x0 - mx), max(0, y0 - my), min(W, x1 + mx), min(H, y1 + my)
     crop = image[cy0:cy1, cx0:cx1]
-    s = cfg.grabcut_side / max(crop.shape[:2])
+    s = min(1.0, cfg.grabcut_side / max(crop.shape[:2]))  # never enlarged: that adds cost, not detail
     small = cv2.resize(crop, (max(8, round(crop.shape[1] * s)), max(8, round(crop.shape[0] * s))),
                        interpolation=cv2.INTER_AREA)
     sh, sw = small.shape[:2]
