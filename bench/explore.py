@@ -821,33 +821,15 @@ def main(argv: list[str] | None = None) -> int:
         if not a.quiet:
             print(s, flush=True)
 
-    episodes = []
-    for seed in _ints(a.seeds):
-        for ext in a.ext_cams:
-            for n_robots in a.robots:
-                for strategy in a.strategy:
-                    for start in starts:
-                        episodes.append(
-                            run_episode(
-                                family=a.family,
-                                seed=seed,
-                                strategy=strategy,
-                                external_cameras=ext,
-                                steps=a.steps,
-                                start_index=start,
-                                geometry=a.geometry,
-                                perception=a.perception,
-                                sampler=a.sampler,
-                                torch_threads=a.threads,
-                                odometry_noise=a.odometry_noise,
-                                move_frames=a.move_frames,
-                                goal_capture_m=a.goal_capture,
-                                planner_overrides=overrides,
-                                mapper_overrides=mapper_overrides,
-                                robots=n_robots,
-                                log_fn=say,
-                            )
-                        )
+    base = Episode(family=a.family, steps=a.steps, geometry=a.geometry, perception=a.perception, sampler=a.sampler,
+                   torch_threads=a.threads, odometry_noise=a.odometry_noise, move_frames=a.move_frames,
+                   goal_capture_m=a.goal_capture, planner_overrides=overrides, mapper_overrides=mapper_overrides)
+    episodes = [
+        run_episode(base, seed=seed, external_cameras=ext, robots=n_robots, strategy=strategy, start_index=start,
+                    log_fn=say)
+        for seed in _ints(a.seeds) for ext in a.ext_cams for n_robots in a.robots for strategy in a.strategy
+        for start in starts
+    ]
     rows = summarize(episodes, at_steps)
     print(markdown(rows, at_steps))
     if a.out is not None:
