@@ -109,7 +109,7 @@ class ActiveConfig(BaseModel):
         "left and right of each goal, the sidesteps counted in the distance; applied in every run alike",
     )
     perception: str = Field(default="sim", description="2D perception")
-    options: dict[str, Any] = Field(default_factory=dict, description="extra keyword arguments of run_episode")
+    options: dict[str, Any] = Field(default_factory=dict, description="extra fields of bench.explore.Episode")
 
     @property
     def geometries(self) -> list[str]:

@@ -34,7 +34,7 @@ import math
 import sys
 import time
 from collections.abc import Callable, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, get_args
 
@@ -126,6 +126,31 @@ def mapper_config(geometry: str, perception: str, torch_threads: int,
     return type(cfg).model_validate(_merged(cfg.model_dump(exclude_unset=True), overrides)) if overrides else cfg
 
 
+@dataclass(frozen=True)
+class Episode:
+    """The parameters of one closed-loop episode (:func:`run_episode`'s keywords)."""
+
+    family: str = "apartment"  # scene family (sim.config.Family)
+    seed: int = 0  # scene seed; also seeds the start pose, the planner and the robots' odometry
+    strategy: str = "asp"  # planner strategy: see or asp
+    external_cameras: int = 0  # fixed cameras giving one frame each at step 0
+    steps: int = 30  # wall steps (rounds of one goal per robot): the budget
+    start_index: int = 0  # which seeded start pose
+    geometry: str = "oracle"  # mapper reconstructor
+    perception: str = "sim"  # mapper segmenter (its usual embedder with it)
+    sampler: str = "prior"  # asp completion sampler
+    torch_threads: int = 1
+    odometry_noise: bool = False  # drifting odometry (default: exact poses)
+    viewpoint_spacing_m: float = 0.6  # candidate viewpoint grid spacing
+    n_headings: int = 8  # candidate headings per viewpoint position
+    planner_overrides: dict[str, Any] | None = None  # nested PlannerConfig fields written over the defaults
+    mapper_overrides: dict[str, Any] | None = None  # nested MapperCoreConfig fields written over core_config's
+    score_every: int = 1  # score the graph every this many steps (and at the last)
+    move_frames: int = 0  # also map the last n poses passed on the way to each goal (stereo for mvs)
+    goal_capture_m: float = 0.0  # at each goal also map the views this far to the left and right
+    robots: int = 1  # robots in the team
+
+
 @dataclass
 class _Bot:
     """One robot of the episode: its body, viewpoints and what it has cost and contributed."""
@@ -142,133 +167,121 @@ class _Bot:
         return float(self.robot.distance_m) + self.capture_m
 
 
-def steps_to(recall: Sequence[float], level: float) -> int | None:
-    """The first step at which ``recall`` reaches ``level`` (None: never)."""
-    return next((i for i, v in enumerate(recall) if v >= level), None)
+@dataclass
+class _World:
+    """The episode's simulated world: scene, renderer, floor map and the robots' candidate viewpoints."""
 
+    scene: Any
+    renderer: Any
+    nav: Any
+    intr: Any
+    vps: Any  # ViewpointSet (robot0's; each robot gets a copy under its own id)
+    vp_xy: np.ndarray  # (V, 2) viewpoint positions
 
-def run_episode(
-    family: str = "apartment",
-    seed: int = 0,
-    strategy: str = "asp",
-    external_cameras: int = 0,
-    steps: int = 30,
-    start_index: int = 0,
-    geometry: str = "oracle",
-    perception: str = "sim",
-    sampler: str = "prior",
-    torch_threads: int = 1,
-    odometry_noise: bool = False,
-    viewpoint_spacing_m: float = 0.6,
-    n_headings: int = 8,
-    planner_overrides: dict[str, Any] | None = None,
-    mapper_overrides: dict[str, Any] | None = None,
-    score_every: int = 1,
-    move_frames: int = 0,
-    goal_capture_m: float = 0.0,
-    robots: int = 1,
-    log_fn: Callable[[str], None] | None = None,
-) -> dict[str, Any]:
-    """One closed-loop episode; returns ``{"steps": [{step, team_steps, n_nodes, recall, ...}], ...}``.
+    @classmethod
+    def build(cls, ep: Episode) -> _World:
+        from protocol.messages import Intrinsics, ViewpointSet
+        from sim.nav import NavMap
+        from sim.render import Renderer
+        from sim.scene import generate_scene
 
-    Step 0 is the state after the start views (and the fixed cameras' frames); step k (a wall step) after
-    k rounds in which each of the ``robots`` robots got a goal. ``distance_m`` is the team's metres;
-    ``goal`` / ``gain`` / ``reason`` are robot0's, ``robots`` has each robot's goal, metres and frames.
-    """
-    import torch
-
-    from mapper.core import MapperCore
-    from mapper.geometry.contract import OracleData, View
-    from planner.config import PlannerConfig
-    from planner.core import Planner
-    from protocol.messages import Intrinsics, RobotState, ViewpointSet, rows
-    from sim.nav import NavMap
-    from sim.render import Renderer
-    from sim.robot import OdometryNoise, SimRobot
-    from sim.scene import generate_scene
-    from sim.scoring import score_nodes
-
-    if robots < 1:
-        raise ValueError("robots must be >= 1")
-    torch.set_num_threads(max(1, int(torch_threads)))
-    say = log_fn or (lambda s: log.info("%s", s))
-    t_start = time.perf_counter()
-    scene = generate_scene(family, seed)
-    renderer = Renderer(scene)
-    nav = NavMap(scene, renderer=renderer)
-    intr = Intrinsics.from_fov(640, 480, 90.0)
-    vps = ViewpointSet(
-        robot_id=ROBOT_ID,
-        camera_height_m=1.0,
-        camera_pitch_deg=-15.0,
-        intrinsics=intr,
-        max_range_m=6.0,
-        viewpoints=nav.viewpoints(viewpoint_spacing_m, n_headings),
-    )
-    vp_xy = np.array([[v.x, v.y] for v in vps.viewpoints], dtype=np.float64).reshape(-1, 2)
-    start = start_pose(vps.viewpoints, seed, start_index)
-    starts = [start]
-    if robots > 1:
-        dock_xy = np.array(sorted({(v.x, v.y) for v in vps.viewpoints}), dtype=np.float64)
-        starts = team_starts(start, dock_xy, travel_costs(nav, start[:2], dock_xy), robots)
-    bots = [
-        _Bot(
-            rid,
-            SimRobot(
-                scene,
-                nav,
-                xyyaw,
-                intr,
-                noise=None if odometry_noise else OdometryNoise.none(),
-                seed=seed + 7919 * k,
-                renderer=renderer,
-            ),
-            vps.model_copy(update={"robot_id": rid}),
+        scene = generate_scene(ep.family, ep.seed)
+        renderer = Renderer(scene)
+        nav = NavMap(scene, renderer=renderer)
+        intr = Intrinsics.from_fov(640, 480, 90.0)
+        vps = ViewpointSet(
+            robot_id=ROBOT_ID,
+            camera_height_m=1.0,
+            camera_pitch_deg=-15.0,
+            intrinsics=intr,
+            max_range_m=6.0,
+            viewpoints=nav.viewpoints(ep.viewpoint_spacing_m, ep.n_headings),
         )
-        for k, (rid, xyyaw) in enumerate(zip(robot_ids(robots), starts, strict=True))
-    ]
-    mapper = MapperCore(mapper_config(geometry, perception, torch_threads, mapper_overrides))
-    pcfg = PlannerConfig.model_validate(
-        {
-            "strategy": strategy,
-            "seed": seed * 1000 + start_index,
-            "sampler": {"kind": sampler},
-            **(planner_overrides or {}),
-        }
-    )
-    planner = Planner(pcfg)
-    labels = scene.labels()
-    seq = [0]
+        vp_xy = np.array([[v.x, v.y] for v in vps.viewpoints], dtype=np.float64).reshape(-1, 2)
+        return cls(scene, renderer, nav, intr, vps, vp_xy)
 
-    def ingest(rgb_out: Any, T_true: np.ndarray, T_prior: np.ndarray | None, source: str,
+    def start_poses(self, ep: Episode) -> list[tuple[float, float, float]]:
+        """The team's start poses: the seeded start, and for a team the dock around it (:func:`team_starts`)."""
+        start = start_pose(self.vps.viewpoints, ep.seed, ep.start_index)
+        if ep.robots == 1:
+            return [start]
+        dock_xy = np.array(sorted({(v.x, v.y) for v in self.vps.viewpoints}), dtype=np.float64)
+        return team_starts(start, dock_xy, travel_costs(self.nav, start[:2], dock_xy), ep.robots)
+
+
+class _Run:
+    """An episode in progress: the robots, the in-process mapper and planner, and the step records."""
+
+    def __init__(self, ep: Episode, world: _World, starts: list[tuple[float, float, float]]) -> None:
+        from mapper.core import MapperCore
+        from planner.config import PlannerConfig
+        from planner.core import Planner
+        from sim.robot import OdometryNoise, SimRobot
+
+        self.ep, self.world = ep, world
+        noise = None if ep.odometry_noise else OdometryNoise.none()
+        self.bots = [
+            _Bot(rid, SimRobot(world.scene, world.nav, xyyaw, world.intr, noise=noise, seed=ep.seed + 7919 * k,
+                               renderer=world.renderer),
+                 world.vps.model_copy(update={"robot_id": rid}))
+            for k, (rid, xyyaw) in enumerate(zip(robot_ids(ep.robots), starts, strict=True))
+        ]
+        self.mapper = MapperCore(mapper_config(ep.geometry, ep.perception, ep.torch_threads, ep.mapper_overrides))
+        self.planner = Planner(PlannerConfig.model_validate({
+            "strategy": ep.strategy,
+            "seed": ep.seed * 1000 + ep.start_index,
+            "sampler": {"kind": ep.sampler},
+            **(ep.planner_overrides or {}),
+        }))
+        self.labels = world.scene.labels()
+        self.seq = 0
+        self.records: list[dict[str, Any]] = []
+        self.last_score = {"recall": 0.0, "precision": 0.0}
+
+    # -- frames into the mapper ---------------------------------------------------------------
+    def ingest(self, rgb_out: Any, T_true: np.ndarray, T_prior: np.ndarray | None, source: str,
                trusted: bool = False) -> None:
         """Map one rendered view; ``trusted``: its pose is surveyed (a calibrated fixed camera), not odometry."""
+        from mapper.geometry.contract import OracleData, View
+
         oracle = OracleData(
             depth_m=rgb_out.depth_m.astype(np.float32),
             T_world_cam_true=np.asarray(T_true, float),
             instance_id=rgb_out.instance_id,
-            labels=labels,
+            labels=self.labels,
         )
-        seq[0] += 1
-        view = View(
-            image=rgb_out.rgb,
-            source_id=source,
-            intrinsics=intr,
-            T_world_cam=T_prior,
-            pose_trusted=trusted,
-            stamp_ns=seq[0] * 100_000_000,
-            seq=seq[0],
-            oracle=oracle,
-        )
-        mapper.ingest(view, force_keyframe=True)
+        self.seq += 1
+        view = View(image=rgb_out.rgb, source_id=source, intrinsics=self.world.intr, T_world_cam=T_prior,
+                    pose_trusted=trusted, stamp_ns=self.seq * 100_000_000, seq=self.seq, oracle=oracle)
+        self.mapper.ingest(view, force_keyframe=True)
 
-    def ingest_bot(bot: _Bot, rgb_out: Any, T_true: np.ndarray, T_odom: np.ndarray) -> None:
-        ingest(rgb_out, T_true, T_odom, bot.rid)
+    def ingest_bot(self, bot: _Bot, rgb_out: Any, T_true: np.ndarray, T_odom: np.ndarray) -> None:
+        self.ingest(rgb_out, T_true, T_odom, bot.rid)
         bot.frames += 1
 
-    def drive(bot: _Bot, n_frames: int) -> None:
-        """Drive to the goal; with ``n_frames`` > 0 also map the last n poses passed on the way (every
+    def add_fixed_cameras(self) -> list[str]:
+        """The external cameras' one frame each (before the robots' first); their ids."""
+        if self.ep.external_cameras <= 0:
+            return []
+        from sim.cameras import place_fixed_cameras
+
+        w = self.world
+        ids = []
+        for cam in place_fixed_cameras(w.scene, int(self.ep.external_cameras), self.ep.seed, w.intr,
+                                       renderer=w.renderer):
+            T = np.asarray(cam.T_world_cam, float)
+            self.ingest(w.renderer.render(cam.intrinsics, T), T, T if cam.pose_known else None, cam.camera_id,
+                        trusted=cam.pose_known)  # calibrated, as the edge camera marks it: single-view geometry
+            if cam.pose_known:  # a surveyed camera's view is known to the planner (both strategies)
+                self.planner.record_view(T, cam.intrinsics, w.vps.max_range_m)
+            ids.append(cam.camera_id)
+        return ids
+
+    # -- one robot's moves --------------------------------------------------------------------
+    def drive(self, bot: _Bot) -> None:
+        """Drive to the goal; with ``move_frames`` > 0 also map the last n poses passed on the way (every
         0.3 m or 20 deg) before the arrival view: stereo baselines for RGB-only geometry."""
+        n_frames = self.ep.move_frames
         robot = bot.robot
         passed: list[tuple[np.ndarray, np.ndarray]] = []
         last = np.asarray(robot.T_world_cam_true())
@@ -283,31 +296,36 @@ def run_episode(
                 passed = [*passed, (T, np.asarray(robot.T_world_cam_odom()))][-n_frames:]
                 last = T
         for T_true, T_odom in passed:
-            ingest_bot(bot, renderer.render(intr, T_true), T_true, T_odom)
+            self.ingest_bot(bot, self.world.renderer.render(self.world.intr, T_true), T_true, T_odom)
 
-    def capture(bot: _Bot, step_m: float) -> None:
-        """At the goal, also map the views from the camera moved ``step_m`` to its left and to its right
-        (where the robot can stand): a stereo baseline at the goal for RGB-only geometry. The sidesteps,
-        out and back, count in the distance driven."""
-        robot = bot.robot
-        T_true, T_odom = np.asarray(robot.T_world_cam_true()), np.asarray(robot.T_world_cam_odom())
+    def capture(self, bot: _Bot) -> None:
+        """At the goal, also map the views from the camera moved ``goal_capture_m`` to its left and to its
+        right (where the robot can stand): a stereo baseline at the goal for RGB-only geometry. The
+        sidesteps, out and back, count in the distance driven."""
+        step_m, w = self.ep.goal_capture_m, self.world
+        T_true, T_odom = np.asarray(bot.robot.T_world_cam_true()), np.asarray(bot.robot.T_world_cam_odom())
         side = T_true[:3, 0].copy()
         side[2] = 0.0
         side /= max(float(np.linalg.norm(side)), 1e-9)
         for sign in (-1.0, 1.0):
             off = sign * step_m * side
-            if not nav.is_free(float(T_true[0, 3] + off[0]), float(T_true[1, 3] + off[1])):
+            if not w.nav.is_free(float(T_true[0, 3] + off[0]), float(T_true[1, 3] + off[1])):
                 continue
             Tt, To = T_true.copy(), T_odom.copy()
             Tt[:3, 3] += off
             To[:3, 3] += off
-            ingest_bot(bot, renderer.render(intr, Tt), Tt, To)
+            self.ingest_bot(bot, w.renderer.render(w.intr, Tt), Tt, To)
             bot.capture_m += 2.0 * step_m
 
-    def arrive(bot: _Bot) -> None:
-        ingest_bot(bot, bot.robot.render(), bot.robot.T_world_cam_true(), bot.robot.T_world_cam_odom())
+    def arrive(self, bot: _Bot) -> None:
+        """The view at the reached pose (one image per step, as in the paper)."""
+        self.ingest_bot(bot, bot.robot.render(), bot.robot.T_world_cam_true(), bot.robot.T_world_cam_odom())
 
-    def state_of(bot: _Bot, step: int) -> Any:
+    # -- planning -----------------------------------------------------------------------------
+    def state_of(self, bot: _Bot, step: int) -> Any:
+        """What the planner knows of a robot: its odometry pose and geodesic travel costs to every viewpoint."""
+        from protocol.messages import RobotState, rows
+
         x, y, yaw = bot.robot.pose_odom()
         return RobotState(
             robot_id=bot.rid,
@@ -319,22 +337,23 @@ def run_episode(
             T_world_cam=rows(bot.robot.T_world_cam_odom()),
             distance_m=bot.robot.distance_m,
             steps=step - 1,
-            travel_cost_m=travel_costs(nav, bot.robot.pose_true()[:2], vp_xy),
+            travel_cost_m=travel_costs(self.world.nav, bot.robot.pose_true()[:2], self.world.vp_xy),
         )
 
-    def assign(step: int) -> tuple[dict[str, Any], float]:
+    def assign(self, step: int) -> tuple[dict[str, Any], float]:
         """One round's goals: every robot planned in one decision; a robot whose goal it cannot drive to
-        gets that viewpoint blacklisted and is planned again alone (the others' goals stay claimed)."""
-        by_id = {b.rid: b for b in bots}
+        gets that viewpoint blacklisted and is planned again alone (the others' goals stay claimed).
+        Each robot given a goal starts driving; returns the goals by robot and the planner's seconds."""
+        by_id = {b.rid: b for b in self.bots}
         pending = list(by_id)
         chosen: dict[str, Any] = {}
         decision_s = 0.0
         for _attempt in range(5):
             if not pending:
                 break
-            plan = {rid: (state_of(by_id[rid], step), by_id[rid].vps) for rid in pending}
-            goals = {g.robot_id: g for g in planner.plan(mapper.snapshot(), mapper.point_map(), plan)}
-            decision_s += planner.info.decision_s
+            plan = {rid: (self.state_of(by_id[rid], step), by_id[rid].vps) for rid in pending}
+            goals = {g.robot_id: g for g in self.planner.plan(self.mapper.snapshot(), self.mapper.point_map(), plan)}
+            decision_s += self.planner.info.decision_s
             retry = []
             for rid in pending:
                 g = goals.get(rid)
@@ -344,19 +363,40 @@ def run_episode(
                     chosen[rid] = g
                     by_id[rid].goals += 1
                 else:
-                    planner.mark_failed(rid, g.vp_id)
+                    self.planner.mark_failed(rid, g.vp_id)
                     retry.append(rid)
             pending = retry
         return chosen, decision_s
 
-    records: list[dict[str, Any]] = []
-    last_score: dict[str, float] = {"recall": 0.0, "precision": 0.0}
+    # -- the loop -----------------------------------------------------------------------------
+    def start(self) -> None:
+        """Step 0: each robot's view at its start pose, then the first record."""
+        for b in self.bots:
+            self.arrive(b)
+        self.record(0, {}, 0.0)
 
-    def record(step: int, chosen: dict[str, Any], decision_s: float) -> None:
-        snap = mapper.snapshot()
-        if step % max(1, score_every) == 0 or step == steps:
-            s = score_nodes(snap.nodes, scene)
-            last_score.update(recall=float(s.recall), precision=float(s.precision))
+    def step(self, step: int) -> float:
+        """One wall step: goals for the team, each robot drives (mapping on the way and at the goal), record;
+        returns the planner's seconds."""
+        chosen, decision_s = self.assign(step)
+        for b in self.bots:
+            if b.rid in chosen:
+                self.drive(b)
+                if self.ep.goal_capture_m > 0:
+                    self.capture(b)
+            self.arrive(b)
+        self.record(step, chosen, decision_s)
+        return decision_s
+
+    def record(self, step: int, chosen: dict[str, Any], decision_s: float) -> None:
+        """The step's record: graph size, recall / precision (scored every ``score_every`` steps and at the
+        last), the team's metres and each robot's goal, gain, reason, metres, frames and goals."""
+        from sim.scoring import score_nodes
+
+        snap = self.mapper.snapshot()
+        if step % max(1, self.ep.score_every) == 0 or step == self.ep.steps:
+            s = score_nodes(snap.nodes, self.world.scene)
+            self.last_score.update(recall=float(s.recall), precision=float(s.precision))
         per = {
             b.rid: {
                 "goal": _goal_xyyaw(chosen.get(b.rid)),
@@ -366,16 +406,16 @@ def run_episode(
                 "frames": b.frames,
                 "goals": b.goals,
             }
-            for b in bots
+            for b in self.bots
         }
-        first = per[bots[0].rid]
-        records.append({
+        first = per[self.bots[0].rid]
+        self.records.append({
             "step": step,
-            "team_steps": step * len(bots),
+            "team_steps": step * len(self.bots),
             "n_nodes": len(snap.nodes),
-            "recall": last_score["recall"],
-            "precision": last_score["precision"],
-            "distance_m": round(sum(b.distance_m for b in bots), 3),
+            "recall": self.last_score["recall"],
+            "precision": self.last_score["precision"],
+            "distance_m": round(sum(b.distance_m for b in self.bots), 3),
             "decision_s": round(decision_s, 4),
             "gain": first["gain"],
             "goal": first["goal"],
@@ -383,59 +423,65 @@ def run_episode(
             "robots": per,
         })
 
-    ext_ids: list[str] = []
-    if external_cameras > 0:
-        from sim.cameras import place_fixed_cameras
 
-        for cam in place_fixed_cameras(scene, int(external_cameras), seed, intr, renderer=renderer):
-            T = np.asarray(cam.T_world_cam, float)
-            ingest(renderer.render(cam.intrinsics, T), T, T if cam.pose_known else None, cam.camera_id,
-                   trusted=cam.pose_known)  # calibrated, as the edge camera marks it: single-view geometry
-            if cam.pose_known:  # a surveyed camera's view is known to the planner (both strategies)
-                planner.record_view(T, cam.intrinsics, vps.max_range_m)
-            ext_ids.append(cam.camera_id)
-    for b in bots:
-        arrive(b)
-    record(0, {}, 0.0)
+def steps_to(recall: Sequence[float], level: float) -> int | None:
+    """The first step at which ``recall`` reaches ``level`` (None: never)."""
+    return next((i for i, v in enumerate(recall) if v >= level), None)
+
+
+def run_episode(
+    episode: Episode | None = None, /, *, log_fn: Callable[[str], None] | None = None, **params: Any
+) -> dict[str, Any]:
+    """One closed-loop episode; returns ``{"steps": [{step, team_steps, n_nodes, recall, ...}], ...}``.
+
+    ``episode`` (default :class:`Episode`'s defaults) with ``params`` (Episode's fields by name) written
+    over it. Step 0 is the state after the start views (and the fixed cameras' frames); step k (a wall
+    step) after k rounds in which each of the ``robots`` robots got a goal. ``distance_m`` is the team's
+    metres; ``goal`` / ``gain`` / ``reason`` are robot0's, ``robots`` has each robot's goal, metres and frames.
+    """
+    import torch
+
+    ep = replace(episode or Episode(), **params)
+    if ep.robots < 1:
+        raise ValueError("robots must be >= 1")
+    torch.set_num_threads(max(1, int(ep.torch_threads)))
+    say = log_fn or (lambda s: log.info("%s", s))
+    t_start = time.perf_counter()
+    world = _World.build(ep)
+    starts = world.start_poses(ep)
+    run = _Run(ep, world, starts)
+    external_ids = run.add_fixed_cameras()
+    run.start()
     say(
-        f"{strategy} seed {seed} start {start_index}: {len(scene.objects)} objects, {len(vps.viewpoints)} "
-        f"candidates, {len(bots)} robot(s); step 0 nodes {records[0]['n_nodes']} recall {records[0]['recall']:.3f}"
+        f"{ep.strategy} seed {ep.seed} start {ep.start_index}: {len(world.scene.objects)} objects, "
+        f"{len(world.vps.viewpoints)} candidates, {len(run.bots)} robot(s); step 0 nodes "
+        f"{run.records[0]['n_nodes']} recall {run.records[0]['recall']:.3f}"
     )
-
-    for step in range(1, steps + 1):
-        chosen, decision_s = assign(step)
-        for b in bots:
-            if b.rid in chosen:
-                drive(b, move_frames)
-                if goal_capture_m > 0:
-                    capture(b, goal_capture_m)
-            arrive(b)
-        record(step, chosen, decision_s)
-        r = records[-1]
+    for step in range(1, ep.steps + 1):
+        decision_s = run.step(step)
+        r = run.records[-1]
         say(
-            f"  step {step:2d}: nodes {r['n_nodes']:3d} recall {r['recall']:.3f} "
-            f"dist {r['distance_m']:.1f} m "
+            f"  step {step:2d}: nodes {r['n_nodes']:3d} recall {r['recall']:.3f} dist {r['distance_m']:.1f} m "
             f"decide {decision_s:.2f} s | " + " | ".join(f"{rid}: {p['reason']}" for rid, p in r["robots"].items())
         )
-
     return {
-        "family": family,
-        "seed": seed,
-        "strategy": strategy,
-        "external_cameras": int(external_cameras),
-        "robots": len(bots),
-        "start_index": start_index,
-        "start": list(start),
+        "family": ep.family,
+        "seed": ep.seed,
+        "strategy": ep.strategy,
+        "external_cameras": int(ep.external_cameras),
+        "robots": len(run.bots),
+        "start_index": ep.start_index,
+        "start": list(starts[0]),
         "starts": [list(p) for p in starts],
-        "geometry": geometry,
-        "perception": perception,
-        "sampler": sampler,
-        "n_true": len(scene.objects),
-        "n_rooms": len(scene.rooms),
-        "n_candidates": len(vps.viewpoints),
-        "external_ids": ext_ids,
+        "geometry": ep.geometry,
+        "perception": ep.perception,
+        "sampler": ep.sampler,
+        "n_true": len(world.scene.objects),
+        "n_rooms": len(world.scene.rooms),
+        "n_candidates": len(world.vps.viewpoints),
+        "external_ids": external_ids,
         "seconds": round(time.perf_counter() - t_start, 2),
-        "steps": records,
+        "steps": run.records,
     }
 
 
@@ -775,33 +821,15 @@ def main(argv: list[str] | None = None) -> int:
         if not a.quiet:
             print(s, flush=True)
 
-    episodes = []
-    for seed in _ints(a.seeds):
-        for ext in a.ext_cams:
-            for n_robots in a.robots:
-                for strategy in a.strategy:
-                    for start in starts:
-                        episodes.append(
-                            run_episode(
-                                family=a.family,
-                                seed=seed,
-                                strategy=strategy,
-                                external_cameras=ext,
-                                steps=a.steps,
-                                start_index=start,
-                                geometry=a.geometry,
-                                perception=a.perception,
-                                sampler=a.sampler,
-                                torch_threads=a.threads,
-                                odometry_noise=a.odometry_noise,
-                                move_frames=a.move_frames,
-                                goal_capture_m=a.goal_capture,
-                                planner_overrides=overrides,
-                                mapper_overrides=mapper_overrides,
-                                robots=n_robots,
-                                log_fn=say,
-                            )
-                        )
+    base = Episode(family=a.family, steps=a.steps, geometry=a.geometry, perception=a.perception, sampler=a.sampler,
+                   torch_threads=a.threads, odometry_noise=a.odometry_noise, move_frames=a.move_frames,
+                   goal_capture_m=a.goal_capture, planner_overrides=overrides, mapper_overrides=mapper_overrides)
+    episodes = [
+        run_episode(base, seed=seed, external_cameras=ext, robots=n_robots, strategy=strategy, start_index=start,
+                    log_fn=say)
+        for seed in _ints(a.seeds) for ext in a.ext_cams for n_robots in a.robots for strategy in a.strategy
+        for start in starts
+    ]
     rows = summarize(episodes, at_steps)
     print(markdown(rows, at_steps))
     if a.out is not None:

@@ -479,7 +479,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         run(a.cameras, a.fps, a.phase_s, a.warmup_s, a.width, a.height, a.frames_per_camera, consumers,
             mapper_settings, a.out, consumer_rate_hz=a.consumer_rate, workers=workers)
-    except Exception as e:  # noqa: BLE001
+    except Exception as e:  # noqa: BLE001 - a failed run is one message and exit 1
         print(f"argus bench system: {type(e).__name__}: {e}", file=sys.stderr)
         return 1
     return 0

@@ -445,7 +445,7 @@ class _Scorer:
             if self.position_only:
                 return score_nodes(list(snap.nodes), self._load(), label_threshold=-1.0)
             return score_nodes(list(snap.nodes), self._load())
-        except Exception as e:  # noqa: BLE001
+        except Exception as e:  # noqa: BLE001 - a broken scene file or scorer: the demo runs on unscored
             self.error = f"{type(e).__name__}: {e}"
             print(f"\nargus demo: scoring unavailable: {self.error}", flush=True)
             return None

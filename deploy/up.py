@@ -613,12 +613,12 @@ class Stack:
         if self._liveliness_sub is not None:
             try:
                 self._liveliness_sub.undeclare()
-            except Exception:  # noqa: BLE001
+            except Exception:  # noqa: BLE001 - a closing session must not stop the children being stopped
                 pass
         if self._session is not None:
             try:
                 self._session.close()
-            except Exception:  # noqa: BLE001
+            except Exception:  # noqa: BLE001 - as above
                 pass
             self._session = None
         routers = [c for c in self.children if c.spec.command == "router"]

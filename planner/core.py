@@ -25,7 +25,6 @@ import numpy as np
 from planner.completion import (
     SAMPLERS,
     CompletionSampler,
-    SceneContext,
     build_context,
     rooms_from_viewpoints,
 )
@@ -69,6 +68,43 @@ class PlanInfo:
     sampler: str = ""
     sampler_fallback: bool = False
     per_robot: dict[str, dict[str, Any]] = field(default_factory=dict)
+
+
+@dataclass
+class _PlanContext:
+    """What one ``plan`` call works on: the map's finite points, one panorama per distinct camera position
+    and each camera's row in it, and the floor cells the map has seen."""
+
+    point_map: PointMap | None
+    points: np.ndarray  # (N, 3) the map's finite points
+    pano: Panoramas
+    cand_rows: dict[str, np.ndarray]  # per robot: each candidate's panorama row
+    hist_rows: list[int]  # each remembered view's panorama row
+    claim_rows: dict[str, int]  # per robot with a goal: the goal's panorama row (grows as goals are issued)
+    floor_cells: np.ndarray  # cell keys (``_cell_keys``) of the floor the map has seen
+    frontier: np.ndarray | None = None  # see's targets, computed on first use (``Planner._frontier_targets``)
+
+    def floor_seen(self, xy: np.ndarray) -> np.ndarray:
+        """Whether each (x, y) lies on a floor cell the map has seen (no floor-standing hypothesis there)."""
+        return np.isin(_cell_keys(xy), self.floor_cells)
+
+
+class _Positions:
+    """Distinct camera positions (to the millimetre) in first-seen order: the panoramas' rows."""
+
+    def __init__(self) -> None:
+        self._positions: list[np.ndarray] = []
+        self._row: dict[tuple[float, float, float], int] = {}
+
+    def row(self, p: np.ndarray) -> int:
+        key = (round(float(p[0]), 3), round(float(p[1]), 3), round(float(p[2]), 3))
+        if key not in self._row:
+            self._row[key] = len(self._positions)
+            self._positions.append(np.asarray(p, dtype=np.float64))
+        return self._row[key]
+
+    def array(self) -> np.ndarray:
+        return np.array(self._positions).reshape(-1, 3)
 
 
 def make_sampler(config: PlannerConfig, prior: IndoorPrior) -> CompletionSampler:
@@ -232,160 +268,182 @@ class Planner:
         point_map: PointMap | None,
         robots: dict[str, tuple[RobotState, ViewpointSet]],
     ) -> list[NbvGoal]:
-        """Next goal for each robot in ``robots`` (goals of other robots stay claimed)."""
+        """Next goal for each robot in ``robots`` (goals of other robots stay claimed).
+
+        The steps: forget the planned robots' old goals and remember their current views; build the
+        panoramas every visibility test shares; for ``asp``, sample completions of the scene and realise
+        them as hypotheses; then per robot (in id order, each goal claimed before the next robot is
+        planned) pick a viewpoint and issue its goal."""
         t0 = time.perf_counter()
-        cfg = self.config
         self.info = PlanInfo(sampler=getattr(self.sampler, "name", ""))
+        cands = self._begin(robots)
+        ctx = self._context(point_map, cands)
+        hyps = self._hypotheses(snapshot, robots, ctx) if self.config.strategy == "asp" else None
+        goals: list[NbvGoal] = []
+        for rid in sorted(robots):
+            state, vps = robots[rid]
+            goal = self._plan_robot(rid, state, vps, cands[rid], ctx, hyps, snapshot.version)
+            if goal is not None:
+                goals.append(goal)
+        self.info.decision_s = time.perf_counter() - t0
+        return goals
+
+    def _begin(self, robots: dict[str, tuple[RobotState, ViewpointSet]]) -> dict[str, Candidates]:
+        """Release the planned robots' goals and remember the views they stand at; their candidates."""
         for rid in robots:
             self.release(rid)
         cands = {rid: self._candidates(vps) for rid, (_, vps) in robots.items()}
         for state, vps in robots.values():
             self.record_view(np.asarray(state.T_world_cam), vps.intrinsics, vps.max_range_m)
         self.info.n_candidates = sum(c.size for c in cands.values())
+        return cands
 
-        # Map, occluders and one panorama per distinct camera position (candidates, history, claims).
+    def _context(self, point_map: PointMap | None, cands: dict[str, Candidates]) -> _PlanContext:
+        """The map's occluders and one panorama per distinct camera position (candidates, remembered views,
+        claimed goals, in that order), and the floor cells the map has seen."""
+        vis = self.config.visibility
         if point_map is not None and point_map.points.size:
             pts = np.asarray(point_map.points, dtype=np.float64).reshape(-1, 3)
             pts = pts[np.all(np.isfinite(pts), axis=1)]
         else:
             pts = np.zeros((0, 3))
-        occ = downsample_occluders(pts, cfg.visibility.occluder_voxel_m, cfg.visibility.max_occluder_points)
-        positions: list[np.ndarray] = []
-        row_of: dict[tuple[float, float, float], int] = {}
-
-        def row(p: np.ndarray) -> int:
-            key = (round(float(p[0]), 3), round(float(p[1]), 3), round(float(p[2]), 3))
-            if key not in row_of:
-                row_of[key] = len(positions)
-                positions.append(np.asarray(p, dtype=np.float64))
-            return row_of[key]
-
+        occ = downsample_occluders(pts, vis.occluder_voxel_m, vis.max_occluder_points)
+        rows = _Positions()
         cand_rows = {
-            rid: np.array([row(p) for p in c.positions], dtype=np.int64)[c.pos_index]
+            rid: np.array([rows.row(p) for p in c.positions], dtype=np.int64)[c.pos_index]
             for rid, c in cands.items()
         }
-        hist_rows = [row(v.T_world_cam[:3, 3]) for v in self.history]
-        claim_rows = {rid: row(T[:3, 3]) for rid, (_, T) in self.goals.items()}
+        hist_rows = [rows.row(v.T_world_cam[:3, 3]) for v in self.history]
+        claim_rows = {rid: rows.row(T[:3, 3]) for rid, (_, T) in self.goals.items()}
         far = max([c.max_range_m for c in cands.values()] + [v.far_m for v in self.history] + [0.1])
-        pano = Panoramas(np.array(positions).reshape(-1, 3), occ, cfg.visibility, far_m=far)
+        pano = Panoramas(rows.array(), occ, vis, far_m=far)
+        return _PlanContext(point_map, pts, pano, cand_rows, hist_rows, claim_rows, _floor_cells(pts))
 
-        # Floor cells the map has seen (rules out floor-standing hypotheses there).
-        floor_pts = pts[pts[:, 2] < FLOOR_MAX_Z_M] if pts.shape[0] else pts
-        floor_cells = np.unique(_cell_keys(floor_pts[:, :2])) if floor_pts.shape[0] else np.zeros(0, np.int64)
+    def _hypotheses(
+        self, snapshot: GraphSnapshot, robots: dict[str, tuple[RobotState, ViewpointSet]], ctx: _PlanContext
+    ) -> Hypotheses:
+        """``asp``'s targets: completions of the unobserved scene sampled from the graph and the rooms the
+        viewpoints name, realised as positioned hypotheses (those a past view would have seen, or standing on
+        floor the map has seen, ruled out)."""
+        acfg = self.config.asp
+        all_vps = [vps for _, vps in robots.values()]
+        room_names = [v.room for vps in all_vps for v in vps.viewpoints]
+        xy = np.array([[v.x, v.y] for vps in all_vps for v in vps.viewpoints]).reshape(-1, 2)
+        rooms = rooms_from_viewpoints(room_names, xy, self.prior)
+        scene_ctx = build_context(snapshot.nodes, snapshot.edges, rooms, self.prior, snapshot.version)
+        completions = self.sampler.sample(scene_ctx, acfg.n_completions, self.rng)
+        info = getattr(self.sampler, "info", None)
+        self.info.sampler_fallback = bool(getattr(info, "fallback", False))
 
-        def floor_seen(xy: np.ndarray) -> np.ndarray:
-            return np.isin(_cell_keys(xy), floor_cells)
-
-        # Strategy targets.
-        frontier_pts: np.ndarray | None = None
-        hyps: Hypotheses | None = None
-        ctx: SceneContext | None = None
-        if cfg.strategy == "asp":
-            all_vps = [vps for _, vps in robots.values()]
-            room_names = [v.room for vps in all_vps for v in vps.viewpoints]
-            xy = np.array([[v.x, v.y] for vps in all_vps for v in vps.viewpoints]).reshape(-1, 2)
-            rooms = rooms_from_viewpoints(room_names, xy, self.prior)
-            ctx = build_context(snapshot.nodes, snapshot.edges, rooms, self.prior, snapshot.version)
-            completions = self.sampler.sample(ctx, cfg.asp.n_completions, self.rng)
-            info = getattr(self.sampler, "info", None)
-            self.info.sampler_fallback = bool(getattr(info, "fallback", False))
-            acfg = cfg.asp
-
-            def seen(targets: np.ndarray, sizes: np.ndarray) -> np.ndarray:
-                return np.asarray(
-                    self._history_detect(pano, hist_rows, targets, sizes, acfg.min_pixels, 0.05).any(axis=0)
-                )
-
-            hyps = realize(
-                completions,
-                ctx,
-                self.prior,
-                n_jitter=acfg.n_jitter,
-                jitter_m=acfg.jitter_m,
-                proposals=acfg.proposals_per_object,
-                detect_reject=acfg.detect_reject,
-                seen=seen,
-                floor_seen=floor_seen,
-                rng=self.rng,
+        def seen(targets: np.ndarray, sizes: np.ndarray) -> np.ndarray:
+            return np.asarray(
+                self._history_detect(ctx.pano, ctx.hist_rows, targets, sizes, acfg.min_pixels, 0.05).any(axis=0)
             )
-            self.info.n_hypotheses = hyps.size
 
-        def frontier() -> np.ndarray:
-            nonlocal frontier_pts
-            if frontier_pts is None:
-                if point_map is None or not pts.shape[0] or point_map.points.shape[0] != pts.shape[0]:
-                    frontier_pts = np.zeros((0, 3))
-                else:
-                    f = pts[self._frontier(point_map)]
-                    if f.shape[0]:
-                        att = self._history_detect(
-                            pano, hist_rows, f, None, 0.0, 0.1, cfg.see.attempt_range_frac
-                        ).sum(axis=0)
-                        f = f[att < cfg.see.max_attempts]
-                    frontier_pts = f
-                self.info.n_frontier = int(frontier_pts.shape[0])
-            return frontier_pts
+        hyps = realize(
+            completions,
+            scene_ctx,
+            self.prior,
+            n_jitter=acfg.n_jitter,
+            jitter_m=acfg.jitter_m,
+            proposals=acfg.proposals_per_object,
+            detect_reject=acfg.detect_reject,
+            seen=seen,
+            floor_seen=ctx.floor_seen,
+            rng=self.rng,
+        )
+        self.info.n_hypotheses = hyps.size
+        return hyps
 
-        goals: list[NbvGoal] = []
-        for rid in sorted(robots):
-            state, vps = robots[rid]
-            c = cands[rid]
-            if c.size == 0:
-                continue
-            travel = self._travel(state, c)
-            claimed = [(g, T) for r, (g, T) in self.goals.items() if r != rid]
-            valid = self._valid(rid, c, travel, [np.array([g.x, g.y]) for g, _ in claimed])
-            if not valid.any():
-                valid = np.isfinite(travel)
-                if not valid.any():
-                    continue
-            claim_T = np.stack([T for _, T in claimed]) if claimed else np.zeros((0, 4, 4))
-            claim_r = np.array([claim_rows[r] for r in self.goals if r != rid], dtype=np.int64)
-            if cfg.strategy == "asp" and hyps is not None:
-                idx, gain, reason = self._choose_asp(
-                    c, cand_rows[rid], pano, hyps, travel, valid, claim_T, claim_r, vps
-                )
-                if idx is None:
-                    idx, gain, reason = self._choose_see(
-                        c,
-                        cand_rows[rid],
-                        pano,
-                        frontier(),
-                        travel,
-                        valid,
-                        claim_T,
-                        claim_r,
-                        prefix="asp fallback (no semantic gain): ",
-                    )
+    def _frontier_targets(self, ctx: _PlanContext) -> np.ndarray:
+        """``see``'s targets (computed once per plan, on first use): frontier points of the map that the
+        remembered views have not already tried to see ``see.max_attempts`` times."""
+        if ctx.frontier is None:
+            pm, pts = ctx.point_map, ctx.points
+            if pm is None or not pts.shape[0] or pm.points.shape[0] != pts.shape[0]:
+                ctx.frontier = np.zeros((0, 3))
             else:
-                idx, gain, reason = self._choose_see(
-                    c, cand_rows[rid], pano, frontier(), travel, valid, claim_T, claim_r
-                )
-            self._n_goals += 1
-            goal = NbvGoal(
-                goal_id=f"{rid}-{self._n_goals}",
-                robot_id=rid,
-                stamp_ns=time.time_ns(),
-                x=float(c.xy_yaw[idx, 0]),
-                y=float(c.xy_yaw[idx, 1]),
-                yaw_rad=float(c.xy_yaw[idx, 2]),
-                vp_id=int(c.vp_ids[idx]),
-                strategy=cfg.strategy,
-                expected_gain=float(gain),
-                reason=f"{reason}; travel {travel[idx]:.1f} m",
-                graph_version=snapshot.version,
+                f = pts[self._frontier(pm)]
+                if f.shape[0]:
+                    scfg = self.config.see
+                    att = self._history_detect(
+                        ctx.pano, ctx.hist_rows, f, None, 0.0, 0.1, scfg.attempt_range_frac
+                    ).sum(axis=0)
+                    f = f[att < scfg.max_attempts]
+                ctx.frontier = f
+            self.info.n_frontier = int(ctx.frontier.shape[0])
+        return ctx.frontier
+
+    def _plan_robot(
+        self,
+        rid: str,
+        state: RobotState,
+        vps: ViewpointSet,
+        c: Candidates,
+        ctx: _PlanContext,
+        hyps: Hypotheses | None,
+        graph_version: int,
+    ) -> NbvGoal | None:
+        """One robot's goal: its valid candidates (reachable, not blacklisted, not revisiting, away from the
+        other robots' claims; all reachable ones if none is), the strategy's choice, the goal issued."""
+        if c.size == 0:
+            return None
+        travel = self._travel(state, c)
+        claimed = [(g, T) for r, (g, T) in self.goals.items() if r != rid]
+        valid = self._valid(rid, c, travel, [np.array([g.x, g.y]) for g, _ in claimed])
+        if not valid.any():
+            valid = np.isfinite(travel)
+            if not valid.any():
+                return None
+        claim_T = np.stack([T for _, T in claimed]) if claimed else np.zeros((0, 4, 4))
+        claim_r = np.array([ctx.claim_rows[r] for r in self.goals if r != rid], dtype=np.int64)
+        rows = ctx.cand_rows[rid]
+        idx: int | None = None
+        prefix = ""
+        if self.config.strategy == "asp" and hyps is not None:
+            idx, gain, reason = self._choose_asp(c, rows, ctx.pano, hyps, travel, valid, claim_T, claim_r, vps)
+            prefix = "asp fallback (no semantic gain): "
+        if idx is None:
+            idx, gain, reason = self._choose_see(
+                c, rows, ctx.pano, self._frontier_targets(ctx), travel, valid, claim_T, claim_r, prefix=prefix
             )
-            self.goals[rid] = (goal, c.T_world_cam[idx])
-            claim_rows[rid] = int(cand_rows[rid][idx])
-            goals.append(goal)
-            self.info.per_robot[rid] = {
-                "gain": float(gain),
-                "travel_m": float(travel[idx]),
-                "vp_id": int(c.vp_ids[idx]),
-                "reason": goal.reason,
-            }
-        self.info.decision_s = time.perf_counter() - t0
-        return goals
+        return self._issue(rid, c, idx, gain, reason, travel, ctx, graph_version)
+
+    def _issue(
+        self,
+        rid: str,
+        c: Candidates,
+        idx: int,
+        gain: float,
+        reason: str,
+        travel: np.ndarray,
+        ctx: _PlanContext,
+        graph_version: int,
+    ) -> NbvGoal:
+        """The goal on candidate ``idx``, claimed (for the robots planned after this one and later plans)."""
+        self._n_goals += 1
+        goal = NbvGoal(
+            goal_id=f"{rid}-{self._n_goals}",
+            robot_id=rid,
+            stamp_ns=time.time_ns(),
+            x=float(c.xy_yaw[idx, 0]),
+            y=float(c.xy_yaw[idx, 1]),
+            yaw_rad=float(c.xy_yaw[idx, 2]),
+            vp_id=int(c.vp_ids[idx]),
+            strategy=self.config.strategy,
+            expected_gain=float(gain),
+            reason=f"{reason}; travel {travel[idx]:.1f} m",
+            graph_version=graph_version,
+        )
+        self.goals[rid] = (goal, c.T_world_cam[idx])
+        ctx.claim_rows[rid] = int(ctx.cand_rows[rid][idx])
+        self.info.per_robot[rid] = {
+            "gain": float(gain),
+            "travel_m": float(travel[idx]),
+            "vp_id": int(c.vp_ids[idx]),
+            "reason": goal.reason,
+        }
+        return goal
 
     def _claimed_mask(
         self,
@@ -531,6 +589,12 @@ class Planner:
                 f", may see {', '.join(seen_labels)}"
             ),
         )
+
+
+def _floor_cells(points: np.ndarray) -> np.ndarray:
+    """Cell keys of the map points low enough to be floor."""
+    floor_pts = points[points[:, 2] < FLOOR_MAX_Z_M] if points.shape[0] else points
+    return np.unique(_cell_keys(floor_pts[:, :2])) if floor_pts.shape[0] else np.zeros(0, np.int64)
 
 
 def _cell_keys(xy: np.ndarray) -> np.ndarray:

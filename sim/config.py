@@ -6,7 +6,7 @@ from typing import Literal
 
 from pydantic import BaseModel, ConfigDict, Field
 
-Family = Literal["apartment", "furnished_room", "apartment_large"]  # sim.scene.FAMILIES (append only)
+Family = Literal["apartment", "furnished_room", "apartment_large"]  # sim.world.FAMILIES (append only)
 FAMILIES: tuple[Family, ...] = ("apartment", "furnished_room", "apartment_large")
 RenderBackend = Literal["embree", "open3d"]
 RENDER_BACKENDS: tuple[RenderBackend, ...] = ("embree", "open3d")

@@ -20,7 +20,7 @@ import trimesh
 
 from protocol.messages import OrientedBox, vec3
 from protocol.poses import rot_z
-from sim.scene import Scene, SceneObject
+from sim.world import Scene, SceneObject
 
 # world (z up) -> glTF (y up): x -> x, z -> y, y -> -z
 T_GLTF_WORLD = np.array([[1.0, 0, 0, 0], [0, 0, 1.0, 0], [0, -1.0, 0, 0], [0, 0, 0, 1.0]])

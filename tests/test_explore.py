@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from bench.explore import (
+    Episode,
     main,
     markdown,
     reach,
@@ -29,6 +30,21 @@ def test_start_pose_is_deterministic_and_navigable() -> None:
     assert a == start_pose(vps, seed=3, start_index=1)
     assert (a[0], a[1]) in {(v.x, v.y) for v in vps}
     assert {start_pose(vps, 3, k)[:2] for k in range(6)} != {a[:2]}  # different starts differ
+
+
+def test_an_episode_is_its_parameters_with_keywords_written_over() -> None:
+    """run_episode(Episode(...), k=v) runs the same episode as run_episode(all keywords); an unknown keyword is
+    refused before anything runs."""
+    kw: dict[str, Any] = dict(family="furnished_room", seed=1, strategy="see", steps=0, start_index=0)
+    base = Episode(family="furnished_room", seed=1, strategy="asp", steps=0)
+    a, b = run_episode(**kw), run_episode(base, strategy="see")
+    for ep in (a, b):
+        del ep["seconds"]
+        for r in ep["steps"]:
+            del r["decision_s"]
+    assert a == b and a["strategy"] == "see" and len(a["steps"]) == 1
+    with pytest.raises(TypeError, match="stepz"):
+        run_episode(base, stepz=3)
 
 
 @pytest.mark.slow

@@ -59,7 +59,7 @@ def test_shipped_launch_files_parse() -> None:
             stack_argv = Stack(launch, path.parent).argv_for(p)
             assert stack_argv[3] == p.command
             for a in stack_argv:
-                assert "0.0.0.0" not in a, "shipped configs use loopback only"
+                assert "0.0.0.0" not in a, "shipped configs use loopback only"  # noqa: S104 - asserts its absence
             if p.config is not None:
                 assert (path.parent / p.config).is_file(), f"{path.name}: {p.config} missing"
 
