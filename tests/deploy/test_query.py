@@ -16,7 +16,7 @@ from protocol.keys import Keys
 from protocol.messages import GraphDelta, GraphEdge, GraphNode, GraphSnapshot, OrientedBox
 from protocol.query import GraphQuery
 from protocol.session import ZenohSettings, open_session
-from tests.procs import Proc, wait_for
+from tests.support.procs import Proc, wait_for
 
 SITE = "qtest"
 
@@ -276,7 +276,7 @@ def test_watch_into_a_reader_that_closes_early_exits_quietly(router: str) -> Non
     import subprocess
     import sys
 
-    from tests.procs import REPO
+    from tests.support.procs import REPO
 
     p = subprocess.Popen([sys.executable, "-m", "deploy.cli", "query", "--connect", router, "--site", SITE, "watch"],
                          cwd=REPO, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,

@@ -32,7 +32,7 @@ from protocol.codec import encode
 from protocol.keys import Keys
 from protocol.messages import NbvGoal
 from protocol.session import ZenohSettings, ZenohUnavailable, open_session
-from tests.procs import REPO, Proc, endpoint, free_port, wait_for
+from tests.support.procs import REPO, Proc, endpoint, free_port, wait_for
 
 pytestmark = pytest.mark.skipif(shutil.which("openssl") is None, reason="openssl not installed")
 

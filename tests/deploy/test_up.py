@@ -12,9 +12,7 @@ import pytest
 
 from deploy.up import Health, LaunchFile, ProcessSpec, Stack, dump_toml, load_launch
 from protocol.keys import Keys
-from tests.procs import Proc, endpoint, free_port, wait_for
-
-REPO = Path(__file__).resolve().parents[1]
+from tests.support.procs import REPO, Proc, endpoint, free_port, wait_for
 
 
 def _pid_gone(pid: int) -> bool:

@@ -21,7 +21,7 @@ from protocol.keys import Keys
 from protocol.messages import Status
 from protocol.session import ZenohSettings, ZenohUnavailable, open_session
 from protocol.transport import decode_frame_sample
-from tests.procs import REPO, Proc, endpoint, free_port, wait_for, wait_port
+from tests.support.procs import REPO, Proc, endpoint, free_port, wait_for, wait_port
 
 ZENOH_DIR = REPO / "deploy" / "zenoh"
 PASSWORDS = dict(line.split(":", 1) for line in (ZENOH_DIR / "users.txt").read_text().split())

@@ -14,7 +14,7 @@ import pytest
 from protocol.codec import decode
 from protocol.jpeg import decode_jpeg
 from protocol.keys import Keys
-from tests.procs import FramePeer, Proc, wait_for
+from tests.support.procs import FramePeer, Proc, wait_for
 
 KEYS = Keys("default")
 
@@ -213,7 +213,7 @@ def test_sim_source_publishes_frames_and_oracle(tmp_path, router, procs, listene
 
 
 def test_video_end_without_loop_keeps_process_up_and_router_may_come_later(tmp_path, procs, listener_factory):
-    from tests.procs import endpoint, free_port, wait_port
+    from tests.support.procs import endpoint, free_port, wait_port
 
     video = tmp_path / "v.avi"
     vw = cv2.VideoWriter(str(video), cv2.VideoWriter_fourcc(*"MJPG"), 10.0, (64, 48))
@@ -281,7 +281,7 @@ class MjpegServer:
 
 
 def test_stream_that_goes_away_and_comes_back_recovers_without_a_restart(tmp_path, router, procs, listener_factory):
-    from tests.procs import free_port
+    from tests.support.procs import free_port
 
     port = free_port()
     server = MjpegServer(port)

@@ -17,7 +17,7 @@ from edge_camera.publish import FramePublisher, output_size
 from edge_camera.sources import SOURCES, create_source, parse_source_config
 from edge_camera.sources.base import FrameSource, SourceConfigError, SourceError
 from protocol.tomlconfig import ConfigError, load_config
-from tests.procs import REPO
+from tests.support.procs import REPO
 
 
 def _png(path: Path, value: int, size: tuple[int, int] = (32, 24)) -> None:

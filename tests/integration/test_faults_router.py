@@ -14,10 +14,10 @@ import pytest
 
 from protocol.codec import DecodeError, decode
 from protocol.messages import Status
-from tests.procs import Proc, endpoint, free_port, wait_for, wait_port
-from tests.test_mapper_core import EYES
-from tests.test_mapper_process import SITE, Consumer, mapper_args
-from tests.test_robot_agent import kinematic_config
+from tests.mapper.test_mapper_core import EYES
+from tests.mapper.test_mapper_process import SITE, Consumer, mapper_args
+from tests.robot_agent.test_robot_agent import kinematic_config
+from tests.support.procs import Proc, endpoint, free_port, wait_for, wait_port
 
 
 class StatusTimes:

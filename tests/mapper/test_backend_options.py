@@ -21,8 +21,9 @@ from mapper.geometry.registry import RECONSTRUCTORS, make_reconstructor
 from mapper.perception.registry import EMBEDDERS, SEGMENTERS
 from protocol.plugins import FreeOptions
 from protocol.tomlconfig import ConfigError, load_config
+from tests.support.procs import REPO
 
-ROOT = Path(__file__).resolve().parents[1]
+ROOT = REPO
 REGISTRIES = {
     "geometry.options": RECONSTRUCTORS, "perception.segmenter_options": SEGMENTERS,
     "perception.embedder_options": EMBEDDERS,
@@ -155,7 +156,7 @@ class LooseReconstructor:
 
 @pytest.fixture
 def plugins(monkeypatch: pytest.MonkeyPatch) -> None:
-    eps = [EntryPoint(name, f"tests.test_backend_options:{cls}", "argus.reconstructors")
+    eps = [EntryPoint(name, f"tests.mapper.test_backend_options:{cls}", "argus.reconstructors")
            for name, cls in (("toy", "ToyReconstructor"), ("loose", "LooseReconstructor"))]
     monkeypatch.setattr("protocol.plugins.entry_points",
                         lambda group: [ep for ep in eps if ep.group == group])

@@ -24,9 +24,9 @@ from protocol.codec import MAGIC, decode, encode
 from protocol.graph import RESYNC_AFTER, GraphFollower, GraphVersionError, apply_delta
 from protocol.messages import GraphDelta, GraphNode, GraphSnapshot, OrientedBox
 from protocol.poses import look_at
-from tests.procs import wait_for
-from tests.test_fusion import INTR, raycast
-from tests.test_mapper_core import BOXES, EYES, view
+from tests.mapper.test_fusion import INTR, raycast
+from tests.mapper.test_mapper_core import BOXES, EYES, view
+from tests.support.procs import wait_for
 
 TABLE, BASKET, CHAIR = BOXES
 SHIFTED = (BASKET[0] + [0.0, -0.6, -0.75], BASKET[1] + [0.0, -0.6, -0.75])  # a basket on the floor, 0.6 m off

@@ -30,8 +30,8 @@ from protocol.messages import FrameHeader, Intrinsics, OracleFrame
 from protocol.oracle import depth_to_png, ids_to_png
 from protocol.ratelog import RateLimitedLog
 from protocol.transport import LatestSlots
-from tests.test_fusion import INTR
-from tests.test_mapper_core import EYES, LABELS, view
+from tests.mapper.test_fusion import INTR
+from tests.mapper.test_mapper_core import EYES, LABELS, view
 
 LIM = InputLimits()
 SITE = "hostile"

@@ -13,7 +13,7 @@ from protocol.graph import apply_delta
 from protocol.messages import GraphSnapshot
 from protocol.poses import look_at
 from protocol.query import GraphQuery
-from tests.test_fusion import INTR, raycast
+from tests.mapper.test_fusion import INTR, raycast
 
 BOXES = [
     (np.array([0.0, 0.0, 0.0]), np.array([1.2, 0.8, 0.75])),  # table

@@ -25,9 +25,9 @@ from protocol.oracle import depth_to_png, ids_to_png
 from protocol.query import GraphQuery
 from protocol.session import ZenohSettings, open_session
 from protocol.transport import declare_frame_publisher, declare_message_publisher, put_frame
-from tests.procs import Proc, wait_for
-from tests.test_fusion import INTR
-from tests.test_mapper_core import EYES, LABELS, view
+from tests.mapper.test_fusion import INTR
+from tests.mapper.test_mapper_core import EYES, LABELS, view
+from tests.support.procs import Proc, wait_for
 
 SITE = "maptest"
 

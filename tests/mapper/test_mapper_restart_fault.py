@@ -27,10 +27,10 @@ from protocol.messages import FrameHeader, GraphDelta, GraphNode, GraphSnapshot,
 from protocol.oracle import depth_to_png, ids_to_png
 from protocol.session import ZenohSettings, open_session
 from protocol.transport import declare_frame_publisher, declare_message_publisher, put_frame
-from tests.procs import Proc, wait_for
-from tests.test_fusion import INTR
-from tests.test_graph_continuity import BASKET, SHIFTED, TABLE, scene_view
-from tests.test_mapper_core import EYES
+from tests.mapper.test_fusion import INTR
+from tests.mapper.test_graph_continuity import BASKET, SHIFTED, TABLE, scene_view
+from tests.mapper.test_mapper_core import EYES
+from tests.support.procs import Proc, wait_for
 
 SITE = "restartfault"
 FORGED = 10**15

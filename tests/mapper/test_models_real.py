@@ -20,8 +20,9 @@ from mapper.geometry.contract import View, anchor_pose, compose
 from mapper.geometry.modelutil import ModelUnavailable
 from mapper.geometry.registry import make_reconstructor
 from protocol.messages import Intrinsics
+from tests.support.procs import REPO
 
-DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
+DATA = REPO.parent / "shared" / "data"
 TUM = DATA / "tum-fr1-xyz"
 pytestmark = pytest.mark.slow
 
@@ -33,7 +34,7 @@ def _have(mod: str) -> bool:
 def _torchvision() -> None:
     """Import torchvision (CPU shim where PyPI's CUDA wheel sits beside a CPU torch; see torchvision_cpu)."""
     pytest.importorskip("torch")
-    from tests.torchvision_cpu import ensure_torchvision
+    from tests.support.torchvision_cpu import ensure_torchvision
 
     try:
         ensure_torchvision()
@@ -199,7 +200,7 @@ def mapanything_checkpoint(tmp_path_factory: pytest.TempPathFactory) -> Path:
         pytest.skip("MapAnything's DINOv2 encoder comes from torch.hub: cache facebookresearch/dinov2 under TORCH_HOME")
     import torch
 
-    from tests.mapanything_small import save_small_mapanything
+    from tests.support.mapanything_small import save_small_mapanything
 
     torch.manual_seed(0)
     d = tmp_path_factory.mktemp("mapanything_small")

@@ -12,7 +12,7 @@ from protocol.codec import decode, encode
 from protocol.keys import Keys
 from protocol.messages import NbvGoal, Status
 from protocol.session import client, open_session
-from tests.procs import Proc, wait_for
+from tests.support.procs import Proc, wait_for
 
 DECISION_BOUND_S = 2.0
 

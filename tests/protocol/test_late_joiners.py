@@ -10,7 +10,7 @@ from protocol.codec import decode
 from protocol.messages import RobotState, Status
 from protocol.session import client, open_session
 from protocol.transport import LatestValue, declare_message_publisher
-from tests.test_robot_agent import KEYS, RID, client_factory, start_agent  # noqa: F401 - fixture
+from tests.robot_agent.test_robot_agent import KEYS, RID, client_factory, start_agent  # noqa: F401 - fixture
 
 __all__ = ["client_factory"]
 
@@ -50,7 +50,7 @@ def test_link_watch_says_when_the_router_goes_and_comes_back(caplog) -> None:  #
 
     from protocol.session import router as router_settings
     from protocol.transport import Counters, LinkWatch
-    from tests.procs import endpoint, free_port, wait_for
+    from tests.support.procs import endpoint, free_port, wait_for
 
     ep = endpoint(free_port())
     counters = Counters()

@@ -15,7 +15,7 @@ from protocol.messages import Status
 from protocol.node import Node, Stopped
 from protocol.session import Backoff, ReconnectConfig, ZenohSettings, open_session
 from protocol.transport import Counters
-from tests.procs import endpoint, free_port, wait_for
+from tests.support.procs import endpoint, free_port, wait_for
 
 KEYS = Keys("nodetest")
 

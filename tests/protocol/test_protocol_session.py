@@ -15,7 +15,7 @@ from protocol.session import (
     open_session_retrying,
     router,
 )
-from tests.procs import Proc, endpoint, free_port
+from tests.support.procs import Proc, endpoint, free_port
 
 RUST = ("Unable to connect to any of [Single(tcp/127.0.0.1:1)]!  at "
         "/root/.cargo/git/checkouts/zenoh-9c599d5ef3e0480e/cc83980/zenoh/src/net/runtime/orchestrator.rs:447.")

@@ -22,7 +22,7 @@ from protocol.session import (
     exposed_plaintext,
 )
 from protocol.tomlconfig import process_values
-from tests.procs import REPO, Proc, endpoint, free_port
+from tests.support.procs import REPO, Proc, endpoint, free_port
 
 LAN = "tcp/192.168.1.10:7447"  # only ever a string here
 

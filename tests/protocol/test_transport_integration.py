@@ -8,7 +8,7 @@ import threading
 
 from protocol.keys import Keys
 from protocol.session import client, open_session
-from tests.procs import Proc, wait_for
+from tests.support.procs import Proc, wait_for
 
 
 def _Py(module_args: list[str]) -> Proc:
@@ -62,7 +62,7 @@ def test_liveliness_token_follows_its_process(router: str, procs: list[Proc]) ->
 
 
 def test_router_exits_cleanly_on_sigint(procs: list[Proc]) -> None:
-    from tests.procs import endpoint, free_port, wait_port
+    from tests.support.procs import endpoint, free_port, wait_port
 
     port = free_port()
     r = Proc(["router", "--listen", endpoint(port)])

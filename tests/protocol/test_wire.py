@@ -30,7 +30,7 @@ from protocol.messages import (
     Status,
 )
 from robot_agent.goals import GoalRefused, RefusalLimiter, parse_goal
-from tests.procs import Proc, wait_for
+from tests.support.procs import Proc, wait_for
 
 
 def node(node_id: str = "n1", label: str = "chair", emb: bool = True) -> GraphNode:
@@ -362,7 +362,7 @@ class CapturePub:
 
 
 def robot_with_fakes():  # noqa: ANN201
-    from tests.test_robot_units import agent_with_fakes
+    from tests.robot_agent.test_robot_units import agent_with_fakes
 
     agent = agent_with_fakes()
     agent._ack_pubs = [(CapturePub(), False), (CapturePub(), True)]

@@ -22,7 +22,7 @@ import venv
 from pathlib import Path
 
 from protocol.wire import WIRE_MD
-from tests.procs import Proc, wait_for
+from tests.support.procs import Proc, wait_for
 
 SITE = "wire"
 ROBOT = "robot0"

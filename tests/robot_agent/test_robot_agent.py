@@ -15,7 +15,7 @@ from protocol.jpeg import decode_jpeg
 from protocol.keys import Keys
 from protocol.messages import NbvGoal, OracleFrame, RobotState, Status, ViewpointSet
 from protocol.transport import Frame
-from tests.procs import FramePeer, Proc, wait_for
+from tests.support.procs import FramePeer, Proc, wait_for
 
 KEYS = Keys("default")
 RID = "rob_t"

@@ -2,16 +2,15 @@
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import cv2
 import numpy as np
 import pytest
 
 from mapper.geometry.contract import CONFIDENT, anchor_pose, compose
 from mapper.geometry.registry import make_reconstructor
+from tests.support.procs import REPO
 
-DATA = Path(__file__).resolve().parents[1] / ".." / "shared" / "data" / "labelfusion"
+DATA = REPO / ".." / "shared" / "data" / "labelfusion"
 
 
 @pytest.mark.skipif(not (DATA / "frames").is_dir(), reason="real frames not present (../shared/data/labelfusion)")

@@ -13,8 +13,8 @@ from mapper.perception.base import ViewGeometry, label_descriptor
 from mapper.perception.registry import make_embedder, make_segmenter
 from mapper.perception.sam import BackendUnavailable
 from mapper.perception.sim import OracleMissing
-from tests.test_fusion import INTR, world_points
-from tests.test_mapper_core import EYES, LABELS, oracle_core, view
+from tests.mapper.test_fusion import INTR, world_points
+from tests.mapper.test_mapper_core import EYES, LABELS, oracle_core, view
 
 
 def test_sim_segmenter_and_embedder_are_oracle() -> None:
@@ -125,7 +125,7 @@ def test_rerun_server_is_loopback_only_and_stopped_with_its_port(tmp_path: Path)
 
     from mapper.config import RerunConfig
     from mapper.rerun_log import RerunLogger, server_command
-    from tests.procs import free_port
+    from tests.support.procs import free_port
 
     cfg = RerunConfig(serve=True, port=free_port())
     cmd = server_command(cfg)

@@ -22,8 +22,9 @@ from mapper.perception.detector import (
 )
 from mapper.perception.registry import make_embedder, make_segmenter
 from mapper.perception.sam import BackendUnavailable
+from tests.support.procs import REPO
 
-DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
+DATA = REPO.parent / "shared" / "data"
 TUM = DATA / "tum-fr1-xyz" / "frames"
 
 
@@ -131,7 +132,7 @@ def test_bundled_detector_on_a_real_desk_frame() -> None:
 def test_real_camera_launch_file_builds_the_detector() -> None:
     from deploy.up import load_launch
 
-    path = Path(__file__).resolve().parents[1] / "deploy" / "launch" / "real-cameras-detector.toml"
+    path = REPO / "deploy" / "launch" / "real-cameras-detector.toml"
     mapper = next(p for p in load_launch(path).process if p.command == "mapper")
     assert mapper.settings is not None
     perc = mapper.settings["perception"]

@@ -20,7 +20,7 @@ from protocol.keys import Keys
 from protocol.messages import FrameHeader, GraphDelta, Status
 from protocol.session import ZenohSettings, open_session
 from protocol.transport import declare_frame_publisher, put_frame
-from tests.procs import Proc, wait_for
+from tests.support.procs import Proc, wait_for
 
 SITE = "worktest"
 pytestmark = pytest.mark.slow  # two model-loading processes and a dozen RGB keyframes: ~30 s
