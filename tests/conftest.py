@@ -1,10 +1,11 @@
 from __future__ import annotations
 
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 
 import pytest
 
 from tests.support.procs import Proc, endpoint, free_port, wait_port
+from tests.support.robot import RobotClient
 
 
 @pytest.fixture
@@ -26,3 +27,18 @@ def procs() -> Iterator[list[Proc]]:
     yield started
     for p in reversed(started):
         p.stop()
+
+
+@pytest.fixture
+def client_factory() -> Iterator[Callable[[str], RobotClient]]:
+    """Makes planner-like peers of one robot (``tests.support.robot.RobotClient``); closed at teardown."""
+    made: list[RobotClient] = []
+
+    def make(router: str) -> RobotClient:
+        c = RobotClient(router)
+        made.append(c)
+        return c
+
+    yield make
+    for c in made:
+        c.close()

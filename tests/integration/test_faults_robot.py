@@ -12,8 +12,8 @@ from protocol.codec import decode, encode
 from protocol.keys import Keys
 from protocol.messages import NbvGoal, RobotState, Status
 from protocol.session import client, open_session
-from tests.robot_agent.test_robot_agent import RID, kinematic_config
 from tests.support.procs import Proc, wait_for
+from tests.support.robot import RID, kinematic_config
 
 KEYS = Keys()
 

@@ -14,10 +14,10 @@ import pytest
 
 from protocol.codec import DecodeError, decode
 from protocol.messages import Status
-from tests.mapper.test_mapper_core import EYES
-from tests.mapper.test_mapper_process import SITE, Consumer, mapper_args
-from tests.robot_agent.test_robot_agent import kinematic_config
+from tests.support.boxes import EYES
+from tests.support.mapper_peer import SITE, Consumer, mapper_args
 from tests.support.procs import Proc, endpoint, free_port, wait_for, wait_port
+from tests.support.robot import kinematic_config
 
 
 class StatusTimes:

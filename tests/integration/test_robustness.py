@@ -52,8 +52,7 @@ from protocol.oracle import decode_u16_png, depth_to_png, encode_u16_png, ids_to
 from protocol.query import GraphQuery
 from protocol.session import ZenohSettings, open_session
 from protocol.transport import Frame, decode_frame_sample
-from tests.mapper.test_fusion import INTR
-from tests.mapper.test_mapper_core import EYES, LABELS, view
+from tests.support.boxes import EYES, INTR, LABELS, view
 from tests.support.procs import Proc, endpoint, free_port, wait_for, wait_port
 
 SITE = "robust"

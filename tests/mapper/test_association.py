@@ -16,8 +16,8 @@ from mapper.geometry.singleview import depth_to_world
 from mapper.perception.base import Detection, label_descriptor
 from protocol.messages import Intrinsics
 from protocol.poses import look_at
-from tests.mapper.geometry.test_geometry_singleview import box, silhouette
-from tests.mapper.test_fusion import INTR, raycast
+from tests.support.boxes import INTR, raycast
+from tests.support.corner_camera import box, silhouette
 
 TABLE = (np.array([1.0, -0.6, 0.0]), np.array([2.2, 0.6, 0.75]))
 EYE = [-0.5, 0.0, 1.4]

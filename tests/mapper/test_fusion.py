@@ -17,37 +17,8 @@ from mapper.fusion import (
     voxel_downsample,
 )
 from mapper.perception.base import Detection, label_descriptor
-from protocol.messages import Intrinsics
-from protocol.poses import look_at, transform_points
-
-INTR = Intrinsics.from_fov(96, 72, 90.0)
-
-
-def raycast(T_world_cam: np.ndarray, boxes: list[tuple[np.ndarray, np.ndarray]]) -> tuple[np.ndarray, np.ndarray]:
-    """(depth_m (H, W), box index per pixel (-1 = none)) of axis-aligned boxes (lo, hi) in the world."""
-    v, u = np.mgrid[0 : INTR.height, 0 : INTR.width].astype(np.float64)
-    d_cam = np.stack([(u - INTR.cx) / INTR.fx, (v - INTR.cy) / INTR.fy, np.ones_like(u)], -1)
-    d_world = d_cam @ T_world_cam[:3, :3].T
-    o = T_world_cam[:3, 3]
-    best = np.full(u.shape, np.inf)
-    idx = np.full(u.shape, -1)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        for k, (lo, hi) in enumerate(boxes):
-            t1 = (lo - o) / d_world
-            t2 = (hi - o) / d_world
-            tmin = np.nanmax(np.minimum(t1, t2), axis=-1)
-            tmax = np.nanmin(np.maximum(t1, t2), axis=-1)
-            hit = (tmax >= tmin) & (tmin > 0) & (tmin < best)
-            best[hit] = tmin[hit]
-            idx[hit] = k
-    depth = np.where(np.isfinite(best), best, 0.0)  # t along d_cam (z = 1) is the z-depth
-    return depth.astype(np.float32), idx
-
-
-def world_points(T_world_cam: np.ndarray, depth: np.ndarray) -> np.ndarray:
-    v, u = np.mgrid[0 : INTR.height, 0 : INTR.width].astype(np.float64)
-    pc = np.stack([(u - INTR.cx) / INTR.fx * depth, (v - INTR.cy) / INTR.fy * depth, depth], -1)
-    return transform_points(T_world_cam, pc).astype(np.float32)
+from protocol.poses import look_at
+from tests.support.boxes import raycast, world_points
 
 
 def detections(idx: np.ndarray, labels: list[str]) -> list[Detection]:

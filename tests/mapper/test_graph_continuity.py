@@ -15,39 +15,17 @@ import pytest
 
 import mapper.persistence as persistence
 from mapper.config import GeometryConfig, MapperConfig, PerceptionConfig
-from mapper.geometry.contract import OracleData, View
+from mapper.geometry.contract import View
 from mapper.node import MapperNode
 from mapper.persistence import Lease, read_lease, remove_stale_temps, resume, state_path, write_lease
 from planner.config import PlannerNodeConfig
 from planner.node import PlannerNode
 from protocol.codec import MAGIC, decode, encode
 from protocol.graph import RESYNC_AFTER, GraphFollower, GraphVersionError, apply_delta
-from protocol.messages import GraphDelta, GraphNode, GraphSnapshot, OrientedBox
-from protocol.poses import look_at
-from tests.mapper.test_fusion import INTR, raycast
-from tests.mapper.test_mapper_core import BOXES, EYES, view
+from protocol.messages import GraphDelta, GraphSnapshot
+from tests.support.boxes import BASKET, EYES, SHIFTED, TABLE, scene_view, view
+from tests.support.messages import node_msg
 from tests.support.procs import wait_for
-
-TABLE, BASKET, CHAIR = BOXES
-SHIFTED = (BASKET[0] + [0.0, -0.6, -0.75], BASKET[1] + [0.0, -0.6, -0.75])  # a basket on the floor, 0.6 m off
-
-
-def scene_view(eye: list[float], seq: int, boxes: dict[str, tuple[np.ndarray, np.ndarray]]) -> View:
-    """A posed view (ORACLE depth and instances) of ``boxes`` (label -> (min corner, max corner))."""
-    T = look_at(eye, [0.7, 0.3, 0.5])
-    depth, idx = raycast(T, list(boxes.values()))
-    rgb = np.full((INTR.height, INTR.width, 3), 90, np.uint8)
-    rgb[idx >= 0] = (40 + 50 * idx[idx >= 0, None]).astype(np.uint8)
-    labels = {i + 1: lab for i, lab in enumerate(boxes)}
-    oracle = OracleData(depth_m=depth, T_world_cam_true=T, instance_id=(idx + 1).astype(np.int32), labels=labels)
-    return View(image=rgb, source_id="robot1", intrinsics=INTR, T_world_cam=T, stamp_ns=seq * 1000, seq=seq,
-                oracle=oracle)
-
-
-def node_msg(node_id: str, label: str = "chair", x: float = 0.0) -> GraphNode:
-    return GraphNode(node_id=node_id, label=label, label_confidence=0.9, centroid=(x, 0.0, 0.0),
-                     box=OrientedBox(center=(x, 0.0, 0.0), extent=(1.0, 1.0, 1.0)), point_count=1,
-                     observation_count=1, first_seen_ns=0, last_seen_ns=0)
 
 
 def snap(epoch: str, version: int, *ids: str) -> GraphSnapshot:

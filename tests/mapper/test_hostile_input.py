@@ -30,8 +30,7 @@ from protocol.messages import FrameHeader, Intrinsics, OracleFrame
 from protocol.oracle import depth_to_png, ids_to_png
 from protocol.ratelog import RateLimitedLog
 from protocol.transport import LatestSlots
-from tests.mapper.test_fusion import INTR
-from tests.mapper.test_mapper_core import EYES, LABELS, view
+from tests.support.boxes import EYES, INTR, LABELS, view
 
 LIM = InputLimits()
 SITE = "hostile"

@@ -2,49 +2,14 @@
 
 from __future__ import annotations
 
-import numpy as np
 import pytest
 
-from mapper.config import GeometryConfig, MapperCoreConfig, PerceptionConfig
-from mapper.core import MapperCore
-from mapper.geometry.contract import OracleData, View
+from mapper.geometry.contract import View
 from mapper.persistence import load_state, save_state
 from protocol.graph import apply_delta
 from protocol.messages import GraphSnapshot
-from protocol.poses import look_at
 from protocol.query import GraphQuery
-from tests.mapper.test_fusion import INTR, raycast
-
-BOXES = [
-    (np.array([0.0, 0.0, 0.0]), np.array([1.2, 0.8, 0.75])),  # table
-    (np.array([0.4, 0.2, 0.75]), np.array([0.75, 0.55, 1.0])),  # basket on the table
-    (np.array([1.35, 0.1, 0.0]), np.array([1.8, 0.55, 0.9])),  # chair beside it
-]
-LABELS = {1: "table", 2: "basket", 3: "chair"}
-
-
-def view(eye, seq: int, source: str = "robot1", posed: bool = True) -> View:
-    T = look_at(eye, [0.7, 0.3, 0.5])
-    depth, idx = raycast(T, BOXES)
-    rgb = np.full((INTR.height, INTR.width, 3), 90, np.uint8)
-    rgb[idx >= 0] = (np.array([[200, 40, 40], [40, 200, 40], [40, 40, 200]])[idx[idx >= 0]]).astype(np.uint8)
-    oracle = OracleData(depth_m=depth, T_world_cam_true=T, instance_id=(idx + 1).astype(np.int32), labels=LABELS)
-    return View(
-        image=rgb, source_id=source, intrinsics=INTR, T_world_cam=T if posed else None,
-        stamp_ns=seq * 1000, seq=seq, oracle=oracle,
-    )
-
-
-def oracle_core(**fusion) -> MapperCore:
-    cfg = MapperCoreConfig(
-        geometry=GeometryConfig(backend="oracle"),
-        perception=PerceptionConfig(segmenter="sim", embedder="sim"),
-    )
-    cfg.fusion = cfg.fusion.model_copy(update=fusion)
-    return MapperCore(cfg)
-
-
-EYES = [[0.6, -2.0, 1.6], [1.6, -1.8, 1.5], [-0.6, -1.5, 1.7], [2.4, -0.8, 1.5]]
+from tests.support.boxes import EYES, INTR, oracle_core, view
 
 
 def test_pipeline_builds_graph_and_deltas_follow() -> None:

@@ -14,7 +14,7 @@ from protocol.codec import decode
 from protocol.keys import Keys
 from protocol.messages import GraphDelta, GraphNode, GraphSnapshot, PointMap
 from protocol.transport import Counters
-from tests.mapper.test_graph_continuity import node_msg
+from tests.support.messages import node_msg
 
 KEYS = Keys("outbox")
 

@@ -27,9 +27,7 @@ from protocol.messages import FrameHeader, GraphDelta, GraphNode, GraphSnapshot,
 from protocol.oracle import depth_to_png, ids_to_png
 from protocol.session import ZenohSettings, open_session
 from protocol.transport import declare_frame_publisher, declare_message_publisher, put_frame
-from tests.mapper.test_fusion import INTR
-from tests.mapper.test_graph_continuity import BASKET, SHIFTED, TABLE, scene_view
-from tests.mapper.test_mapper_core import EYES
+from tests.support.boxes import BASKET, EYES, INTR, SHIFTED, TABLE, scene_view
 from tests.support.procs import Proc, wait_for
 
 SITE = "restartfault"

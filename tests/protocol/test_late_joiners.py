@@ -10,9 +10,7 @@ from protocol.codec import decode
 from protocol.messages import RobotState, Status
 from protocol.session import client, open_session
 from protocol.transport import LatestValue, declare_message_publisher
-from tests.robot_agent.test_robot_agent import KEYS, RID, client_factory, start_agent  # noqa: F401 - fixture
-
-__all__ = ["client_factory"]
+from tests.support.robot import KEYS, RID, start_agent
 
 
 def _latest(session: zenoh.Session, key: str, timeout: float = 1.0) -> list[zenoh.Sample]:

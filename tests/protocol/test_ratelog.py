@@ -128,7 +128,7 @@ class _Sample:
 
 
 def test_the_robot_logs_one_line_for_3207_garbage_goals(caplog: pytest.LogCaptureFixture) -> None:
-    from tests.robot_agent.test_robot_units import agent_with_fakes
+    from tests.support.robot import agent_with_fakes
 
     agent = agent_with_fakes()
     with caplog.at_level(logging.WARNING, logger="argus.robot_agent"):

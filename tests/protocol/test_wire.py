@@ -362,7 +362,7 @@ class CapturePub:
 
 
 def robot_with_fakes():  # noqa: ANN201
-    from tests.robot_agent.test_robot_units import agent_with_fakes
+    from tests.support.robot import agent_with_fakes
 
     agent = agent_with_fakes()
     agent._ack_pubs = [(CapturePub(), False), (CapturePub(), True)]

@@ -4,73 +4,16 @@ from __future__ import annotations
 
 import math
 import signal
-import time
-from pathlib import Path
 
 import numpy as np
 import pytest
 
 from protocol.codec import decode, encode
 from protocol.jpeg import decode_jpeg
-from protocol.keys import Keys
-from protocol.messages import NbvGoal, OracleFrame, RobotState, Status, ViewpointSet
+from protocol.messages import OracleFrame, RobotState, Status
 from protocol.transport import Frame
-from tests.support.procs import FramePeer, Proc, wait_for
-
-KEYS = Keys("default")
-RID = "rob_t"
-
-
-class RobotClient(FramePeer):
-    """A planner-like peer: collects one robot's states, frames and Status; sends goals."""
-
-    def __init__(self, router: str, robot_id: str = RID) -> None:
-        super().__init__(router, KEYS.robot_frame(robot_id), KEYS.status("robot-agent", robot_id))
-        self.robot_id = robot_id
-        self.states: list[RobotState] = []
-        self._subs.append(self.session.declare_subscriber(KEYS.robot_state(robot_id), self._on_state))
-
-    def _on_state(self, sample) -> None:  # noqa: ANN001
-        msg = decode(sample.payload.to_bytes(), RobotState)
-        with self._lock:
-            self.states.append(msg)
-
-    def send(self, payload: bytes) -> None:
-        self.session.put(KEYS.robot_goal(self.robot_id), payload)
-
-    def goal(self, goal_id: str, x: float, y: float, yaw: float = 0.0, vp_id: int | None = None,
-             robot_id: str | None = None) -> None:
-        self.send(encode(NbvGoal(goal_id=goal_id, robot_id=robot_id or self.robot_id, stamp_ns=time.time_ns(),
-                                 x=x, y=y, yaw_rad=yaw, vp_id=vp_id)))
-
-    def query_viewpoints(self, timeout: float = 5.0) -> ViewpointSet | None:
-        for reply in self.session.get(KEYS.robot_viewpoints(self.robot_id), timeout=timeout):
-            if reply.ok is not None:
-                return decode(reply.ok.payload.to_bytes(), ViewpointSet)
-        return None
-
-    def state_where(self, pred) -> RobotState | None:  # noqa: ANN001
-        with self._lock:
-            return next((s for s in self.states if pred(s)), None)
-
-    def counter(self, name: str) -> float:
-        with self._lock:
-            return max((s.counters.get(name, 0.0) for s in self.statuses), default=0.0)
-
-
-
-@pytest.fixture
-def client_factory():
-    made: list[RobotClient] = []
-
-    def make(router: str) -> RobotClient:
-        c = RobotClient(router)
-        made.append(c)
-        return c
-
-    yield make
-    for c in made:
-        c.close()
+from tests.support.procs import Proc, wait_for
+from tests.support.robot import KEYS, RID, RobotClient, start_agent
 
 
 def wait_arrival_frame(client: RobotClient, arrived: RobotState) -> Frame:
@@ -86,49 +29,6 @@ def wait_arrival_frame(client: RobotClient, arrived: RobotState) -> Frame:
     frame = find()
     assert frame is not None
     return frame
-
-
-def kinematic_config(path: Path, router: str, body_extra: str = "", extra: str = "", capture_m: float = 0.0) -> Path:
-    """A kinematic robot's config (goal capture off unless ``capture_m``: these tests time the drive itself)."""
-    path.write_text(
-        f"""id = "{RID}"
-state_period_s = 0.5
-viewpoints_period_s = 1.0
-status_period_s = 0.2
-{extra}
-[body]
-type = "kinematic"
-bounds_m = [0.0, 0.0, 6.0, 4.0]
-obstacles = [[2.5, 0.0, 3.5, 2.5]]
-start = [1.0, 1.0, 0.0]
-speed_mps = 1.0
-turn_rate_dps = 180.0
-viewpoint_spacing_m = 1.0
-odom_trans_sigma = 0.01
-odom_yaw_sigma = 0.005
-{body_extra}
-[frames]
-moving_rate_hz = 5.0
-goal_capture_m = {capture_m}
-[motion]
-tick_hz = 50.0
-time_scale = 4.0
-[zenoh]
-mode = "client"
-connect = ["{router}"]
-"""
-    )
-    return path
-
-
-def start_agent(tmp_path: Path, router: str, procs: list[Proc], client_factory, args: tuple[str, ...] = (),
-                **kw) -> tuple[Proc, RobotClient]:
-    client = client_factory(router)
-    proc = Proc(["robot-agent", "--config", str(kinematic_config(tmp_path / "robot.toml", router, **kw)), *args])
-    procs.append(proc)
-    wait_for(lambda: client.state_where(lambda s: s.status == "idle") is not None, timeout=30,
-             what=f"an idle state; output:\n{proc.output}")
-    return proc, client
 
 
 def test_goal_drives_moving_then_arrived_with_arrival_frame(tmp_path, router, procs, client_factory):

@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import math
-import time
 
 import numpy as np
 import pytest
@@ -13,9 +12,8 @@ from protocol.messages import NbvGoal, Status
 from protocol.poses import camera_pose_from_base
 from robot_agent.bodies import BODIES, create_body, parse_body_config
 from robot_agent.bodies.base import BodyConfigError, RobotBody
-from robot_agent.config import RobotAgentConfig
 from robot_agent.goals import Budget, GoalMailbox, goal_problem
-from robot_agent.node import RobotAgent
+from tests.support.robot import agent_with_fakes
 
 
 def goal(**kw) -> NbvGoal:
@@ -118,32 +116,6 @@ class TestKinematicBody:
         with pytest.raises(BodyConfigError, match="unknown body type"):
             parse_body_config({"type": "hovercraft"})
         assert set(BODIES) >= {"sim", "kinematic"}
-
-
-class FakePub:
-    def __init__(self) -> None:
-        self.puts: list[bytes] = []
-        self.attachments: list[bytes | None] = []
-
-    def put(self, payload, attachment=None) -> None:  # noqa: ANN001
-        self.puts.append(bytes(payload))
-        self.attachments.append(None if attachment is None else bytes(attachment))
-
-
-class FakeReporter:
-    last_error = None
-
-
-def agent_with_fakes(**cfg) -> RobotAgent:
-    config = RobotAgentConfig(id="r", body={"type": "kinematic", "start": [1.0, 1.0, 0.0], "speed_mps": 1.0,
-                                            "odom_trans_sigma": 0.0, "odom_yaw_sigma": 0.0}, **cfg)
-    agent = RobotAgent(config)
-    for name in ("_frame_pub", "_arrival_pub", "_state_pub", "_vp_pub"):
-        setattr(agent, name, FakePub())
-    agent._oracle_pub = None
-    agent._reporter = FakeReporter()
-    agent._last_frame = agent._last_state = agent._last_viewpoints = time.monotonic()
-    return agent
 
 
 def test_agent_tick_drives_publishes_arrival_frame_then_state_and_counts_garbage():

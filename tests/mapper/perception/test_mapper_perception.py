@@ -13,8 +13,7 @@ from mapper.perception.base import ViewGeometry, label_descriptor
 from mapper.perception.registry import make_embedder, make_segmenter
 from mapper.perception.sam import BackendUnavailable
 from mapper.perception.sim import OracleMissing
-from tests.mapper.test_fusion import INTR, world_points
-from tests.mapper.test_mapper_core import EYES, LABELS, oracle_core, view
+from tests.support.boxes import EYES, INTR, LABELS, oracle_core, view, world_points
 
 
 def test_sim_segmenter_and_embedder_are_oracle() -> None:
