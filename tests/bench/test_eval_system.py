@@ -36,6 +36,7 @@ def test_percentiles() -> None:
 
 
 @pytest.mark.slow
+@pytest.mark.integration
 def test_system_bench_quick(tmp_path: Path) -> None:
     from bench.system import main
 
@@ -51,6 +52,7 @@ def test_system_bench_quick(tmp_path: Path) -> None:
 
 
 @pytest.mark.slow
+@pytest.mark.integration
 def test_system_bench_scaling_with_workers(tmp_path: Path) -> None:
     from bench.system import main
 

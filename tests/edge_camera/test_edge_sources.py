@@ -239,6 +239,7 @@ def test_shipped_example_configs_validate():
         load_config(RobotAgentConfig, path)
 
 
+@pytest.mark.integration
 def test_help_shows_an_example_command():
     for cmd in ("edge-camera", "robot-agent"):
         out = subprocess.run([sys.executable, "-m", "deploy.cli", cmd, "--help"], cwd=REPO, capture_output=True,
@@ -246,6 +247,7 @@ def test_help_shows_an_example_command():
         assert out.returncode == 0 and f"argus {cmd} --config" in out.stdout
 
 
+@pytest.mark.integration
 def test_light_imports_pull_in_neither_torch_nor_open3d_nor_sim():
     code = (
         "import sys\n"

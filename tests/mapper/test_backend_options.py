@@ -117,6 +117,7 @@ def test_describe_lists_every_option_of_every_builtin_backend() -> None:
                 assert f"  {path}.{field} (" in text, (name, field)
 
 
+@pytest.mark.integration
 def test_options_models_do_not_import_optional_model_packages() -> None:
     """Loading a config (and every options model) must not import the optional model packages: only the
     chosen backend imports them, when it is built."""

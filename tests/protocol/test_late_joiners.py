@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import time
 
+import pytest
 import zenoh
 
 from protocol.codec import decode
@@ -43,6 +44,7 @@ def test_robot_state_and_status_reach_a_late_joiner_within_one_second(tmp_path, 
     assert [decode(s.payload.to_bytes(), Status).node_id for s in statuses] == [RID]
 
 
+@pytest.mark.integration
 def test_link_watch_says_when_the_router_goes_and_comes_back(caplog) -> None:  # noqa: ANN001
     import logging
 

@@ -87,6 +87,7 @@ def test_the_session_is_retried_with_the_backoff_until_stopped() -> None:
     assert result == [0] and not ran
 
 
+@pytest.mark.integration
 def test_declarations_are_undone_newest_first_then_the_session_closes(
     peer: tuple[ZenohSettings, zenoh.Session]) -> None:
     settings, _ = peer
@@ -105,6 +106,7 @@ def test_declarations_are_undone_newest_first_then_the_session_closes(
         _ = node.session
 
 
+@pytest.mark.integration
 def test_an_error_in_the_body_still_shuts_down_and_propagates(peer: tuple[ZenohSettings, zenoh.Session]) -> None:
     settings, _ = peer
     log: list[str] = []
@@ -118,6 +120,7 @@ def test_an_error_in_the_body_still_shuts_down_and_propagates(peer: tuple[ZenohS
     assert log == ["pub"]
 
 
+@pytest.mark.integration
 def test_token_status_and_messages_reach_a_peer_and_go_at_exit(peer: tuple[ZenohSettings, zenoh.Session]) -> None:
     settings, watcher = peer
     alive: list[str] = []
@@ -149,6 +152,7 @@ def test_token_status_and_messages_reach_a_peer_and_go_at_exit(peer: tuple[Zenoh
     assert samples[0] == b"x" and got[0] == b"d"
 
 
+@pytest.mark.integration
 def test_latest_value_answers_a_late_joiner_and_is_undeclared(peer: tuple[ZenohSettings, zenoh.Session]) -> None:
     settings, watcher = peer
 

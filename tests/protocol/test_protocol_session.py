@@ -35,6 +35,7 @@ def test_unreachable_router_is_one_line_naming_the_endpoint() -> None:
     assert ep in msg and ".rs:" not in msg and "\n" not in msg
 
 
+@pytest.mark.integration
 def test_cli_error_without_router_has_no_traceback_or_source_path() -> None:
     p = Proc(["query", "--connect", endpoint(free_port()), "snapshot"])
     assert p.wait(30) == 1
@@ -44,6 +45,7 @@ def test_cli_error_without_router_has_no_traceback_or_source_path() -> None:
     assert ".cargo" not in p.output and "Traceback" not in p.output
 
 
+@pytest.mark.integration
 def test_retrying_open_waits_for_a_router_that_starts_later(caplog: pytest.LogCaptureFixture) -> None:
     ep = endpoint(free_port())
     stop = threading.Event()

@@ -77,6 +77,7 @@ def test_zenoh_every_interface_default_becomes_loopback(tmp_path: Path) -> None:
     assert json.loads(conf.get_json("listen/endpoints")) == ["tcp/127.0.0.1:0"]
 
 
+@pytest.mark.integration
 def test_router_cli_refuses_a_plaintext_lan_endpoint() -> None:
     p = Proc(["router", "--listen", LAN])
     assert p.wait(30) == 2
@@ -84,6 +85,7 @@ def test_router_cli_refuses_a_plaintext_lan_endpoint() -> None:
     assert "refusing to listen on tcp/192.168.1.10:7447" in p.output and "--insecure" in p.output
 
 
+@pytest.mark.integration
 def test_mapper_cli_refuses_a_plaintext_lan_endpoint_in_peer_mode() -> None:
     p = Proc(["mapper", "--mode", "peer", "--listen", "tcp/0.0.0.0:7447", "--connect", endpoint(free_port())])
     assert p.wait(60) == 2

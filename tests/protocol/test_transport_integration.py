@@ -6,9 +6,13 @@ import json
 import signal
 import threading
 
+import pytest
+
 from protocol.keys import Keys
 from protocol.session import client, open_session
 from tests.support.procs import Proc, wait_for
+
+pytestmark = pytest.mark.integration
 
 
 def _Py(module_args: list[str]) -> Proc:

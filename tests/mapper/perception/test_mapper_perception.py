@@ -119,6 +119,7 @@ def test_rerun_file_output(tmp_path: Path) -> None:
     assert out.stat().st_size > 1000
 
 
+@pytest.mark.integration
 def test_rerun_server_is_loopback_only_and_stopped_with_its_port(tmp_path: Path) -> None:
     import socket
 
