@@ -47,9 +47,8 @@ from protocol.oracle import decode_u16_png, encode_u16_png, png_to_depth
 from protocol.query import GraphQuery
 from protocol.tomlconfig import ConfigError, load_config
 from robot_agent.config import RobotAgentConfig
-from tests.test_fusion import INTR
-from tests.test_mapper_core import EYES, oracle_core, view
-from tests.test_protocol_codec import STRATEGIES
+from tests.support.boxes import EYES, INTR, oracle_core, view
+from tests.support.strategies import STRATEGIES
 
 FAST_EXAMPLES = 150
 LONG_EXAMPLES = 15_000

@@ -7,7 +7,9 @@ from __future__ import annotations
 import ast
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
+from tests.support.procs import REPO
+
+ROOT = REPO
 PACKAGES = ("protocol", "edge_camera", "robot_agent", "mapper", "planner", "deploy", "sim", "bench")
 
 

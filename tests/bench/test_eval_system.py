@@ -1,0 +1,70 @@
+"""``argus bench system`` helpers: /proc sampling (no psutil) and a short real run (slow)."""
+
+from __future__ import annotations
+
+import json
+import os
+import time
+from pathlib import Path
+
+import pytest
+
+from bench.system import _pct, proc_cpu_s, proc_mem_mb
+
+
+def test_proc_cpu_counts_this_process_work() -> None:
+    pid = os.getpid()
+    before = proc_cpu_s(pid)
+    t0 = time.process_time()
+    x = 0
+    while time.process_time() - t0 < 0.3:  # burn a measurable amount of CPU
+        x += 1
+    after = proc_cpu_s(pid)
+    assert 0.15 <= after - before <= 2.0
+
+
+def test_proc_memory_reports_rss_and_peak() -> None:
+    mem = proc_mem_mb(os.getpid())
+    assert 10 < mem["rss_mb"] <= mem["peak_rss_mb"] < 64_000
+    with pytest.raises(FileNotFoundError):
+        proc_mem_mb(2**22 + 12345)  # beyond pid_max: no such process
+
+
+def test_percentiles() -> None:
+    assert _pct([], 50) is None
+    assert _pct([1.0, 2.0, 3.0], 50) == 2.0
+
+
+@pytest.mark.slow
+@pytest.mark.integration
+def test_system_bench_quick(tmp_path: Path) -> None:
+    from bench.system import main
+
+    assert main(["--quick", "--cameras", "1", "--consumers", "0,2", "--geometry", "oracle", "--segmenter", "sim",
+                 "--out", str(tmp_path)]) == 0
+    res = json.loads((tmp_path / "system.json").read_text())
+    phases = res["phases"]
+    assert [p["consumers"] for p in phases] == [0, 2]
+    assert all(p["offered_fps"] > 1 and p["received_fps"] > 0 and p["mapper_peak_rss_mb"] > 50 for p in phases)
+    assert phases[1]["queries"] > 0 and phases[1]["query_p50_ms"] is not None
+    assert any(p["latency_p50_ms"] is not None for p in phases)
+    assert "| consumers |" in (tmp_path / "system.md").read_text()
+
+
+@pytest.mark.slow
+@pytest.mark.integration
+def test_system_bench_scaling_with_workers(tmp_path: Path) -> None:
+    from bench.system import main
+
+    assert main(["--quick", "--cameras", "1", "--consumers", "0", "--workers", "0,1", "--width", "160", "--height",
+                 "120", "--torch-threads", "1", "--out", str(tmp_path)]) == 0
+    res = json.loads((tmp_path / "system.json").read_text())
+    phases = res["phases"]
+    assert [p["workers"] for p in phases] == [0, 1]
+    alone, helped = phases
+    assert alone["mapper_status"].get("keyframes_offloaded", 0) == 0 and alone["workers_cpu_cores"] == 0
+    assert helped["mapper_status"]["work_results_accepted"] > 0 and helped["workers_cpu_cores"] > 0
+    assert helped["worker_job_s"] > 0 and helped["bytes_per_job"] > 1000 and helped["job_roundtrip_s"] > 0
+    assert alone["worker_job_s"] is None and alone["bytes_per_job"] is None
+    assert all(p["keyframes_done_per_s"] > 0 for p in phases)
+    assert "| workers |" in (tmp_path / "system.md").read_text()

@@ -1,0 +1,183 @@
+"""3D fusion on hand-made data: a tiny analytic ray caster of axis-aligned boxes stands in for geometry."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from mapper.fusion import (
+    FusionConfig,
+    Object3D,
+    ObjectMap,
+    dbscan_labels,
+    fit_box,
+    lift_detections,
+    main_cluster,
+    outside_fraction,
+    voxel_downsample,
+)
+from mapper.perception.base import Detection, label_descriptor
+from protocol.poses import look_at
+from tests.support.boxes import raycast, world_points
+
+
+def detections(idx: np.ndarray, labels: list[str]) -> list[Detection]:
+    out = []
+    for k, lab in enumerate(labels):
+        m = idx == k
+        if m.any():
+            out.append(Detection(mask=m, label=lab, confidence=0.9, descriptor=label_descriptor(lab)))
+    return out
+
+
+def observe(omap: ObjectMap, T: np.ndarray, boxes, labels, source="cam0", stamp=1):
+    depth, idx = raycast(T, boxes)
+    objs, stats = lift_detections(
+        detections(idx, labels), world_points(T, depth), np.ones_like(depth), depth, omap.cfg
+    )
+    return omap.integrate(objs, source, stamp), stats
+
+
+CHAIR = (np.array([0.0, 0.0, 0.0]), np.array([0.5, 0.5, 0.9]))
+CHAIR2 = (np.array([0.56, 0.0, 0.0]), np.array([1.06, 0.5, 0.9]))  # 6 cm beside the first
+
+
+class TestHelpers:
+    def test_voxel_downsample(self) -> None:
+        pts = np.array([[0.01, 0.01, 0.01], [0.02, 0.02, 0.02], [0.5, 0.5, 0.5]], dtype=np.float32)
+        out = voxel_downsample(pts, 0.1)
+        assert len(out) == 2
+        assert np.allclose(sorted(out[:, 0]), [0.015, 0.5])
+        assert len(voxel_downsample(np.zeros((0, 3)), 0.1)) == 0
+
+    def test_dbscan_keeps_main_cluster(self) -> None:
+        rng = np.random.default_rng(0)
+        blob = rng.normal(0, 0.02, (200, 3))
+        small = rng.normal(1.0, 0.02, (20, 3))
+        outlier = np.array([[5.0, 5.0, 5.0]])
+        pts = np.concatenate([blob, small, outlier])
+        labels = dbscan_labels(pts, 0.1, 4)
+        assert labels[-1] == -1
+        assert len(set(labels[:200])) == 1 and len(set(labels[200:220])) == 1 and labels[0] != labels[200]
+        assert len(main_cluster(pts, 0.1, 4)) == 200
+        assert len(main_cluster(np.zeros((0, 3)), 0.1, 4)) == 0
+
+    def test_fit_box_rotated(self) -> None:
+        rng = np.random.default_rng(1)
+        local = rng.uniform([-1.0, -0.25, 0.0], [1.0, 0.25, 0.5], (2000, 3))
+        yaw = 0.3
+        c, s = np.cos(yaw), np.sin(yaw)
+        pts = local @ np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]]).T + [2.0, 1.0, 0.0]
+        b = fit_box(pts)
+        assert b.yaw_rad == pytest.approx(yaw, abs=0.03)
+        assert b.extent[0] == pytest.approx(2.0, abs=0.05) and b.extent[1] == pytest.approx(0.5, abs=0.05)
+        assert b.center == pytest.approx((2.0, 1.0, 0.25), abs=0.03)
+
+    def test_fit_box_trim_ignores_strays(self) -> None:
+        rng = np.random.default_rng(2)
+        pts = rng.uniform([0.0, 0.0, 0.0], [1.0, 1.0, 1.0], (1000, 3))
+        strays = np.array([[4.0, 0.5, 0.5], [0.5, -3.0, 0.5], [0.5, 0.5, 3.0]])
+        loose, robust = fit_box(np.vstack([pts, strays])), fit_box(np.vstack([pts, strays]), trim=0.02)
+        assert max(loose.extent) > 3.0
+        assert robust.extent == pytest.approx((1.0, 1.0, 1.0), abs=0.1)
+        assert robust.center == pytest.approx((0.5, 0.5, 0.5), abs=0.05)
+
+    def test_node_box_trimmed_but_merging_sees_all_points(self) -> None:
+        rng = np.random.default_rng(3)
+        pts = np.vstack([rng.uniform(0.0, 1.0, (2000, 3)), [[3.0, 0.5, 0.5]]]).astype(np.float32)
+        omap = ObjectMap(FusionConfig(box_trim_fraction=0.005))
+        node = omap._new_node(Object3D(pts, "chair", 0.9, label_descriptor("chair")), "cam0", 1)
+        assert node.box.extent[0] == pytest.approx(1.0, abs=0.05)
+        assert max(node.full_box.extent[:2]) > 2.5
+
+    def test_detection_with_sparse_depth_is_dropped(self) -> None:
+        T = look_at([2.0, -1.5, 1.5], [0.25, 0.25, 0.45])
+        depth, idx = raycast(T, [CHAIR])
+        dets = detections(idx, ["chair"])
+        conf = np.zeros_like(depth)
+        ys, xs = np.nonzero(idx == 0)
+        pick = np.arange(0, len(ys), 12)  # confident depth on ~8 % of the mask
+        conf[ys[pick], xs[pick]] = 1.0
+        cfg = FusionConfig(min_points=5, min_object_points=3, dbscan_min_samples=1, dbscan_eps_m=0.5)
+        objs, stats = lift_detections(dets, world_points(T, depth), conf, depth, cfg)
+        assert objs == [] and stats.dropped_no_depth == 1
+        cfg = cfg.model_copy(update={"min_depth_fraction": 0.05})
+        objs, _ = lift_detections(dets, world_points(T, depth), conf, depth, cfg)
+        assert len(objs) == 1
+
+    def test_outside_fraction_flags_depth_under_the_floor(self) -> None:
+        cfg = FusionConfig()
+        T = look_at([0.0, -2.0, 1.0], [0.0, 0.0, 0.3])
+        floor = (np.array([-20.0, -20.0, -0.05]), np.array([20.0, 20.0, 0.0]))
+        depth, _ = raycast(T, [floor, CHAIR])
+        conf = (depth > 0).astype(np.float32)
+        assert outside_fraction(world_points(T, depth), conf, depth, cfg) < 0.05
+        far = depth * 3.0  # a scale failure: the floor seen three times too far lies under it
+        assert outside_fraction(world_points(T, far), conf, far, cfg) > 0.5
+        assert outside_fraction(world_points(T, far), np.zeros_like(conf), far, cfg) == 0.0
+
+
+class TestFusion:
+    def test_same_object_two_views_merges(self) -> None:
+        omap = ObjectMap(FusionConfig())
+        r1, _ = observe(omap, look_at([2.0, -1.5, 1.5], [0.25, 0.25, 0.45]), [CHAIR], ["chair"], "cam0", 10)
+        r2, _ = observe(omap, look_at([-1.5, -1.2, 1.4], [0.25, 0.25, 0.45]), [CHAIR], ["chair"], "robot1", 20)
+        assert r1.created == 1 and r2.created == 0 and r2.associated == 1
+        assert len(omap.nodes) == 1
+        (msg,) = omap.messages()
+        assert msg.label == "chair" and msg.observation_count == 2
+        assert msg.sources == ["cam0", "robot1"]
+        assert (msg.first_seen_ns, msg.last_seen_ns) == (10, 20)
+        assert np.allclose(msg.box.center, [0.25, 0.25, 0.45], atol=0.06)
+
+    @pytest.mark.parametrize("labels", [["chair", "chair"], ["chair", "table"]])
+    def test_neighbouring_objects_stay_two(self, labels: list[str]) -> None:
+        omap = ObjectMap(FusionConfig())
+        for T in (look_at([0.5, -2.0, 1.6], [0.5, 0.25, 0.45]), look_at([0.6, -1.8, 1.2], [0.5, 0.25, 0.45])):
+            observe(omap, T, [CHAIR, CHAIR2], labels)
+        omap.maintain()
+        assert len(omap.nodes) == 2
+        centres = sorted(m.box.center[0] for m in omap.messages())
+        assert centres == pytest.approx([0.25, 0.81], abs=0.06)
+
+    def test_no_valid_depth_is_dropped_and_counted(self) -> None:
+        cfg = FusionConfig()
+        T = look_at([2.0, -1.5, 1.5], [0.25, 0.25, 0.45])
+        depth, idx = raycast(T, [CHAIR])
+        mask = np.zeros_like(idx, dtype=bool)
+        mask[:10, :10] = True  # sky: no depth there
+        dets = detections(idx, ["chair"]) + [
+            Detection(mask=mask, label="ghost", confidence=1.0, descriptor=label_descriptor("ghost"))
+        ]
+        conf = np.ones_like(depth)
+        objs, stats = lift_detections(dets, world_points(T, depth), conf, depth, cfg)
+        assert [o.label for o in objs] == ["chair"]
+        assert stats.dropped_no_depth == 1 and stats.lifted == 1
+        # Low-confidence depth counts as no depth.
+        objs, stats = lift_detections(dets[:1], world_points(T, depth), conf * 0.1, depth, cfg)
+        assert objs == [] and stats.dropped_no_depth == 1
+
+    def test_prune_and_duplicate_merge(self) -> None:
+        cfg = FusionConfig(merge_every_updates=1, min_observations=2, prune_after_updates=2, match_threshold=5.0)
+        omap = ObjectMap(cfg)
+        T = look_at([2.0, -1.5, 1.5], [0.25, 0.25, 0.45])
+        # match_threshold unreachable: every view creates a node; maintenance must fold the duplicate.
+        observe(omap, T, [CHAIR], ["chair"])
+        r, _ = observe(omap, T, [CHAIR], ["chair"])
+        assert r.merged_duplicates == 1 and len(omap.nodes) == 1 and r.removed == {"n000002"}
+        assert omap.messages()[0].observation_count == 2
+        # A lone sighting of something else is dropped once it is old enough.
+        observe(omap, look_at([3, 3, 1.5], [4, 4, 0.4]), [(np.array([4.0, 4, 0]), np.array([4.3, 4.3, 0.4]))], ["box"])
+        assert "n000003" in omap.nodes
+        r, _ = observe(omap, T, [], [])
+        r, _ = observe(omap, T, [], [])
+        assert "n000003" not in omap.nodes and "n000003" in r.removed
+
+    def test_points_capped_and_state_round_trip(self) -> None:
+        cfg = FusionConfig(max_points_per_node=50, voxel_m=0.01)
+        omap = ObjectMap(cfg)
+        observe(omap, look_at([2.0, -1.5, 1.5], [0.25, 0.25, 0.45]), [CHAIR], ["chair"])
+        assert max(len(n.points) for n in omap.nodes.values()) == 50
+        other = ObjectMap(cfg)
+        other.load_state(omap.state())
+        assert other.messages() == omap.messages() and other.next_id == omap.next_id
