@@ -96,7 +96,7 @@ class Da3Reconstructor:
                 pred = self.model.inference(
                     images, extrinsics=ext if posed else None, intrinsics=K if posed else None, **kwargs
                 )
-            except Exception as e:  # a degenerate pose alignment inside the package, a shape it rejects, ...
+            except Exception as e:  # noqa: BLE001 - a degenerate pose alignment inside the package, a shape it rejects, ...
                 raise RuntimeError(f"Depth Anything 3 failed on {len(views)} views: {type(e).__name__}: {e}") from None
         depth = np.asarray(pred.depth, dtype=np.float64)
         n, h, w = depth.shape

@@ -98,7 +98,7 @@ def _encoder_overrides(checkpoint: str) -> dict[str, Any]:
             from huggingface_hub import hf_hub_download
 
             cfg_path = Path(hf_hub_download(checkpoint, "config.json", local_files_only=True))
-        except Exception:  # not cached: load_pretrained reports it
+        except Exception:  # noqa: BLE001 - not cached (the hub raises several types): load_pretrained reports it
             return {}
     try:
         import json
@@ -172,7 +172,7 @@ class MapAnythingReconstructor:
         kwargs: dict[str, Any] = {"use_amp": self.config.use_amp, **self.config.infer_kwargs}
         try:
             preds = self.model.infer(inputs, **kwargs)
-        except Exception as e:  # invalid input combinations are ValueErrors from inside the package
+        except Exception as e:  # noqa: BLE001 - invalid input combinations are ValueErrors from inside the package
             raise RuntimeError(f"MapAnything failed on {len(views)} views: {type(e).__name__}: {e}") from None
         if len(preds) != len(views):
             raise RuntimeError(f"MapAnything returned {len(preds)} predictions for {len(views)} views")

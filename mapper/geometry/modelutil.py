@@ -53,7 +53,7 @@ def load_pretrained(model_cls: Any, checkpoint: str, backend: str, **overrides: 
         if local.exists():
             return model_cls.from_pretrained(str(local), **overrides)
         return model_cls.from_pretrained(checkpoint, local_files_only=True, **overrides)
-    except Exception as e:  # the hub raises several types for a missing cache entry or a broken directory
+    except Exception as e:  # noqa: BLE001 - the hub raises several types for a missing cache entry or a broken directory
         where = "directory" if local.exists() else "Hugging Face cache entry"
         raise ModelUnavailable(
             f"{backend} checkpoint {checkpoint!r} cannot be loaded from the local {where} ({type(e).__name__}); "
