@@ -2,7 +2,7 @@
 
 ``python -m protocol.wire --write`` regenerates ``protocol/schema/*.json`` and the blocks of docs/WIRE.md
 between ``<!-- generated:NAME -->`` and ``<!-- /generated:NAME -->`` from the pydantic models and
-:class:`protocol.keys.Keys`; ``--check`` exits 1 when either has drifted (tests/test_wire.py does the same).
+:class:`protocol.keys.Keys`; ``--check`` exits 1 when either has drifted (tests/protocol/test_wire.py does the same).
 Everything else in WIRE.md is prose, and its example code blocks are run by the tests.
 """
 

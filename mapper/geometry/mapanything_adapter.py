@@ -6,7 +6,7 @@ project's contract copies. The adapter passes known intrinsics and poses (OpenCV
 when the views have them, and maps the outputs back. Weights come from a local directory or an already
 populated Hugging Face cache: it never downloads (``local_files_only``).
 
-What the real package does (checked against mapanything 1.1 with random weights, tests/test_models_real.py):
+What the real package does (checked against mapanything 1.1 with random weights, tests/mapper/test_models_real.py):
 given poses are only conditioning, expressed in view 0's frame; the returned poses are the model's own
 prediction in its reference-view frame, NOT the input world frame. The adapter therefore keeps the given
 poses (metric, relative to view 0) as the result, anchors at the given view-0 pose, and records the model's
