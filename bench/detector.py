@@ -26,6 +26,7 @@ import cv2
 import numpy as np
 from pydantic import ValidationError
 
+from bench.report import key_values
 from bench.video import DATA_ROOT, Frame, available, load_sequence, read_image
 from mapper.fusion import FusionConfig, ObjectMap, lift_detections
 from mapper.perception.base import ViewGeometry
@@ -221,14 +222,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                    help="a detector option (DetectorConfig field; VALUE as JSON, e.g. tile_grid=0 or zoom_out=[0.6])")
     a = p.parse_args(list(argv) if argv is not None else None)
     opts = {} if a.score_threshold is None else {"score_threshold": a.score_threshold}
-    for kv in a.option:
-        key, sep, value = kv.partition("=")
-        if not sep:
-            p.error(f"--option {kv!r}: expected KEY=VALUE")
-        try:
-            opts[key] = json.loads(value)
-        except json.JSONDecodeError:
-            opts[key] = value
+    opts.update(key_values(a.option, "--option", p.error))
     if a.threads is not None:
         cv2.setNumThreads(a.threads)
     try:

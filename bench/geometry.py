@@ -34,6 +34,7 @@ from typing import Any
 import numpy as np
 
 from bench.geomscore import ScenarioResult, score_depth
+from bench.report import key_values
 from bench.simdrive import sim_sequences
 from mapper.geometry.contract import OracleData, View, anchor_pose, compose
 from mapper.geometry.register import MapKeyframe, PoseEstimate, register_view
@@ -404,15 +405,7 @@ def main(argv: Sequence[str] | None = None) -> int:
                    help="with --batch-views and --backend da3: a random-weight model of this size (e.g. da3-base)")
     a = p.parse_args(list(argv) if argv is not None else None)
     seeds = a.seeds or ([1] if a.quick else [1, 2, 3])
-    opts: dict[str, Any] = {}
-    for item in a.opt:
-        key, sep, value = item.partition("=")
-        if not sep:
-            p.error(f"--opt needs KEY=VALUE, got {item!r}")
-        try:
-            opts[key] = json.loads(value)
-        except json.JSONDecodeError:
-            opts[key] = value
+    opts = key_values(a.opt, "--opt", p.error)
     if a.batch_views:
         from bench.modeltiming import batch_timing
 

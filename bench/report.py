@@ -5,9 +5,24 @@ from __future__ import annotations
 import json
 import os
 import platform
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
+
+
+def key_values(items: Sequence[str], flag: str, error: Callable[[str], Any]) -> dict[str, Any]:
+    """``KEY=VALUE`` command-line items as a dict, each VALUE parsed as JSON when it is JSON, else kept as text;
+    a malformed item goes to ``error`` (argparse's ``parser.error``) naming ``flag``."""
+    out: dict[str, Any] = {}
+    for item in items:
+        key, sep, value = item.partition("=")
+        if not sep:
+            error(f"{flag} needs KEY=VALUE, got {item!r}")
+        try:
+            out[key] = json.loads(value)
+        except json.JSONDecodeError:
+            out[key] = value
+    return out
 
 
 def machine() -> dict[str, Any]:
