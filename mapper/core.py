@@ -39,6 +39,7 @@ from mapper.geometry.contract import Reconstructor, View
 from mapper.geometry.features import Features, LruCache, extract_features
 from mapper.geometry.posecheck import rotation_between
 from mapper.geometry.singleview import SeenView, depth_to_world, layout_depth, place_objects
+from mapper.geometry.support import MappedTop, place_on_mapped_support, place_on_measured_support
 from mapper.graph_store import GraphStore
 from mapper.intake import view_problem
 from mapper.keyframes import KeyframeSelector, KeyframeStore, intrinsics_of
@@ -362,7 +363,7 @@ class MapperCore:
         self._count("detections_dropped_small", lift.dropped_small_mask)
         self._count("detections_dropped_noise", lift.dropped_noise)
         if not single_view and lift.no_depth and self.config.single_view.fill_depthless:
-            coarse = self._place_depthless(view, T_world_cam, dets, lift.no_depth)
+            coarse = self._place_depthless(view, T_world_cam, dets, lift.no_depth, vg)
             self._count("detections_placed_single_view", len(coarse))
             objs += coarse
         seen: SeenView | None = None
@@ -393,23 +394,61 @@ class MapperCore:
         return res
 
     def _place_depthless(self, view: View, T_world_cam: np.ndarray, dets: list[Detection],
-                         which: list[int]) -> list[Object3D]:
+                         which: list[int], vg: ViewGeometry) -> list[Object3D]:
         """Coarse 3D objects for the detections ``which`` that stereo gave no depth (textureless): placed from
-        where their masks touch the floor (single-view geometry, every mask of the view taking part), marked
-        with the camera centre as coarse."""
+        where their masks touch the floor (single-view geometry, every mask of the view taking part) or, with
+        ``measured_support``, the level surface the keyframe's depth ``vg`` shows under them; marked with the
+        camera centre as coarse."""
         sv = self.config.single_view
         K = intrinsics_of(view).K()
         h, w = view.image.shape[:2]
         shown = [resize_mask(d.mask, h, w) for d in dets]  # a worker's masks may come at the depth's size
         boxes = place_objects(shown, K, T_world_cam, sv.params(), view.image if sv.floor_colour_check else None)
-        # Only floor contacts: a guess stacked on another guess (a vase on a shelf) is too loose to keep.
-        pick = [i for i in which if (b := boxes[i]) is not None and b.support < 0]
-        if not pick:
+        # Floor contacts; a guess stacked on another guess (a vase on a shelf) is too loose to keep.
+        placed = {i: b for i in which if (b := boxes[i]) is not None and b.support < 0}
+        if sv.measured_support and len(placed) < len(which):
+            hd, wd = vg.depth_m.shape
+            Kd = intrinsics_of(view).scaled(wd, hd).K()
+            small = [resize_mask(d.mask, hd, wd) for d in dets]
+            anything = np.any(small, axis=0)
+            fc = self.config.fusion
+            valid = (np.isfinite(vg.depth_m) & (vg.depth_m > 0) & (vg.confidence >= fc.min_depth_confidence)
+                     & np.all(np.isfinite(vg.points_world), axis=-1))
+            tops = self._mapped_tops() if sv.mapped_support else []
+            for i in which:
+                if i in placed:
+                    continue
+                b = place_on_measured_support(small[i], anything & ~small[i], vg.points_world, valid, Kd,
+                                              T_world_cam, sv.params())
+                if b is not None:
+                    self._count("detections_placed_on_measured_support")
+                elif sv.mapped_support:
+                    b = place_on_mapped_support(small[i], anything & ~small[i], tops, Kd, T_world_cam, sv.params())
+                    if b is not None:
+                        self._count("detections_placed_on_mapped_support")
+                if b is not None:
+                    placed[i] = b
+        if not placed:
             return []
-        depth, conf = layout_depth([shown[i] for i in pick], [boxes[i] for i in pick], K, T_world_cam, sv.confidence)
+        pick = sorted(placed)
+        depth, conf = layout_depth([shown[i] for i in pick], [placed[i] for i in pick], K, T_world_cam,
+                                   sv.confidence)
         objs, _ = lift_detections([dets[i] for i in pick], depth_to_world(depth, K, T_world_cam), conf, depth,
                                   self.config.fusion)
         return [dataclasses.replace(o, ray_origin=T_world_cam[:3, 3].copy()) for o in objs]
+
+    def _mapped_tops(self, min_side_m: float = 0.2, z_range_m: tuple[float, float] = (0.2, 2.2)) -> list[MappedTop]:
+        """Top faces of the measured nodes (not single-view guesses) big enough to stand things on."""
+        tops = []
+        for n in self.objects.nodes.values():
+            if n.rays:
+                continue
+            b = n.box
+            top = b.center[2] + 0.5 * b.extent[2]
+            if min(b.extent[0], b.extent[1]) >= min_side_m and z_range_m[0] <= top <= z_range_m[1]:
+                tops.append(MappedTop(np.asarray(b.center[:2], np.float64), 0.5 * np.asarray(b.extent[:2], np.float64),
+                                      float(b.yaw_rad), float(top)))
+        return tops
 
     def _add_points(self, view: View, vg: ViewGeometry) -> None:
         pm = self.config.point_map

@@ -13,7 +13,7 @@ from mapper.core import MapperCore
 from mapper.fusion import FusionConfig, Object3D, ObjectMap, voxel_downsample
 from mapper.geometry.contract import View
 from mapper.geometry.singleview import depth_to_world
-from mapper.perception.base import Detection, label_descriptor
+from mapper.perception.base import Detection, ViewGeometry, label_descriptor
 from protocol.messages import Intrinsics
 from protocol.poses import look_at
 from tests.support.boxes import INTR, raycast
@@ -137,7 +137,42 @@ def test_a_detection_stereo_gave_no_depth_is_placed_from_the_floor(mask_scale: i
     view = View(image=np.full((480, 640, 3), 120, np.uint8), source_id="robot1", intrinsics=intr, T_world_cam=cam,
                 stamp_ns=1, seq=0)
     det = Detection(mask=mask, label="trash can", confidence=0.9, descriptor=label_descriptor("trash can"))
-    [obj] = core._place_depthless(view, cam, [det], [0])
+    none = np.zeros((240, 320), np.float32)
+    [obj] = core._place_depthless(view, cam, [det], [0], ViewGeometry(np.zeros((240, 320, 3), np.float32), none, none))
     assert obj.ray_origin is not None
     assert np.linalg.norm(obj.points.mean(0)[:2] - truth.center[:2]) < tol_m
     assert obj.points[:, 2].max() == pytest.approx(0.6, abs=0.1)
+
+
+def test_a_detection_without_depth_on_a_measured_table_top_stands_on_it() -> None:
+    """A small object stereo gave no depth, on a table whose top has some: the keyframe's own depth under its
+    mask is level at 0.75 m, so it is placed there (within 15 cm, like the floor placement), not on the floor and
+    not dropped."""
+    intr = Intrinsics.from_fov(640, 480, 90.0)
+    cam = look_at([0.2, 0.3, 1.4], [2.6, 2.0, 0.75])
+    truth = box(2.6, 2.0, 0.75, 0.2, 0.2, 0.25)
+    table = box(2.6, 2.1, 0.0, 1.6, 1.0, 0.75)
+    obj_mask, table_mask = silhouette(truth, cam), silhouette(table, cam)
+    table_mask &= ~obj_mask
+    small = intr.scaled(320, 240)
+    vs, us = np.mgrid[0:240, 0:320].astype(float)
+    rays = np.stack([(us - small.cx) / small.fx, (vs - small.cy) / small.fy, np.ones_like(us)], -1) @ cam[:3, :3].T
+    with np.errstate(divide="ignore", invalid="ignore"):
+        depth = ((0.75 - cam[2, 3]) / rays[..., 2]).astype(np.float32)  # the table top's plane, camera z-depth
+    on_top = table_mask[::2, ::2] & np.isfinite(depth) & (depth > 0)
+    depth = np.where(on_top, depth, 0.0).astype(np.float32)
+    vg = ViewGeometry(depth_to_world(depth, small.K(), cam), depth, on_top.astype(np.float32))
+    core = MapperCore(MapperCoreConfig(geometry=GeometryConfig(backend="oracle"),
+                                       perception=PerceptionConfig(segmenter="sim", embedder="sim")))
+    view = View(image=np.full((480, 640, 3), 120, np.uint8), source_id="robot1", intrinsics=intr, T_world_cam=cam,
+                stamp_ns=1, seq=0)
+    dets = [Detection(mask=obj_mask, label="bowl", confidence=0.9, descriptor=label_descriptor("bowl")),
+            Detection(mask=table_mask, label="table", confidence=0.9, descriptor=label_descriptor("table"))]
+    [obj] = core._place_depthless(view, cam, dets, [0], vg)
+    assert obj.ray_origin is not None and core.counters["detections_placed_on_measured_support"] == 1
+    assert np.linalg.norm(obj.points.mean(0)[:2] - truth.center[:2]) < 0.15
+    assert obj.points[:, 2].min() == pytest.approx(0.75, abs=0.05)
+    off = MapperCore(MapperCoreConfig(geometry=GeometryConfig(backend="oracle"),
+                                      perception=PerceptionConfig(segmenter="sim", embedder="sim")))
+    off.config.single_view.measured_support = False
+    assert off._place_depthless(view, cam, dets, [0], vg) == []  # a guess on a guess (the table's box) is not kept
