@@ -277,3 +277,37 @@ def test_an_object_taken_away_is_forgotten_by_the_camera_that_placed_it() -> Non
     res = UpdateResult()
     assert om.forget_gone(now, res) == 1
     assert res.removed == {crate_id} and [next(iter(n.label_votes)) for n in om.nodes.values()] == ["chair"]
+
+
+def test_contact_subsets_keep_the_nearest_points() -> None:
+    from mapper.geometry.singleview import _contact_subsets
+
+    pts = np.array([[4.0, 0, 0], [1.0, 0, 0], [3.0, 0, 0], [2.0, 0, 0]])
+    subsets = _contact_subsets(pts, np.zeros(2), (1.0, 0.75, 0.5, 0.49), min_count=2)
+    # 0.49 of 4 rounds to 2, the same size as 0.5: left out; sizes below min_count too
+    assert [s[:, 0].tolist() for s in subsets] == [[1.0, 2.0, 3.0, 4.0], [1.0, 2.0, 3.0], [1.0, 2.0]]
+    assert _contact_subsets(pts, np.zeros(2), (0.25,), min_count=2) == []
+
+
+def test_floor_seen_past_an_objects_side_does_not_drop_it() -> None:
+    """A cabinet against a wall: columns along its side see the floor far behind it (beyond the wall), so
+    its contacts span more than ``max_extent_m``. The nearest contacts, whose box matches the silhouette,
+    place it; with all contacts only (the old behaviour) it was dropped."""
+    from mapper.geometry.singleview import _fit_box
+
+    truth = box(3.0, 2.2, 0.0, 0.7, 0.6, 1.7)
+    mask = silhouette(truth)
+    lo, hi = truth.center[:2] - truth.extent[:2] / 2, truth.center[:2] + truth.extent[:2] / 2
+    near_edges = np.concatenate([  # the two bottom edges that face the camera at (0.2, 0.3)
+        np.stack([np.linspace(lo[0], hi[0], 30), np.full(30, lo[1]), np.zeros(30)], axis=1),
+        np.stack([np.full(30, lo[0]), np.linspace(lo[1], hi[1], 30), np.zeros(30)], axis=1)])
+    beyond = np.stack([np.full(12, hi[0] + 0.5), np.linspace(hi[1] + 2.0, hi[1] + 4.0, 12), np.zeros(12)], axis=1)
+    pts = np.concatenate([near_edges, beyond])
+    top_v = float(np.flatnonzero(mask.any(axis=1))[0]) - 0.5
+    T_cam_world = np.linalg.inv(CAM)
+    others = np.zeros_like(mask)
+    args = (pts, -1, mask, others, top_v, K, T_cam_world, CAM[:3, 3])
+    assert _fit_box(*args, SingleViewParams(trim_fractions=(1.0,))) is None
+    placed = _fit_box(*args, SingleViewParams())
+    assert placed is not None
+    assert np.linalg.norm(placed.center - truth.center) < 0.1

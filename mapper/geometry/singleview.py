@@ -62,6 +62,8 @@ class SingleViewParams:
     max_height_m: float = 3.0
     max_support_levels: int = 3
     confidence: float = 0.4  # below stereo depth (~0.5-1): a coarse estimate that other views refine
+    trim_fractions: tuple[float, ...] = (1.0, 0.75, 0.5)  # nearest contact subsets tried (silhouette decides)
+    trim_margin: float = 0.05  # IoU by which a trimmed subset must beat all the contacts
 
 
 @dataclass(frozen=True)
@@ -302,32 +304,61 @@ def place_objects(masks: Sequence[np.ndarray], K: F64, T_world_cam: F64,
                 pts, support = _support_points(us, vs, below, boxes, K, R, t, p)
             if pts is None or len(pts) < p.min_contact_columns:
                 continue
-            base_z = float(np.median(pts[:, 2]))
-            centre, ext, yaw, axis = _footprint(pts[:, :2], t[:2], p)
-            if float(np.max(ext)) > p.max_extent_m:
-                continue
-            top_v = float(np.flatnonzero(masks[i].any(axis=1))[0]) - 0.5  # the top edge of the top pixel
-            fits = [(centre, ext, yaw)]
-            if axis is not None:
-                # One visible bottom edge: its depth is whatever makes the box's silhouette match the mask.
-                deepest = min(max(2.0 * float(np.max(ext)), 1.0), p.max_extent_m)
-                depths = np.linspace(max(float(np.min(ext)), p.min_extent_m), deepest, 12)
-                fits = [_deepen((centre, ext, yaw), axis, float(d)) for d in depths]
-            best: tuple[float, PlacedBox] | None = None
             others = (owner >= 0) & (owner != i)
-            for box_xy in fits:
-                height = _height(box_xy, base_z, top_v, K, T_cam_world, p)
-                cand = PlacedBox(np.array([*box_xy[0], base_z + 0.5 * height]), np.array([*box_xy[1], height]),
-                                 box_xy[2], support, len(pts))
-                score = _silhouette_score(cand, masks[i], others, K, T_cam_world) if len(fits) > 1 else 1.0
-                if best is None or score > best[0]:
-                    best = (score, cand)
-            assert best is not None
-            boxes[i] = best[1]
+            top_v = float(np.flatnonzero(masks[i].any(axis=1))[0]) - 0.5  # the top edge of the top pixel
+            fitted = _fit_box(pts, support, masks[i], others, top_v, K, T_cam_world, t, p)
+            if fitted is None:
+                continue
+            boxes[i] = fitted
             placed_any = True
         if not placed_any and level > 0:
             break
     return boxes
+
+
+def _contact_subsets(pts: F64, cam_xy: F64, fractions: Sequence[float], min_count: int) -> list[F64]:
+    """The contact points, and the nearest ``fractions`` of them by horizontal range from the camera (the
+    floor seen past an object's side or between its legs lies behind it: its contacts are the far ones);
+    subsets with fewer than ``min_count`` points or equal to a previous one are left out."""
+    rng = np.linalg.norm(pts[:, :2] - cam_xy, axis=1)
+    order = np.argsort(rng, kind="stable")
+    out: list[F64] = []
+    sizes: set[int] = set()
+    for f in fractions:
+        k = int(round(f * len(pts)))
+        if k < min_count or k in sizes:
+            continue
+        sizes.add(k)
+        out.append(pts[order[:k]])
+    return out
+
+
+def _fit_box(pts: F64, support: int, mask: np.ndarray, others: np.ndarray, top_v: float, K: F64,
+             T_cam_world: F64, cam: F64, p: SingleViewParams) -> PlacedBox | None:
+    """The upright box standing on contact points ``pts`` whose silhouette best matches the mask, over the
+    contact subsets of ``_contact_subsets`` (``p.trim_fractions``) and, for a footprint seen edge-on, its
+    depths; footprints longer than ``p.max_extent_m`` are not candidates. None when no candidate is left.
+    A trimmed subset must beat the full set by ``p.trim_margin`` IoU."""
+    best: tuple[float, PlacedBox] | None = None
+    for n_set, sub in enumerate(_contact_subsets(pts, cam[:2], p.trim_fractions, p.min_contact_columns)):
+        base_z = float(np.median(sub[:, 2]))
+        centre, ext, yaw, axis = _footprint(sub[:, :2], cam[:2], p)
+        if float(np.max(ext)) > p.max_extent_m:
+            continue
+        fits = [(centre, ext, yaw)]
+        if axis is not None:
+            # One visible bottom edge: its depth is whatever makes the box's silhouette match the mask.
+            deepest = min(max(2.0 * float(np.max(ext)), 1.0), p.max_extent_m)
+            depths = np.linspace(max(float(np.min(ext)), p.min_extent_m), deepest, 12)
+            fits = [_deepen((centre, ext, yaw), axis, float(d)) for d in depths]
+        for box_xy in fits:
+            height = _height(box_xy, base_z, top_v, K, T_cam_world, p)
+            cand = PlacedBox(np.array([*box_xy[0], base_z + 0.5 * height]), np.array([*box_xy[1], height]),
+                             box_xy[2], support, len(sub))
+            score = _silhouette_score(cand, mask, others, K, T_cam_world) - (p.trim_margin if n_set else 0.0)
+            if best is None or score > best[0]:
+                best = (score, cand)
+    return None if best is None else best[1]
 
 
 def _floor_columns(us: F64, vs: F64, below: np.ndarray, p: SingleViewParams) -> tuple[F64, F64]:
