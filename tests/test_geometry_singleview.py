@@ -311,3 +311,33 @@ def test_floor_seen_past_an_objects_side_does_not_drop_it() -> None:
     placed = _fit_box(*args, SingleViewParams())
     assert placed is not None
     assert np.linalg.norm(placed.center - truth.center) < 0.1
+
+
+def test_silhouette_fit_ignores_pixels_hidden_by_other_masks() -> None:
+    from mapper.geometry.singleview import _SilhouetteFit
+
+    truth = box(3.0, 2.2, 0.0, 1.2, 0.8, 0.75)
+    front = silhouette(box(2.5, 1.2, 0.0, 0.3, 0.3, 0.9))
+    mask = silhouette(truth) & ~front
+    T_cam_world = np.linalg.inv(CAM)
+    fit = _SilhouetteFit(mask, front, K, T_cam_world)
+    assert fit.iou(truth) > 0.9  # the part behind the front object counts neither way
+    assert _SilhouetteFit(mask, np.zeros_like(mask), K, T_cam_world).iou(truth) < fit.iou(truth)
+    assert fit.iou(box(3.5, 2.2, 0.0, 1.2, 0.8, 0.75)) < 0.7
+    assert fit.iou(box(3.0, 2.2, 0.0, 1.2, 0.8, 0.75, yaw_deg=180.0)) == pytest.approx(fit.iou(truth))
+
+
+@pytest.mark.parametrize(("yaw_deg", "front_box"), [(0.0, (2.5, 1.2, 0.0, 0.3, 0.3, 0.9)),
+                                                     (20.0, (2.6, 1.5, 0.0, 0.8, 0.3, 0.6))])
+def test_an_object_whose_bottom_is_partly_hidden_is_refined_to_its_silhouette(
+        yaw_deg: float, front_box: tuple[float, float, float, float, float, float]) -> None:
+    """A table whose bottom edge is partly hidden by a stool in front: the contacts that remain leave its
+    footprint short; fitting the box to the silhouette (the hidden pixels not counted) recovers it."""
+    truth = box(3.0, 2.2, 0.0, 1.2, 0.8, 0.75, yaw_deg=yaw_deg)
+    front = silhouette(box(*front_box))
+    mask = silhouette(truth) & ~front
+    coarse = place_objects([mask, front], K, CAM, SingleViewParams(refine_evals=0))[0]
+    refined = place_objects([mask, front], K, CAM)[0]
+    assert coarse is not None and refined is not None
+    assert np.linalg.norm(coarse.center - truth.center) > 0.15
+    assert np.linalg.norm(refined.center - truth.center) < 0.13
