@@ -211,6 +211,12 @@ class SingleViewConfig(BaseModel):
         description="floor contacts must look like the floor under the view's other objects (an object seen "
         "against a wall is not pushed through it)",
     )
+    floor_colour_sigma: float = Field(
+        default=4.5, gt=0.0,
+        description="how far (robust standard deviations, Lab) the colour under a floor contact may be from the "
+        "floor's under the view's other objects: an apartment camera sees several rooms' floors (3 dropped too "
+        "many true contacts there: tuning seeds 100-109, 3 cameras, apartment F1 0.407 -> 0.434 with 4.5)",
+    )
     free_space_check: bool = Field(
         default=True,
         description="a placement that another calibrated camera saw as free space (its floor, learnt from under "
@@ -222,7 +228,8 @@ class SingleViewConfig(BaseModel):
         from mapper.geometry.singleview import SingleViewParams
 
         return SingleViewParams(floor_z_m=self.floor_z_m, max_range_m=self.max_range_m,
-                                max_extent_m=self.max_extent_m, confidence=self.confidence)
+                                max_extent_m=self.max_extent_m, confidence=self.confidence,
+                                floor_colour_sigma=self.floor_colour_sigma)
 
 
 class PointMapConfig(BaseModel):

@@ -341,3 +341,31 @@ def test_an_object_whose_bottom_is_partly_hidden_is_refined_to_its_silhouette(
     assert coarse is not None and refined is not None
     assert np.linalg.norm(coarse.center - truth.center) > 0.15
     assert np.linalg.norm(refined.center - truth.center) < 0.13
+
+
+def test_floor_colour_tolerance_is_a_parameter() -> None:
+    """Floor contacts keep their columns when the colour under them is within ``max_sigma`` robust standard
+    deviations of the view's floor sample (an apartment camera sees several rooms' floors)."""
+    from mapper.config import SingleViewConfig
+    from mapper.geometry.singleview import _floor_looking
+
+    rng = np.random.default_rng(0)
+    image = np.zeros((20, 100, 3), np.uint8)
+    image[:, :, :] = 120
+    image[5, :, 0] = 120 + rng.integers(-6, 7, 100)  # the floor sample row (under the contacts' rows 2): noisy red
+    lab = cv2.cvtColor(image, cv2.COLOR_RGB2LAB).astype(float)
+    sd = np.clip(1.4826 * np.median(np.abs(lab[5] - np.median(lab[5], axis=0)), axis=0), 3.0, 15.0)
+    mu = np.median(lab[5], axis=0)
+    # one column whose colour under it lies about 4 sigmas from the floor's in some Lab channel
+    for r in range(256):
+        image[5, 99] = (r, 120, 120)
+        z = float((np.abs(cv2.cvtColor(image[5:6, 99:100], cv2.COLOR_RGB2LAB).astype(float)[0, 0] - mu) / sd).max())
+        if 3.6 < z < 4.4:
+            break
+    assert 3.6 < z < 4.4
+    cols = [(np.arange(100, dtype=float), np.full(100, 2.0))]
+    p = SingleViewParams()
+    assert 99 not in _floor_looking(cols, image, p, max_sigma=3.0)[0][0]
+    assert 99 in _floor_looking(cols, image, p, max_sigma=4.5)[0][0]
+    assert SingleViewConfig(floor_colour_sigma=3.0).params().floor_colour_sigma == 3.0
+    assert SingleViewConfig().params().floor_colour_sigma == 4.5

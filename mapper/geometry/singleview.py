@@ -69,6 +69,7 @@ class SingleViewParams:
     confidence: float = 0.4  # below stereo depth (~0.5-1): a coarse estimate that other views refine
     trim_fractions: tuple[float, ...] = (1.0, 0.75, 0.5)  # nearest contact subsets tried (silhouette decides)
     trim_margin: float = 0.05  # IoU by which a trimmed subset must beat all the contacts
+    floor_colour_sigma: float = 4.5  # contacts whose colour below is farther from the floor's (robust sigmas): dropped
     refine_evals: int = 300  # silhouette refinement of the box (0: off), cost evaluations
     refine_slack_m: float = 0.05  # contacts this far outside the refined footprint cost nothing
     refine_contact_weight: float = 1.0  # IoU per metre of a contact outside the refined footprint
@@ -298,7 +299,7 @@ def place_objects(masks: Sequence[np.ndarray], K: F64, T_world_cam: F64,
         contacts.append((cols.astype(float), low.astype(float), below))
     floor_cols = [None if c is None else _floor_columns(*c, p) for c in contacts]
     if image is not None:
-        floor_cols = _floor_looking(floor_cols, image, p)
+        floor_cols = _floor_looking(floor_cols, image, p, max_sigma=p.floor_colour_sigma)
     for level in range(p.max_support_levels + 1):
         placed_any = False
         for i, c in enumerate(contacts):
