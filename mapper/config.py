@@ -212,10 +212,14 @@ class SingleViewConfig(BaseModel):
         "against a wall is not pushed through it)",
     )
     floor_colour_sigma: float = Field(
-        default=4.5, gt=0.0,
+        default=3.0, gt=0.0,
         description="how far (robust standard deviations, Lab) the colour under a floor contact may be from the "
-        "floor's under the view's other objects: an apartment camera sees several rooms' floors (3 dropped too "
-        "many true contacts there: tuning seeds 100-109, 3 cameras, apartment F1 0.407 -> 0.434 with 4.5)",
+        "floor's colour models (learnt under the view's other objects)",
+    )
+    floor_cluster_share: float = Field(
+        default=0.3, gt=0.0,
+        description="each of the two colour clusters of the floor sample holding this share of it is a floor of "
+        "its own (an apartment camera sees other rooms' floors through doorways); above 0.5: one floor model",
     )
     free_space_check: bool = Field(
         default=True,
@@ -229,7 +233,8 @@ class SingleViewConfig(BaseModel):
 
         return SingleViewParams(floor_z_m=self.floor_z_m, max_range_m=self.max_range_m,
                                 max_extent_m=self.max_extent_m, confidence=self.confidence,
-                                floor_colour_sigma=self.floor_colour_sigma)
+                                floor_colour_sigma=self.floor_colour_sigma,
+                                floor_cluster_share=self.floor_cluster_share)
 
 
 class PointMapConfig(BaseModel):

@@ -367,5 +367,37 @@ def test_floor_colour_tolerance_is_a_parameter() -> None:
     p = SingleViewParams()
     assert 99 not in _floor_looking(cols, image, p, max_sigma=3.0)[0][0]
     assert 99 in _floor_looking(cols, image, p, max_sigma=4.5)[0][0]
-    assert SingleViewConfig(floor_colour_sigma=3.0).params().floor_colour_sigma == 3.0
-    assert SingleViewConfig().params().floor_colour_sigma == 4.5
+    assert SingleViewConfig(floor_colour_sigma=4.5).params().floor_colour_sigma == 4.5
+    assert SingleViewConfig().params().floor_colour_sigma == 3.0
+
+
+def test_two_floors_in_view_are_both_floor_and_a_wall_is_not() -> None:
+    """An apartment camera sees its room's floor and, through a doorway, another room's: the floor sample is
+    bimodal. Each colour cluster holding enough of it is a floor model of its own; a wall colour that is
+    neither stays out, and a one-floor view keeps its one model's verdicts."""
+    from mapper.geometry.singleview import _floor_looking, _floor_models, _two_means
+
+    rng = np.random.default_rng(1)
+    wood = np.array([150.0, 140.0, 170.0]) + rng.normal(0, 2, (60, 3))
+    tiles = np.array([200.0, 135.0, 125.0]) + rng.normal(0, 2, (30, 3))
+    labels = _two_means(np.concatenate([wood, tiles]))
+    assert len(set(labels[:60])) == 1 and len(set(labels[60:])) == 1 and labels[0] != labels[60]
+    assert len(_floor_models(np.concatenate([wood, tiles]), 0.3, 30)) == 3
+    assert len(_floor_models(np.concatenate([wood, tiles]), 0.6, 30)) == 1  # off
+    assert len(_floor_models(np.concatenate([wood, tiles[:10]]), 0.3, 30)) == 2  # 10 of 70: not a floor
+
+    def image_of(under: list[tuple[int, int, int]]) -> np.ndarray:
+        img = np.zeros((10, len(under), 3), np.uint8)
+        img[5] = np.array(under, np.uint8)
+        return img
+
+    p = SingleViewParams()
+    cols = [(np.arange(92, dtype=float), np.full(92, 2.0))]
+    wood_rgb, tile_rgb, wall_rgb = (120, 90, 60), (200, 200, 205), (60, 80, 160)
+    two = image_of([wood_rgb] * 60 + [tile_rgb] * 30 + [wall_rgb] * 2)
+    two[5, :90] = np.clip(two[5, :90].astype(int) + rng.integers(-3, 4, (90, 3)), 0, 255).astype(np.uint8)
+    kept = set(_floor_looking(cols, two, p)[0][0].astype(int).tolist())
+    assert set(range(90)) <= kept and not {90, 91} & kept
+    one_floor = SingleViewParams(floor_cluster_share=0.6)
+    assert set(range(60)) <= set(_floor_looking(cols, two, one_floor)[0][0].astype(int).tolist())
+    assert not set(range(60, 92)) & set(_floor_looking(cols, two, one_floor)[0][0].astype(int).tolist())

@@ -12,7 +12,8 @@ mask can be placed in 3D from the pixels where it touches its support, under an 
    mask's lower convex envelope (a convex footprint projects to a convex outline, so columns that end
    higher, between a chair's legs or under a table top, see the floor *behind* the object), off steep
    silhouette sides, in runs, and, given the image, where the pixels below look like the floor under the
-   view's other objects (so an object seen against a wall is not pushed through it).
+   view's other objects (so an object seen against a wall is not pushed through it); a view with two floors
+   (another room's, through a doorway) has a colour model for each.
 2. **Footprint.** The rectangle the contact points lie along (L-shape fitting): the two visible bottom
    edges of a box seen across a corner give the whole rectangle. A footprint seen edge-on (one visible
    side) gets the depth, away from the camera, whose box silhouette best matches the mask. Contacts that
@@ -69,7 +70,8 @@ class SingleViewParams:
     confidence: float = 0.4  # below stereo depth (~0.5-1): a coarse estimate that other views refine
     trim_fractions: tuple[float, ...] = (1.0, 0.75, 0.5)  # nearest contact subsets tried (silhouette decides)
     trim_margin: float = 0.05  # IoU by which a trimmed subset must beat all the contacts
-    floor_colour_sigma: float = 4.5  # contacts whose colour below is farther from the floor's (robust sigmas): dropped
+    floor_colour_sigma: float = 3.0  # contacts whose colour below is farther from the floor's (robust sigmas): dropped
+    floor_cluster_share: float = 0.3  # a colour cluster this big of the floor sample is a floor too (> 0.5: off)
     refine_evals: int = 300  # silhouette refinement of the box (0: off), cost evaluations
     refine_slack_m: float = 0.05  # contacts this far outside the refined footprint cost nothing
     refine_contact_weight: float = 1.0  # IoU per metre of a contact outside the refined footprint
@@ -299,7 +301,7 @@ def place_objects(masks: Sequence[np.ndarray], K: F64, T_world_cam: F64,
         contacts.append((cols.astype(float), low.astype(float), below))
     floor_cols = [None if c is None else _floor_columns(*c, p) for c in contacts]
     if image is not None:
-        floor_cols = _floor_looking(floor_cols, image, p, max_sigma=p.floor_colour_sigma)
+        floor_cols = _floor_looking(floor_cols, image, p)
     for level in range(p.max_support_levels + 1):
         placed_any = False
         for i, c in enumerate(contacts):
@@ -458,18 +460,51 @@ def _floor_columns(us: F64, vs: F64, below: np.ndarray, p: SingleViewParams) -> 
     return us[on_env], vs[on_env]
 
 
+def _robust_model(sample: F64) -> tuple[F64, F64]:
+    """Median and robust spread (1.4826 MAD, clipped to 3..15 Lab units) of colour samples (N, 3)."""
+    mu = np.median(sample, axis=0)
+    return mu, np.clip(1.4826 * np.median(np.abs(sample - mu), axis=0), 3.0, 15.0)
+
+
+def _two_means(sample: F64, iters: int = 10) -> np.ndarray:
+    """Deterministic 2-means labels (0/1) of samples (N, 3): seeded at the median and the sample farthest from it."""
+    med = np.median(sample, axis=0)
+    centres = np.stack([med, sample[int(np.argmax(np.linalg.norm(sample - med, axis=1)))]])
+    labels = np.zeros(len(sample), np.int64)
+    for _ in range(iters):
+        labels = np.argmin(np.linalg.norm(sample[:, None, :] - centres[None], axis=2), axis=1)
+        for k in (0, 1):
+            if np.any(labels == k):
+                centres[k] = sample[labels == k].mean(axis=0)
+    return labels
+
+
+def _floor_models(sample: F64, min_share: float, min_sample: int) -> list[tuple[F64, F64]]:
+    """The floor's colour models: the whole sample's, and (several floors in view: an apartment camera sees
+    other rooms through doorways) each of its two 2-means clusters holding at least ``min_share`` of it."""
+    models = [_robust_model(sample)]
+    if min_share <= 0.5 and len(sample) >= 2 * min_sample:
+        labels = _two_means(sample)
+        for k in (0, 1):
+            part = sample[labels == k]
+            if len(part) >= max(min_share * len(sample), min_sample / 2):
+                models.append(_robust_model(part))
+    return models
+
+
 def _floor_looking(cols: list[tuple[F64, F64] | None], image: np.ndarray, p: SingleViewParams,
-                   min_sample: int = 30, max_sigma: float = 3.0) -> list[tuple[F64, F64] | None]:
-    """Floor columns whose pixels just below look like those below all floor columns of the view (Lab,
-    median and robust spread): contacts seen against a wall are dropped. Too small a sample keeps all."""
+                   min_sample: int = 30, max_sigma: float | None = None) -> list[tuple[F64, F64] | None]:
+    """Floor columns whose pixels just below look like those below all floor columns of the view (Lab, median
+    and robust spread, within ``max_sigma`` (default ``p.floor_colour_sigma``) of any of ``_floor_models``):
+    contacts seen against a wall are dropped. Too small a sample keeps all."""
+    sigma = p.floor_colour_sigma if max_sigma is None else max_sigma
     h = image.shape[0]
     picks = [(u.astype(int), np.minimum(v.astype(int) + 3, h - 1)) for u, v in (c for c in cols if c is not None)]
     if sum(len(u) for u, _ in picks) < min_sample:
         return cols
     lab = cv2.cvtColor(np.ascontiguousarray(image), cv2.COLOR_RGB2LAB).astype(np.float64)
     sample = np.concatenate([lab[v, u] for u, v in picks])
-    mu = np.median(sample, axis=0)
-    sd = np.clip(1.4826 * np.median(np.abs(sample - mu), axis=0), 3.0, 15.0)
+    models = _floor_models(sample, p.floor_cluster_share, min_sample)
     out: list[tuple[F64, F64] | None] = []
     for c in cols:
         if c is None:
@@ -477,7 +512,9 @@ def _floor_looking(cols: list[tuple[F64, F64] | None], image: np.ndarray, p: Sin
             continue
         u, v = c
         x = lab[np.minimum(v.astype(int) + 3, h - 1), u.astype(int)]
-        ok = (np.abs(x - mu) / sd).max(axis=1) <= max_sigma
+        ok = np.zeros(len(x), bool)
+        for mu, sd in models:
+            ok |= (np.abs(x - mu) / sd).max(axis=1) <= sigma
         out.append((u[ok], v[ok]))
     return out
 
