@@ -233,6 +233,16 @@ class SingleViewConfig(BaseModel):
         description="floor contacts must look like the floor under the view's other objects (an object seen "
         "against a wall is not pushed through it)",
     )
+    floor_colour_sigma: float = Field(
+        default=3.0, gt=0.0,
+        description="how far (robust standard deviations, Lab) the colour under a floor contact may be from the "
+        "floor's colour models (learnt under the view's other objects)",
+    )
+    floor_cluster_share: float = Field(
+        default=0.3, gt=0.0,
+        description="each of the two colour clusters of the floor sample holding this share of it is a floor of "
+        "its own (an apartment camera sees other rooms' floors through doorways); above 0.5: one floor model",
+    )
     free_space_check: bool = Field(
         default=True,
         description="a placement that another calibrated camera saw as free space (its floor, learnt from under "
@@ -244,7 +254,9 @@ class SingleViewConfig(BaseModel):
         from mapper.geometry.singleview import SingleViewParams
 
         return SingleViewParams(floor_z_m=self.floor_z_m, max_range_m=self.max_range_m,
-                                max_extent_m=self.max_extent_m, confidence=self.confidence)
+                                max_extent_m=self.max_extent_m, confidence=self.confidence,
+                                floor_colour_sigma=self.floor_colour_sigma,
+                                floor_cluster_share=self.floor_cluster_share)
 
 
 class PointMapConfig(BaseModel):

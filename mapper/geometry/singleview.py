@@ -12,11 +12,17 @@ mask can be placed in 3D from the pixels where it touches its support, under an 
    mask's lower convex envelope (a convex footprint projects to a convex outline, so columns that end
    higher, between a chair's legs or under a table top, see the floor *behind* the object), off steep
    silhouette sides, in runs, and, given the image, where the pixels below look like the floor under the
-   view's other objects (so an object seen against a wall is not pushed through it).
+   view's other objects (so an object seen against a wall is not pushed through it); a view with two floors
+   (another room's, through a doorway) has a colour model for each.
 2. **Footprint.** The rectangle the contact points lie along (L-shape fitting): the two visible bottom
    edges of a box seen across a corner give the whole rectangle. A footprint seen edge-on (one visible
-   side) gets the depth, away from the camera, whose box silhouette best matches the mask.
-3. **Height.** The upright box whose top projects to the mask's top row.
+   side) gets the depth, away from the camera, whose box silhouette best matches the mask. Contacts that
+   see the floor past the object's side (beyond a wall it stands against) lie behind it: the nearest
+   contacts alone are tried too, and the box whose silhouette matches the mask best is kept.
+3. **Height.** The upright box whose top projects to the mask's top row. The box is then refined to the
+   mask (Nelder-Mead on centre, footprint, yaw and height, the silhouette's IoU with the mask, pixels of
+   other masks not counted, the footprint kept on its contacts): a bottom edge partly hidden by an object
+   in front no longer leaves the box short.
 4. **Depth.** Each mask pixel's ray is cast into its box (the camera-facing faces); rays that miss it get
    the box centre's depth.
 
@@ -62,6 +68,13 @@ class SingleViewParams:
     max_height_m: float = 3.0
     max_support_levels: int = 3
     confidence: float = 0.4  # below stereo depth (~0.5-1): a coarse estimate that other views refine
+    trim_fractions: tuple[float, ...] = (1.0, 0.75, 0.5)  # nearest contact subsets tried (silhouette decides)
+    trim_margin: float = 0.05  # IoU by which a trimmed subset must beat all the contacts
+    floor_colour_sigma: float = 3.0  # contacts whose colour below is farther from the floor's (robust sigmas): dropped
+    floor_cluster_share: float = 0.3  # a colour cluster this big of the floor sample is a floor too (> 0.5: off)
+    refine_evals: int = 300  # silhouette refinement of the box (0: off), cost evaluations
+    refine_slack_m: float = 0.05  # contacts this far outside the refined footprint cost nothing
+    refine_contact_weight: float = 1.0  # IoU per metre of a contact outside the refined footprint
 
 
 @dataclass(frozen=True)
@@ -310,6 +323,124 @@ def place_objects(masks: Sequence[np.ndarray], K: F64, T_world_cam: F64,
     return boxes
 
 
+class _SilhouetteFit:
+    """IoU of upright boxes' silhouettes with one mask, on a crop around it downsampled to at most
+    ``side_px`` pixels (cheap enough to optimise over); pixels on other masks (which may hide the object)
+    count neither way. The box's silhouette area outside the crop counts as box only."""
+
+    def __init__(self, mask: np.ndarray, others: np.ndarray, K: F64, T_cam_world: F64, side_px: int = 128) -> None:
+        vs, us = np.nonzero(mask)
+        h, w = mask.shape
+        pad_u, pad_v = 0.5 * (us.max() - us.min() + 1), 0.5 * (vs.max() - vs.min() + 1)
+        u0, u1 = int(max(us.min() - pad_u, 0)), int(min(us.max() + pad_u + 1, w))
+        v0, v1 = int(max(vs.min() - pad_v, 0)), int(min(vs.max() + pad_v + 1, h))
+        self.scale = min(1.0, side_px / max(u1 - u0, v1 - v0))
+        sw, sh = max(1, round((u1 - u0) * self.scale)), max(1, round((v1 - v0) * self.scale))
+        self.origin = np.array([u0, v0], float)
+        self.mask = cv2.resize(mask[v0:v1, u0:u1].astype(np.float32), (sw, sh), interpolation=cv2.INTER_AREA) > 0.5
+        hidden = others[v0:v1, u0:u1] & ~mask[v0:v1, u0:u1]
+        self.hidden = cv2.resize(hidden.astype(np.float32), (sw, sh), interpolation=cv2.INTER_AREA) > 0.5
+        self.mask_area = float(np.count_nonzero(self.mask))
+        self.K, self.T = K, T_cam_world
+
+    def iou(self, box: PlacedBox) -> float:
+        pc = box.corners() @ self.T[:3, :3].T + self.T[:3, 3]
+        if np.any(pc[:, 2] <= 1e-3):
+            return 0.0
+        uv = (pc[:, :2] / pc[:, 2:3] * np.diag(self.K)[:2] + self.K[:2, 2] - self.origin) * self.scale
+        if not np.all(np.isfinite(uv)) or np.any(np.abs(uv) > 1e5):
+            return 0.0
+        hull = cv2.convexHull(uv.astype(np.float32))
+        area = float(cv2.contourArea(hull))
+        sil = np.zeros(self.mask.shape, np.uint8)
+        cv2.fillConvexPoly(sil, np.round(hull).astype(np.int32), 1)
+        b = sil.astype(bool)
+        inter = float(np.count_nonzero(b & self.mask))
+        hidden = float(np.count_nonzero(b & self.hidden))
+        union = max(area - hidden, inter) + self.mask_area - inter
+        return inter / union if union > 0 else 0.0
+
+
+def _refine_box(box: PlacedBox, fit: _SilhouetteFit, contacts_xy: F64, p: SingleViewParams) -> PlacedBox:
+    """The upright box on the same base whose silhouette best matches the mask (Nelder-Mead over its centre,
+    footprint, yaw and height, from ``box``), its footprint kept on the contact points: a contact farther
+    than ``p.refine_slack_m`` outside it costs ``p.refine_contact_weight`` IoU per metre. Returns ``box``
+    unless the refined one scores better."""
+    from scipy.optimize import minimize
+
+    base_z = float(box.center[2] - 0.5 * box.extent[2])
+
+    def make(x: np.ndarray) -> PlacedBox:
+        ext = np.clip(np.exp(x[2:4]), p.min_extent_m, p.max_extent_m)
+        height = float(np.clip(np.exp(x[5]), p.min_extent_m, p.max_height_m))
+        return PlacedBox(np.array([x[0], x[1], base_z + 0.5 * height]), np.array([*ext, height]), float(x[4]),
+                         box.support, box.contacts)
+
+    def cost(x: np.ndarray) -> float:
+        b = make(x)
+        c, s = np.cos(b.yaw_rad), np.sin(b.yaw_rad)
+        local = (contacts_xy - b.center[:2]) @ np.array([[c, -s], [s, c]])
+        out = np.maximum(np.abs(local) - 0.5 * b.extent[:2], 0.0)
+        miss = np.maximum(np.linalg.norm(out, axis=1) - p.refine_slack_m, 0.0)
+        return -fit.iou(b) + p.refine_contact_weight * float(miss.mean())
+
+    x0 = np.array([box.center[0], box.center[1], np.log(box.extent[0]), np.log(box.extent[1]), box.yaw_rad,
+                   np.log(box.extent[2])])
+    simplex = x0 + np.vstack([np.zeros(6), np.diag([0.1, 0.1, 0.3, 0.3, 0.3, 0.3])])
+    res = minimize(cost, x0, method="Nelder-Mead",
+                   options={"maxfev": p.refine_evals, "xatol": 1e-3, "fatol": 1e-4, "initial_simplex": simplex})
+    return make(res.x) if float(res.fun) < cost(x0) else box
+
+
+def _contact_subsets(pts: F64, cam_xy: F64, fractions: Sequence[float], min_count: int) -> list[F64]:
+    """The contact points, and the nearest ``fractions`` of them by horizontal range from the camera (the
+    floor seen past an object's side or between its legs lies behind it: its contacts are the far ones);
+    subsets with fewer than ``min_count`` points or equal to a previous one are left out."""
+    rng = np.linalg.norm(pts[:, :2] - cam_xy, axis=1)
+    order = np.argsort(rng, kind="stable")
+    out: list[F64] = []
+    sizes: set[int] = set()
+    for f in fractions:
+        k = int(round(f * len(pts)))
+        if k < min_count or k in sizes:
+            continue
+        sizes.add(k)
+        out.append(pts[order[:k]])
+    return out
+
+
+def _fit_box(pts: F64, support: int, mask: np.ndarray, others: np.ndarray, top_v: float, K: F64,
+             T_cam_world: F64, cam: F64, p: SingleViewParams) -> PlacedBox | None:
+    """The upright box standing on contact points ``pts`` whose silhouette best matches the mask, over the
+    contact subsets of ``_contact_subsets`` (``p.trim_fractions``) and, for a footprint seen edge-on, its
+    depths; footprints longer than ``p.max_extent_m`` are not candidates. None when no candidate is left.
+    A trimmed subset must beat the full set by ``p.trim_margin`` IoU."""
+    best: tuple[float, PlacedBox, F64] | None = None
+    for n_set, sub in enumerate(_contact_subsets(pts, cam[:2], p.trim_fractions, p.min_contact_columns)):
+        base_z = float(np.median(sub[:, 2]))
+        centre, ext, yaw, axis = _footprint(sub[:, :2], cam[:2], p)
+        if float(np.max(ext)) > p.max_extent_m:
+            continue
+        fits = [(centre, ext, yaw)]
+        if axis is not None:
+            # One visible bottom edge: its depth is whatever makes the box's silhouette match the mask.
+            deepest = min(max(2.0 * float(np.max(ext)), 1.0), p.max_extent_m)
+            depths = np.linspace(max(float(np.min(ext)), p.min_extent_m), deepest, 12)
+            fits = [_deepen((centre, ext, yaw), axis, float(d)) for d in depths]
+        for box_xy in fits:
+            height = _height(box_xy, base_z, top_v, K, T_cam_world, p)
+            cand = PlacedBox(np.array([*box_xy[0], base_z + 0.5 * height]), np.array([*box_xy[1], height]),
+                             box_xy[2], support, len(sub))
+            score = _silhouette_score(cand, mask, others, K, T_cam_world) - (p.trim_margin if n_set else 0.0)
+            if best is None or score > best[0]:
+                best = (score, cand, sub)
+    if best is None:
+        return None
+    if p.refine_evals > 0:
+        return _refine_box(best[1], _SilhouetteFit(mask, others, K, T_cam_world), best[2][:, :2], p)
+    return best[1]
+
+
 def _floor_columns(us: F64, vs: F64, below: np.ndarray, p: SingleViewParams) -> tuple[F64, F64]:
     """The columns (u, lowest row) of one mask where it stands on the floor: background below, on the
     lower convex envelope, not on a steep silhouette side, in runs."""
@@ -325,18 +456,51 @@ def _floor_columns(us: F64, vs: F64, below: np.ndarray, p: SingleViewParams) -> 
     return us[on_env], vs[on_env]
 
 
+def _robust_model(sample: F64) -> tuple[F64, F64]:
+    """Median and robust spread (1.4826 MAD, clipped to 3..15 Lab units) of colour samples (N, 3)."""
+    mu = np.median(sample, axis=0)
+    return mu, np.clip(1.4826 * np.median(np.abs(sample - mu), axis=0), 3.0, 15.0)
+
+
+def _two_means(sample: F64, iters: int = 10) -> np.ndarray:
+    """Deterministic 2-means labels (0/1) of samples (N, 3): seeded at the median and the sample farthest from it."""
+    med = np.median(sample, axis=0)
+    centres = np.stack([med, sample[int(np.argmax(np.linalg.norm(sample - med, axis=1)))]])
+    labels = np.zeros(len(sample), np.int64)
+    for _ in range(iters):
+        labels = np.argmin(np.linalg.norm(sample[:, None, :] - centres[None], axis=2), axis=1)
+        for k in (0, 1):
+            if np.any(labels == k):
+                centres[k] = sample[labels == k].mean(axis=0)
+    return labels
+
+
+def _floor_models(sample: F64, min_share: float, min_sample: int) -> list[tuple[F64, F64]]:
+    """The floor's colour models: the whole sample's, and (several floors in view: an apartment camera sees
+    other rooms through doorways) each of its two 2-means clusters holding at least ``min_share`` of it."""
+    models = [_robust_model(sample)]
+    if min_share <= 0.5 and len(sample) >= 2 * min_sample:
+        labels = _two_means(sample)
+        for k in (0, 1):
+            part = sample[labels == k]
+            if len(part) >= max(min_share * len(sample), min_sample / 2):
+                models.append(_robust_model(part))
+    return models
+
+
 def _floor_looking(cols: list[tuple[F64, F64] | None], image: np.ndarray, p: SingleViewParams,
-                   min_sample: int = 30, max_sigma: float = 3.0) -> list[tuple[F64, F64] | None]:
-    """Floor columns whose pixels just below look like those below all floor columns of the view (Lab,
-    median and robust spread): contacts seen against a wall are dropped. Too small a sample keeps all."""
+                   min_sample: int = 30, max_sigma: float | None = None) -> list[tuple[F64, F64] | None]:
+    """Floor columns whose pixels just below look like those below all floor columns of the view (Lab, median
+    and robust spread, within ``max_sigma`` (default ``p.floor_colour_sigma``) of any of ``_floor_models``):
+    contacts seen against a wall are dropped. Too small a sample keeps all."""
+    sigma = p.floor_colour_sigma if max_sigma is None else max_sigma
     h = image.shape[0]
     picks = [(u.astype(int), np.minimum(v.astype(int) + 3, h - 1)) for u, v in (c for c in cols if c is not None)]
     if sum(len(u) for u, _ in picks) < min_sample:
         return cols
     lab = cv2.cvtColor(np.ascontiguousarray(image), cv2.COLOR_RGB2LAB).astype(np.float64)
     sample = np.concatenate([lab[v, u] for u, v in picks])
-    mu = np.median(sample, axis=0)
-    sd = np.clip(1.4826 * np.median(np.abs(sample - mu), axis=0), 3.0, 15.0)
+    models = _floor_models(sample, p.floor_cluster_share, min_sample)
     out: list[tuple[F64, F64] | None] = []
     for c in cols:
         if c is None:
@@ -344,7 +508,9 @@ def _floor_looking(cols: list[tuple[F64, F64] | None], image: np.ndarray, p: Sin
             continue
         u, v = c
         x = lab[np.minimum(v.astype(int) + 3, h - 1), u.astype(int)]
-        ok = (np.abs(x - mu) / sd).max(axis=1) <= max_sigma
+        ok = np.zeros(len(x), bool)
+        for mu, sd in models:
+            ok |= (np.abs(x - mu) / sd).max(axis=1) <= sigma
         out.append((u[ok], v[ok]))
     return out
 
@@ -352,32 +518,14 @@ def _floor_looking(cols: list[tuple[F64, F64] | None], image: np.ndarray, p: Sin
 def box_from_contacts(pts: F64, mask: np.ndarray, others: np.ndarray, K: F64, T_world_cam: F64, support: int,
                       p: SingleViewParams = SingleViewParams()) -> PlacedBox | None:
     """The upright box standing on the contact points ``pts`` (N, 3; where the mask's lowest pixels meet
-    its support) whose top projects to the mask's top row; None when its footprint is too long to be one
-    object. A footprint seen edge-on gets the depth whose silhouette best matches the mask, where pixels
-    of ``others`` (other masks, which may hide the object) count neither way."""
+    its support) whose silhouette best matches the mask and whose top reaches its top row (``_fit_box``);
+    pixels of ``others`` (other masks, which may hide the object) count neither way. None when no
+    footprint fits."""
     t = T_world_cam[:3, 3]
     T_cam_world = np.eye(4)
     T_cam_world[:3, :3], T_cam_world[:3, 3] = T_world_cam[:3, :3].T, -T_world_cam[:3, :3].T @ t
-    base_z = float(np.median(pts[:, 2]))
-    centre, ext, yaw, axis = _footprint(pts[:, :2], t[:2], p)
-    if float(np.max(ext)) > p.max_extent_m:
-        return None
     top_v = float(np.flatnonzero(mask.any(axis=1))[0]) - 0.5  # the top edge of the top pixel
-    fits = [(centre, ext, yaw)]
-    if axis is not None:
-        # One visible bottom edge: its depth is whatever makes the box's silhouette match the mask.
-        deepest = min(max(2.0 * float(np.max(ext)), 1.0), p.max_extent_m)
-        depths = np.linspace(max(float(np.min(ext)), p.min_extent_m), deepest, 12)
-        fits = [_deepen((centre, ext, yaw), axis, float(d)) for d in depths]
-    best: tuple[float, PlacedBox] | None = None
-    for box_xy in fits:
-        height = _height(box_xy, base_z, top_v, K, T_cam_world, p)
-        cand = PlacedBox(np.array([*box_xy[0], base_z + 0.5 * height]), np.array([*box_xy[1], height]),
-                         box_xy[2], support, len(pts))
-        score = _silhouette_score(cand, mask, others, K, T_cam_world) if len(fits) > 1 else 1.0
-        if best is None or score > best[0]:
-            best = (score, cand)
-    return None if best is None else best[1]
+    return _fit_box(pts, support, mask, others, top_v, K, T_cam_world, t, p)
 
 
 def _floor_points(us: F64, vs: F64, K: F64, R: F64, t: F64, p: SingleViewParams) -> F64 | None:

@@ -171,7 +171,7 @@ def test_a_detection_without_depth_on_a_measured_table_top_stands_on_it() -> Non
     [obj] = core._place_depthless(view, cam, dets, [0], vg)
     assert obj.ray_origin is not None and core.counters["detections_placed_on_measured_support"] == 1
     assert np.linalg.norm(obj.points.mean(0)[:2] - truth.center[:2]) < 0.15
-    assert obj.points[:, 2].min() == pytest.approx(0.75, abs=0.05)
+    assert obj.points[:, 2].min() == pytest.approx(0.75, abs=0.1)  # on the table top, not the floor
     off = MapperCore(MapperCoreConfig(geometry=GeometryConfig(backend="oracle"),
                                       perception=PerceptionConfig(segmenter="sim", embedder="sim")))
     off.config.single_view.measured_support = False

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import math
 
+import cv2
 import numpy as np
 import pytest
 
@@ -257,3 +258,127 @@ def test_an_object_taken_away_is_forgotten_by_the_camera_that_placed_it() -> Non
     res = UpdateResult()
     assert om.forget_gone(now, res) == 1
     assert res.removed == {crate_id} and [next(iter(n.label_votes)) for n in om.nodes.values()] == ["chair"]
+
+
+def test_contact_subsets_keep_the_nearest_points() -> None:
+    from mapper.geometry.singleview import _contact_subsets
+
+    pts = np.array([[4.0, 0, 0], [1.0, 0, 0], [3.0, 0, 0], [2.0, 0, 0]])
+    subsets = _contact_subsets(pts, np.zeros(2), (1.0, 0.75, 0.5, 0.49), min_count=2)
+    # 0.49 of 4 rounds to 2, the same size as 0.5: left out; sizes below min_count too
+    assert [s[:, 0].tolist() for s in subsets] == [[1.0, 2.0, 3.0, 4.0], [1.0, 2.0, 3.0], [1.0, 2.0]]
+    assert _contact_subsets(pts, np.zeros(2), (0.25,), min_count=2) == []
+
+
+def test_floor_seen_past_an_objects_side_does_not_drop_it() -> None:
+    """A cabinet against a wall: columns along its side see the floor far behind it (beyond the wall), so
+    its contacts span more than ``max_extent_m``. The nearest contacts, whose box matches the silhouette,
+    place it; with all contacts only (the old behaviour) it was dropped."""
+    from mapper.geometry.singleview import _fit_box
+
+    truth = box(3.0, 2.2, 0.0, 0.7, 0.6, 1.7)
+    mask = silhouette(truth)
+    lo, hi = truth.center[:2] - truth.extent[:2] / 2, truth.center[:2] + truth.extent[:2] / 2
+    near_edges = np.concatenate([  # the two bottom edges that face the camera at (0.2, 0.3)
+        np.stack([np.linspace(lo[0], hi[0], 30), np.full(30, lo[1]), np.zeros(30)], axis=1),
+        np.stack([np.full(30, lo[0]), np.linspace(lo[1], hi[1], 30), np.zeros(30)], axis=1)])
+    beyond = np.stack([np.full(12, hi[0] + 0.5), np.linspace(hi[1] + 2.0, hi[1] + 4.0, 12), np.zeros(12)], axis=1)
+    pts = np.concatenate([near_edges, beyond])
+    top_v = float(np.flatnonzero(mask.any(axis=1))[0]) - 0.5
+    T_cam_world = np.linalg.inv(CAM)
+    others = np.zeros_like(mask)
+    args = (pts, -1, mask, others, top_v, K, T_cam_world, CAM[:3, 3])
+    assert _fit_box(*args, SingleViewParams(trim_fractions=(1.0,))) is None
+    placed = _fit_box(*args, SingleViewParams())
+    assert placed is not None
+    assert np.linalg.norm(placed.center - truth.center) < 0.1
+
+
+def test_silhouette_fit_ignores_pixels_hidden_by_other_masks() -> None:
+    from mapper.geometry.singleview import _SilhouetteFit
+
+    truth = box(3.0, 2.2, 0.0, 1.2, 0.8, 0.75)
+    front = silhouette(box(2.5, 1.2, 0.0, 0.3, 0.3, 0.9))
+    mask = silhouette(truth) & ~front
+    T_cam_world = np.linalg.inv(CAM)
+    fit = _SilhouetteFit(mask, front, K, T_cam_world)
+    assert fit.iou(truth) > 0.9  # the part behind the front object counts neither way
+    assert _SilhouetteFit(mask, np.zeros_like(mask), K, T_cam_world).iou(truth) < fit.iou(truth)
+    assert fit.iou(box(3.5, 2.2, 0.0, 1.2, 0.8, 0.75)) < 0.7
+    assert fit.iou(box(3.0, 2.2, 0.0, 1.2, 0.8, 0.75, yaw_deg=180.0)) == pytest.approx(fit.iou(truth))
+
+
+@pytest.mark.parametrize(("yaw_deg", "front_box"), [(0.0, (2.5, 1.2, 0.0, 0.3, 0.3, 0.9)),
+                                                     (20.0, (2.6, 1.5, 0.0, 0.8, 0.3, 0.6))])
+def test_an_object_whose_bottom_is_partly_hidden_is_refined_to_its_silhouette(
+        yaw_deg: float, front_box: tuple[float, float, float, float, float, float]) -> None:
+    """A table whose bottom edge is partly hidden by a stool in front: the contacts that remain leave its
+    footprint short; fitting the box to the silhouette (the hidden pixels not counted) recovers it."""
+    truth = box(3.0, 2.2, 0.0, 1.2, 0.8, 0.75, yaw_deg=yaw_deg)
+    front = silhouette(box(*front_box))
+    mask = silhouette(truth) & ~front
+    coarse = place_objects([mask, front], K, CAM, SingleViewParams(refine_evals=0))[0]
+    refined = place_objects([mask, front], K, CAM)[0]
+    assert coarse is not None and refined is not None
+    assert np.linalg.norm(coarse.center - truth.center) > 0.15
+    assert np.linalg.norm(refined.center - truth.center) < 0.13
+
+
+def test_floor_colour_tolerance_is_a_parameter() -> None:
+    """Floor contacts keep their columns when the colour under them is within ``max_sigma`` robust standard
+    deviations of the view's floor sample (an apartment camera sees several rooms' floors)."""
+    from mapper.config import SingleViewConfig
+    from mapper.geometry.singleview import _floor_looking
+
+    rng = np.random.default_rng(0)
+    image = np.zeros((20, 100, 3), np.uint8)
+    image[:, :, :] = 120
+    image[5, :, 0] = 120 + rng.integers(-6, 7, 100)  # the floor sample row (under the contacts' rows 2): noisy red
+    lab = cv2.cvtColor(image, cv2.COLOR_RGB2LAB).astype(float)
+    sd = np.clip(1.4826 * np.median(np.abs(lab[5] - np.median(lab[5], axis=0)), axis=0), 3.0, 15.0)
+    mu = np.median(lab[5], axis=0)
+    # one column whose colour under it lies about 4 sigmas from the floor's in some Lab channel
+    for r in range(256):
+        image[5, 99] = (r, 120, 120)
+        z = float((np.abs(cv2.cvtColor(image[5:6, 99:100], cv2.COLOR_RGB2LAB).astype(float)[0, 0] - mu) / sd).max())
+        if 3.6 < z < 4.4:
+            break
+    assert 3.6 < z < 4.4
+    cols = [(np.arange(100, dtype=float), np.full(100, 2.0))]
+    p = SingleViewParams()
+    assert 99 not in _floor_looking(cols, image, p, max_sigma=3.0)[0][0]
+    assert 99 in _floor_looking(cols, image, p, max_sigma=4.5)[0][0]
+    assert SingleViewConfig(floor_colour_sigma=4.5).params().floor_colour_sigma == 4.5
+    assert SingleViewConfig().params().floor_colour_sigma == 3.0
+
+
+def test_two_floors_in_view_are_both_floor_and_a_wall_is_not() -> None:
+    """An apartment camera sees its room's floor and, through a doorway, another room's: the floor sample is
+    bimodal. Each colour cluster holding enough of it is a floor model of its own; a wall colour that is
+    neither stays out, and a one-floor view keeps its one model's verdicts."""
+    from mapper.geometry.singleview import _floor_looking, _floor_models, _two_means
+
+    rng = np.random.default_rng(1)
+    wood = np.array([150.0, 140.0, 170.0]) + rng.normal(0, 2, (60, 3))
+    tiles = np.array([200.0, 135.0, 125.0]) + rng.normal(0, 2, (30, 3))
+    labels = _two_means(np.concatenate([wood, tiles]))
+    assert len(set(labels[:60])) == 1 and len(set(labels[60:])) == 1 and labels[0] != labels[60]
+    assert len(_floor_models(np.concatenate([wood, tiles]), 0.3, 30)) == 3
+    assert len(_floor_models(np.concatenate([wood, tiles]), 0.6, 30)) == 1  # off
+    assert len(_floor_models(np.concatenate([wood, tiles[:10]]), 0.3, 30)) == 2  # 10 of 70: not a floor
+
+    def image_of(under: list[tuple[int, int, int]]) -> np.ndarray:
+        img = np.zeros((10, len(under), 3), np.uint8)
+        img[5] = np.array(under, np.uint8)
+        return img
+
+    p = SingleViewParams()
+    cols = [(np.arange(92, dtype=float), np.full(92, 2.0))]
+    wood_rgb, tile_rgb, wall_rgb = (120, 90, 60), (200, 200, 205), (60, 80, 160)
+    two = image_of([wood_rgb] * 60 + [tile_rgb] * 30 + [wall_rgb] * 2)
+    two[5, :90] = np.clip(two[5, :90].astype(int) + rng.integers(-3, 4, (90, 3)), 0, 255).astype(np.uint8)
+    kept = set(_floor_looking(cols, two, p)[0][0].astype(int).tolist())
+    assert set(range(90)) <= kept and not {90, 91} & kept
+    one_floor = SingleViewParams(floor_cluster_share=0.6)
+    assert set(range(60)) <= set(_floor_looking(cols, two, one_floor)[0][0].astype(int).tolist())
+    assert not set(range(60, 92)) & set(_floor_looking(cols, two, one_floor)[0][0].astype(int).tolist())
