@@ -206,18 +206,19 @@ class SingleViewConfig(BaseModel):
         "views' rays refine later",
     )
     measured_support: bool = Field(
-        default=True,
+        default=False,
         description="... and such a detection that does not touch the floor is placed on the level surface this "
-        "keyframe's confident depth shows just under its mask (a frame on a dresser, a bowl on a table). Static "
-        "sim tuning seeds 0-4, mvs: F1 0.808 -> 0.815, recall 0.815 -> 0.845, nodes 25.0 -> 26.6 (true 24.4)",
+        "keyframe's confident depth shows just under its mask (a frame on a dresser, a bowl on a table). Off: on "
+        "the static sim tuning seeds 0-4 (mvs) F1 0.807 -> 0.813 and recall 0.807 -> 0.837, but nodes 24.6 -> 26.2 "
+        "(true 24.4); on the held-out seeds 10-14 F1 fell (0.823 -> 0.806, with this stop's other changes)",
     )
     mapped_support: bool = Field(
         default=False,
         description="... or, where that surface has no confident depth either, a small one (no side over 0.45 m) "
         "is placed on the top face of the mapped node its lowest pixels' rays meet first, when the pixels just "
-        "under it belong to another object's mask. Off: on the same seeds recall 0.845 -> 0.894 but precision "
-        "0.797 -> 0.755 and nodes 26.6 -> 29.6 (F1 0.815 either way); one RGB-only ASP run (apartment 1): "
-        "recall@30 0.713 -> 0.693",
+        "under it belong to another object's mask (with measured_support). Off: on the same seeds recall 0.845 -> "
+        "0.894 but precision 0.797 -> 0.755 and nodes 26.6 -> 29.6 (F1 0.815 either way); one RGB-only ASP run "
+        "(apartment 1): recall@30 0.713 -> 0.693",
     )
     floor_z_m: float = Field(default=0.0, description="height of the floor in the world frame, metres")
     max_range_m: float = Field(default=12.0, gt=0.0, description="floor contacts farther from the camera are ignored")

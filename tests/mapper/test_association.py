@@ -164,6 +164,7 @@ def test_a_detection_without_depth_on_a_measured_table_top_stands_on_it() -> Non
     vg = ViewGeometry(depth_to_world(depth, small.K(), cam), depth, on_top.astype(np.float32))
     core = MapperCore(MapperCoreConfig(geometry=GeometryConfig(backend="oracle"),
                                        perception=PerceptionConfig(segmenter="sim", embedder="sim")))
+    core.config.single_view.measured_support = True
     view = View(image=np.full((480, 640, 3), 120, np.uint8), source_id="robot1", intrinsics=intr, T_world_cam=cam,
                 stamp_ns=1, seq=0)
     dets = [Detection(mask=obj_mask, label="bowl", confidence=0.9, descriptor=label_descriptor("bowl")),
@@ -174,5 +175,4 @@ def test_a_detection_without_depth_on_a_measured_table_top_stands_on_it() -> Non
     assert obj.points[:, 2].min() == pytest.approx(0.75, abs=0.1)  # on the table top, not the floor
     off = MapperCore(MapperCoreConfig(geometry=GeometryConfig(backend="oracle"),
                                       perception=PerceptionConfig(segmenter="sim", embedder="sim")))
-    off.config.single_view.measured_support = False
     assert off._place_depthless(view, cam, dets, [0], vg) == []  # a guess on a guess (the table's box) is not kept
