@@ -122,6 +122,14 @@ class MapperCore:
         self._offloaded_key: tuple[str, int] | None = None  # the last view whose work was offloaded
         self._bad_input = RateLimitedLog(log)
 
+    def views_to_keep(self) -> list[View]:
+        """Every view a later window or retry may still use: the stored keyframes and recent frames, and the
+        deferred keyframes (retried once they have neighbours, even after the store let them go). A worker
+        job needs their JPEGs (``mapper.work.offload.Offloader.prune``)."""
+        kept = self.keyframes.views()
+        keys = {v.key for v in kept}
+        return kept + [v for v in self._deferred if v.key not in keys]
+
     def _count(self, name: str, value: float = 1.0) -> None:
         self.counters[name] = self.counters.get(name, 0.0) + value
 

@@ -155,7 +155,7 @@ class MapperNode(Process):
             if not todo:
                 break
         # Only now: a keyframe finished above may be a source of another still to finish (its JPEG is kept).
-        offloader.prune(self.core.keyframes.views())
+        offloader.prune(self.core.views_to_keep())
 
     def _process(self, frame: Frame, rgb: np.ndarray, oracle: OracleFrame | None) -> GraphDelta | None:
         view = self.intake.view(frame, rgb, oracle)
@@ -168,7 +168,7 @@ class MapperNode(Process):
             self.offloader.remember(view.key, frame.jpeg)  # a keyframe's JPEG answers workers' fetches
         delta = self.core.ingest(view)
         if self.offloader is not None:
-            self.offloader.prune(self.core.keyframes.views())
+            self.offloader.prune(self.core.views_to_keep())
         return self._after(view, delta)
 
     def _after(self, view: View, delta: GraphDelta | None) -> GraphDelta | None:

@@ -71,3 +71,25 @@ def test_corrupt_state_is_moved_aside(tmp_path) -> None:
     assert (tmp_path / "mapper_state.corrupt").exists()
     with pytest.raises(ValueError):
         oracle_core().load_state({"format": 99})
+
+
+def test_a_deferred_keyframe_stays_kept_after_the_store_lets_it_go() -> None:
+    """A keyframe with no stereo partner yet is deferred and retried later; when newer keyframes push it out
+    of the bounded store, the mapper must still keep it (a worker job for its retry needs its JPEG)."""
+    import numpy as np
+
+    from mapper.config import GeometryConfig, KeyframeConfig, MapperCoreConfig, SingleViewConfig
+    from mapper.core import MapperCore
+    from protocol.poses import look_at
+
+    core = MapperCore(MapperCoreConfig(geometry=GeometryConfig(backend="mvs"),
+                                       keyframes=KeyframeConfig(max_keyframes=2),
+                                       single_view=SingleViewConfig(enabled=False)))
+    img = np.full((INTR.height, INTR.width, 3), 90, np.uint8)
+    lone = View(img, "cam-a", INTR, look_at([0.0, 0.0, 1.0], [0.0, 3.0, 1.0]), seq=0, stamp_ns=1)
+    core.ingest(lone)
+    assert core.counters["keyframes_deferred"] == 1
+    for k in range(3):  # later keyframes of another source fill the store
+        core.keyframes.add(View(img, "robot", INTR, look_at([5.0 + k, 0.0, 1.0], [5.0 + k, 3.0, 1.0]), seq=k))
+    assert lone.key not in {v.key for v in core.keyframes.views()}
+    assert lone.key in {v.key for v in core.views_to_keep()}
