@@ -426,12 +426,12 @@ class MapperCore:
             for i in which:
                 if i in placed:
                     continue
-                b = place_on_measured_support(small[i], anything & ~small[i], vg.points_world, valid, Kd,
-                                              T_world_cam, sv.params())
+                others = anything & ~small[i]
+                b = place_on_measured_support(small[i], others, vg.points_world, valid, Kd, T_world_cam, sv.params())
                 if b is not None:
                     self._count("detections_placed_on_measured_support")
                 elif sv.mapped_support:
-                    b = place_on_mapped_support(small[i], anything & ~small[i], tops, Kd, T_world_cam, sv.params())
+                    b = place_on_mapped_support(small[i], others, tops, Kd, T_world_cam, sv.params())
                     if b is not None:
                         self._count("detections_placed_on_mapped_support")
                 if b is not None:

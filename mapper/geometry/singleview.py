@@ -43,7 +43,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from protocol.poses import unproject
+from protocol.poses import invert, unproject
 
 F64 = NDArray[np.float64]
 F32 = NDArray[np.float32]
@@ -263,6 +263,16 @@ def _height(box_xy: tuple[F64, F64, float], base_z: float, top_v: float, K: F64,
     return 0.5 * (lo + hi)
 
 
+def lowest_pixels(mask: np.ndarray, border_px: int = 1) -> tuple[NDArray[np.int64], NDArray[np.int64]]:
+    """Column and row of each image column's lowest mask pixel, leaving out columns whose lowest pixel is
+    within ``border_px`` of the bottom border (the object may go on below the image: truncated)."""
+    h = mask.shape[0]
+    cols = np.flatnonzero(mask.any(axis=0))
+    low = (h - 1) - np.argmax(mask[::-1, cols], axis=0)
+    keep = low < h - 1 - border_px
+    return cols[keep], low[keep]
+
+
 def place_objects(masks: Sequence[np.ndarray], K: F64, T_world_cam: F64,
                   params: SingleViewParams = SingleViewParams(), image: np.ndarray | None = None,
                   ) -> list[PlacedBox | None]:
@@ -283,13 +293,10 @@ def place_objects(masks: Sequence[np.ndarray], K: F64, T_world_cam: F64,
     # Per mask: contact columns and what lies just below each.
     contacts: list[tuple[F64, F64, np.ndarray] | None] = []
     for m in masks:
-        cols = np.flatnonzero(m.any(axis=0))
-        if len(cols) == 0:
+        if not m.any():
             contacts.append(None)
             continue
-        low = (h - 1) - np.argmax(m[::-1, cols], axis=0)
-        keep = low < h - 1 - p.border_px
-        cols, low = cols[keep], low[keep]
+        cols, low = lowest_pixels(m, p.border_px)
         below = np.full(len(cols), -2, np.int64)  # -2: undecided, -1: background
         for k in range(1, p.below_px + 1):
             rows = np.minimum(low + k, h - 1)
@@ -521,11 +528,8 @@ def box_from_contacts(pts: F64, mask: np.ndarray, others: np.ndarray, K: F64, T_
     its support) whose silhouette best matches the mask and whose top reaches its top row (``_fit_box``);
     pixels of ``others`` (other masks, which may hide the object) count neither way. None when no
     footprint fits."""
-    t = T_world_cam[:3, 3]
-    T_cam_world = np.eye(4)
-    T_cam_world[:3, :3], T_cam_world[:3, 3] = T_world_cam[:3, :3].T, -T_world_cam[:3, :3].T @ t
     top_v = float(np.flatnonzero(mask.any(axis=1))[0]) - 0.5  # the top edge of the top pixel
-    return _fit_box(pts, support, mask, others, top_v, K, T_cam_world, t, p)
+    return _fit_box(pts, support, mask, others, top_v, K, invert(T_world_cam), T_world_cam[:3, 3], p)
 
 
 def _floor_points(us: F64, vs: F64, K: F64, R: F64, t: F64, p: SingleViewParams) -> F64 | None:

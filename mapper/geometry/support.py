@@ -21,7 +21,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
-from mapper.geometry.singleview import PlacedBox, SingleViewParams, box_from_contacts, pixel_rays
+from mapper.geometry.singleview import PlacedBox, SingleViewParams, box_from_contacts, lowest_pixels, pixel_rays
 
 F64 = NDArray[np.float64]
 
@@ -42,11 +42,8 @@ def measured_support(mask: np.ndarray, points_world: np.ndarray, valid: np.ndarr
     """Height of the level surface just under ``mask`` (H, W bool) from the confident points
     (``points_world`` (H, W, 3) where ``valid``), and the mask's contact columns over it (u, v of each
     column's lowest pixel); None when too few columns see a support or it is not level."""
-    h, w = mask.shape
-    cols = np.flatnonzero(mask.any(axis=0))
-    if len(cols) == 0:
-        return None
-    low = (h - 1) - np.argmax(mask[::-1, cols], axis=0)
+    h = mask.shape[0]
+    cols, low = lowest_pixels(mask, border_px=0)  # a column ending on the last row has nothing under it
     us, vs, zs, band = [], [], [], []
     for c, r in zip(cols, low, strict=True):
         rows = np.arange(r + 1, min(r + 1 + p.band_px, h))
@@ -106,15 +103,6 @@ class MappedTop:
     z: float
 
 
-def lowest_pixels(mask: np.ndarray) -> tuple[F64, F64]:
-    """(u, v) of each column's lowest mask pixel, columns that reach the bottom border left out."""
-    h = mask.shape[0]
-    cols = np.flatnonzero(mask.any(axis=0))
-    low = (h - 1) - np.argmax(mask[::-1, cols], axis=0)
-    keep = low < h - 2
-    return cols[keep].astype(np.float64), low[keep].astype(np.float64)
-
-
 def place_on_mapped_support(mask: np.ndarray, others: np.ndarray, tops: list[MappedTop], K: F64, T_world_cam: F64,
                             sv: SingleViewParams | None = None, p: SupportParams = SupportParams(),
                             margin_m: float = 0.05, max_side_m: float = 0.45) -> PlacedBox | None:
@@ -124,12 +112,12 @@ def place_on_mapped_support(mask: np.ndarray, others: np.ndarray, tops: list[Map
     count: a support is an object too; and only small objects are placed (no side over ``max_side_m``): a
     large one whose lowest pixels end on a table top is more likely standing behind it."""
     sv = sv or SingleViewParams()
-    us, vs = lowest_pixels(mask)
+    cols, low = lowest_pixels(mask)
     h = mask.shape[0]
-    under = np.zeros(len(us), bool)
+    under = np.zeros(len(cols), bool)
     for k in range(1, p.band_px + 1):
-        under |= others[np.minimum(vs.astype(np.int64) + k, h - 1), us.astype(np.int64)]
-    us, vs = us[under], vs[under]
+        under |= others[np.minimum(low + k, h - 1), cols]
+    us, vs = cols[under].astype(np.float64), low[under].astype(np.float64)
     if len(us) < p.min_columns or not tops:
         return None
     R, t = T_world_cam[:3, :3], T_world_cam[:3, 3]
