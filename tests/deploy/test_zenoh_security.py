@@ -204,12 +204,7 @@ def test_real_edge_camera_through_the_shipped_acl(tmp_path: Path, procs: list[Pr
 
 
 def test_wrong_password_cannot_join(tmp_path: Path, procs: list[Proc]) -> None:
-    shutil.copy(ZENOH_DIR / "router-acl.json5", tmp_path)
-    shutil.copy(ZENOH_DIR / "users.txt", tmp_path)
-    port = free_port()
-    ep = endpoint(port)
-    procs.append(Proc(["router", "--config", str(tmp_path / "router-acl.json5"), "--listen", ep], cwd=tmp_path))
-    wait_port(port)
+    ep = _acl_router(tmp_path, procs)
     bad = ZenohSettings(mode="client", connect=[ep], overrides={
         "transport/auth/usrpwd/user": "cam-01", "transport/auth/usrpwd/password": "wrong",
         "connect/timeout_ms": 2000, "connect/exit_on_failure": True})
