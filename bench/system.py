@@ -315,14 +315,41 @@ def run(cameras: int, fps: float, phase_s: float, warmup_s: float, width: int, h
     for n in counts:
         phases = _run_stack(cams, fps, phase_s, warmup_s, consumers, mapper_settings, consumer_rate_hz, n)
         results["phases"] += [{"workers": n, **ph} for ph in phases]
-    rows = [{k: v for k, v in ph.items() if k != "mapper_status"} for ph in results["phases"]]
+    rows = [{k: v for k, v in ph.items() if k not in ("mapper_status", "model_curve")} for ph in results["phases"]]
     if workers is None:
         rows = [{k: v for k, v in r.items() if k != "workers"} for r in rows]
     write_report(out, "system", results, rows,
                  title=f"System: {cameras} simulated cameras at {fps:g} fps into one mapper "
                        f"({width}x{height}, {mapper_settings}; consumers query at {consumer_rate_hz:g} Hz each"
                        + (f"; argus worker processes: {counts}" if workers else "") + ")")
+    if workers:
+        append_model(out / "system.md", results["phases"])
     return results
+
+
+def append_model(md: Path, phases: list[dict[str, Any]]) -> None:
+    """The scaling model under the report's table: per phase, CPU-seconds per keyframe per role, measured and
+    predicted keyframes/s; then the curve each worker phase's costs predict for N workers."""
+    from bench.report import markdown_table
+
+    roles = sorted({k for ph in phases for k in ph if k.startswith(("cpu_s_per_kf.", "cpu_s_per_job."))})
+    cols = ["workers", "consumers", "keyframes_per_s", "keyframes_done_per_s", "model_kf_per_s_here",
+            "latency_p50_ms", "latency_p99_ms", *roles, "bytes_per_job", "transfer_fetch_s_per_job",
+            "result_decode_s_per_job", "job_roundtrip_s"]
+    text = ["", "## Scaling model", "",
+            "CPU-seconds per keyframe done, per role (bench/scaling.py); model_kf_per_s_here: "
+            "min(N / w, 1 / c, cores / (c + o + w), keyframes offered).", "",
+            markdown_table([{c: ph.get(c) for c in cols} for ph in phases], cols)]
+    for ph in phases:
+        if ph.get("model_curve"):
+            costs = f"c {ph['model_c_s']:.3f} s, o {ph['model_o_s']:.3f} s, w {ph['model_w_s']:.3f} s per keyframe"
+            text += [f"Predicted from the {ph['workers']}-worker phase ({ph['consumers']} consumers): {costs}", "",
+                     markdown_table(ph["model_curve"])]
+            pred = ", ".join(f"{r['workers']}: {r['model_kf_per_s_separate_machines']:.2f} / "
+                             f"{r['model_kf_per_s_this_machine']:.2f}" for r in ph["model_curve"])
+            _log(f"model from {ph['workers']} workers: {costs}; kf/s (separate machines / here) {pred}")
+    with md.open("a") as f:
+        f.write("\n".join(text) + "\n")
 
 
 def _launch(endpoint: str, site: str, mapper_settings: dict[str, Any], n_workers: int,
@@ -347,6 +374,42 @@ def _keyframes_done(diff: Any) -> float:
     """Keyframes whose work finished: done in the mapper's thread, or sent out and back (or done by the mapper)."""
     return (diff("keyframes") - diff("keyframes_offloaded", 0.0) + diff("work_results_accepted", 0.0)
             + diff("work_jobs_done_locally", 0.0))
+
+
+def role_clock(stack: Any, mapper_pid: int) -> Any:
+    """CPU clocks of the stack's roles (:class:`bench.scaling.RoleClock`): mapper, router, each worker, this process."""
+    from bench.scaling import RoleClock
+
+    router = next((c.pid for c in stack.children if c.spec.command == "router"), None)
+    workers = {(c.spec.node_id or c.spec.name): c.pid for c in stack.children
+               if c.spec.command == "worker" and c.pid is not None}
+    return RoleClock(mapper_pid, router, workers)
+
+
+def phase_model(diff: Any, roles0: dict[str, float], roles1: dict[str, float], phase: dict[str, Any],
+                n_workers: int) -> dict[str, Any]:
+    """A phase's CPU-seconds per keyframe per role, transfer cost per job and the scaling model's predictions
+    from them (:mod:`bench.scaling`): for ``n_workers`` here (next to the measured keyframes/s) and for N workers
+    on their own machines."""
+    from bench.scaling import curve, model_inputs, predict, role_costs
+
+    done = _keyframes_done(diff)
+    ids = [k.split(".", 1)[1] for k in roles1 if k.startswith("worker.")]
+    jobs = {w: diff(f"worker_jobs_done.{w}", 0.0) for w in ids}
+    out: dict[str, Any] = dict(role_costs(roles0, roles1, done, jobs))
+    accepted = diff("work_results_accepted", 0.0)
+    out["transfer_fetch_s_per_job"] = diff("work_fetch_s_sum", 0.0) / accepted if accepted > 0 else None
+    out["result_decode_s_per_job"] = diff("work_decode_s_sum", 0.0) / accepted if accepted > 0 else None
+    inputs = model_inputs(out, n_workers)
+    if inputs is None:
+        return out
+    cores = os.cpu_count() or 1
+    offered = phase["keyframes_per_s"]  # keyframes selected per second: what the cameras' frames offer
+    p = predict(inputs["c"], inputs["o"], inputs["w"], n_workers, cores, phase.get("bytes_per_job"), offered=offered)
+    out.update({"model_c_s": inputs["c"], "model_o_s": inputs["o"], "model_w_s": inputs["w"],
+                "model_kf_per_s_here": p["shared"],
+                "model_curve": curve(inputs, cores, phase.get("bytes_per_job"), None)})
+    return out
 
 
 def _run_stack(cams: list[CameraFrames], fps: float, phase_s: float, warmup_s: float, consumers: list[int],
@@ -375,6 +438,7 @@ def _run_stack(cams: list[CameraFrames], fps: float, phase_s: float, warmup_s: f
         mapper_pid = next(c.pid for c in stack.children if c.spec.name == "mapper")
         assert mapper_pid is not None
         worker_pids = [c.pid for c in stack.children if c.spec.command == "worker" and c.pid is not None]
+        clock = role_clock(stack, mapper_pid)
         session = open_session(ZenohSettings(mode="client", connect=[endpoint]))
         watch = GraphWatch(session, keys)
         players = [CameraPlayer(session, keys, cam, fps) for cam in cams]
@@ -392,12 +456,14 @@ def _run_stack(cams: list[CameraFrames], fps: float, phase_s: float, warmup_s: f
             cpu0, t0 = proc_cpu_s(mapper_pid), time.monotonic()
             wcpu0 = sum(proc_cpu_s(pid) for pid in worker_pids)
             self_cpu0 = proc_cpu_s(os.getpid())
+            roles0 = clock.sample()
             status0 = watch.take()[2]
             time.sleep(phase_s)
             dt = time.monotonic() - t0
             cpu1, sent1 = proc_cpu_s(mapper_pid), sum(p.sent for p in players)
             wcpu1 = sum(proc_cpu_s(pid) for pid in worker_pids)
             self_cpu1 = proc_cpu_s(os.getpid())
+            roles1 = clock.sample()
             lat, n_deltas, status1 = watch.take()
             for c in cons:
                 c.stop()
@@ -431,6 +497,7 @@ def _run_stack(cams: list[CameraFrames], fps: float, phase_s: float, warmup_s: f
                 "mapper_rss_mb": mem["rss_mb"], "mapper_peak_rss_mb": mem["peak_rss_mb"],
                 "mapper_status": status1,
             }
+            phase.update(phase_model(diff, roles0, roles1, phase, n_workers))
             phases.append(phase)
             log(f"{n_consumers:2d} consumers: offered {phase['offered_fps']:.1f} fps, keyframes "
                 f"{phase['keyframes_per_s']:.2f}/s, delta p50 {phase['latency_p50_ms'] or float('nan'):.0f} ms, "
