@@ -45,7 +45,7 @@ from mapper.intake import view_problem
 from mapper.keyframes import KeyframeSelector, KeyframeStore, intrinsics_of
 from mapper.perception.base import Detection, Embedder, Mask2D, Segmenter, ViewGeometry
 from mapper.pointmap import VoxelMap
-from mapper.relations import compute_edges, refine_with_points
+from mapper.relations import EdgeCache, compute_edges, refine_with_points
 from mapper.work.compute import KeyframeProducts, compute_keyframe
 from protocol.messages import GraphDelta, GraphNode, GraphSnapshot, PointMap
 from protocol.query import GraphQuery
@@ -121,6 +121,7 @@ class MapperCore:
         self.offload: Callable[[View, list[View], int], bool] | None = None
         self._offloaded_key: tuple[str, int] | None = None  # the last view whose work was offloaded
         self._bad_input = RateLimitedLog(log)
+        self._edges = EdgeCache()  # relations of node pairs whose boxes did not change are not recomputed
 
     def views_to_keep(self) -> list[View]:
         """Every view a later window or retry may still use: the stored keyframes and recent frames, and the
@@ -225,7 +226,7 @@ class MapperCore:
                 frames: dict[str, int] | None = None) -> GraphDelta | None:
         t = time.perf_counter()
         boxes = self.objects.boxes()
-        edges = compute_edges(boxes, self.config.relations)
+        edges = compute_edges(boxes, self.config.relations, self._edges)
         clouds = {i: n.points for i, n in self.objects.nodes.items()}
         edges = refine_with_points(edges, boxes, clouds, self.config.relations)
         ups = self.objects.messages(sorted(changed), with_embedding=self.config.node_embeddings)

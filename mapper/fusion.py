@@ -159,9 +159,17 @@ def voxel_downsample(points: np.ndarray, voxel_m: float) -> np.ndarray:
     if len(pts) == 0:
         return pts
     _, inv, counts = np.unique(voxel_keys(pts, voxel_m), return_inverse=True, return_counts=True)
-    sums = np.zeros((len(counts), 3), dtype=np.float64)
-    np.add.at(sums, inv.reshape(-1), pts)
+    sums = sum_by_index(inv.reshape(-1), pts, len(counts))
     return (sums / counts[:, None]).astype(np.float32)
+
+
+def sum_by_index(index: np.ndarray, values: np.ndarray, n: int) -> np.ndarray:
+    """(n, k) float64 sums of the rows of ``values`` (N, k) by ``index`` (N,): ``np.add.at`` into zeros, the same
+    sums bit for bit (each bin adds its values in row order, in float64) but ~10x faster (one ``bincount`` per
+    column)."""
+    vals = np.asarray(values)
+    return np.stack([np.bincount(index, weights=vals[:, c], minlength=n) for c in range(vals.shape[1])], axis=1) \
+        if len(index) else np.zeros((n, vals.shape[1]), dtype=np.float64)
 
 
 def dbscan_labels(points: np.ndarray, eps: float, min_samples: int) -> np.ndarray:
@@ -371,6 +379,7 @@ class NodeState:
     _box: OrientedBox | None = field(default=None, repr=False)
     _full_box: OrientedBox | None = field(default=None, repr=False)
     _centre: tuple[float, float, float] | None = field(default=None, repr=False)
+    _aabb: tuple[np.ndarray, np.ndarray, np.ndarray] | None = field(default=None, repr=False)  # (points, lo, hi)
 
     def touch(self) -> None:
         self._tree = None
@@ -412,7 +421,12 @@ class NodeState:
 
     @property
     def aabb(self) -> tuple[np.ndarray, np.ndarray]:
-        return self.points.min(0), self.points.max(0)
+        """Lowest and highest corner of the points, kept while ``points`` is the same array (association and
+        maintenance ask for it once per node pair)."""
+        cached = self._aabb
+        if cached is None or cached[0] is not self.points:
+            cached = self._aabb = (self.points, self.points.min(0), self.points.max(0))
+        return cached[1], cached[2]
 
     def label_ranking(self) -> list[tuple[str, float]]:
         total = sum(self.label_votes.values()) or 1.0
@@ -779,14 +793,12 @@ class ObjectMap:
         cfg = self.cfg
         ids = sorted(self.nodes)
         pairs: list[tuple[float, str, str]] = []
+        near = self._near_pairs(ids)
         for i, a_id in enumerate(ids):
             a = self.nodes[a_id]
-            alo, ahi = a.aabb
-            for b_id in ids[i + 1 :]:
+            for j in np.flatnonzero(near[i, i + 1 :]) + i + 1:
+                b_id = ids[j]
                 b = self.nodes[b_id]
-                blo, bhi = b.aabb
-                if np.any(alo > bhi + cfg.radius_m) or np.any(blo > ahi + cfg.radius_m):
-                    continue
                 sim = similarity(a.descriptor, b.descriptor)
                 if sim < cfg.merge_similarity or (a.rays and b.rays):
                     continue  # two coarse (single-view) nodes are one object only if their rays say so
@@ -818,6 +830,17 @@ class ObjectMap:
                 res.removed.add(node_id)
         res.changed -= res.removed
         return res
+
+    def _near_pairs(self, ids: Sequence[str]) -> np.ndarray:
+        """(n, n) whether the nodes ``ids``' point boxes come within ``radius_m`` of each other (the same test,
+        element for element, as comparing each pair's ``aabb``)."""
+        if not ids:
+            return np.zeros((0, 0), dtype=bool)
+        r = self.cfg.radius_m
+        lo = np.stack([self.nodes[k].aabb[0] for k in ids])
+        hi_r = np.stack([self.nodes[k].aabb[1] + r for k in ids])  # added in each node's own dtype, as before
+        apart = np.any(lo[:, None, :] > hi_r[None, :, :], axis=-1)
+        return ~(apart | apart.T)
 
     def forget_gone(self, seen: Any, res: UpdateResult | None = None, min_points: int = 15,
                     min_free: float = 0.6) -> int:

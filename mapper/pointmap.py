@@ -11,7 +11,7 @@ from typing import Any
 
 import numpy as np
 
-from mapper.fusion import voxel_keys
+from mapper.fusion import sum_by_index, voxel_keys
 from protocol.messages import PointMap
 
 
@@ -47,10 +47,8 @@ class VoxelMap:
         uk, inv = np.unique(k_new, return_inverse=True)
         inv = inv.reshape(-1)
         n_new = np.bincount(inv, minlength=len(uk))
-        s_new = np.zeros((len(uk), 3))
-        c_new = np.zeros((len(uk), 3))
-        np.add.at(s_new, inv, pts)
-        np.add.at(c_new, inv, cols)
+        s_new = sum_by_index(inv, pts, len(uk))
+        c_new = sum_by_index(inv, cols, len(uk))
         all_keys = np.concatenate([self.keys, uk])
         merged, minv = np.unique(all_keys, return_inverse=True)
         minv = minv.reshape(-1)

@@ -20,6 +20,7 @@ from __future__ import annotations
 import math
 from collections.abc import Mapping
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
@@ -224,11 +225,40 @@ def _relation(a: _Box, b: _Box, cfg: RelationConfig) -> Predicate | None:
     return None
 
 
-def compute_edges(boxes: Mapping[str, OrientedBox], cfg: RelationConfig | None = None) -> list[GraphEdge]:
-    """All edges among ``boxes`` (node id -> box), at most one per ordered pair, sorted by triple."""
+class EdgeCache:
+    """What :func:`compute_edges` found last time, per node and per ordered pair, keyed by the boxes' values: a
+    keyframe changes a few nodes, so the pairs of unchanged boxes are not worked out again (the answer is the
+    same: a predicate depends only on the two boxes and the config). Holds only the last call's nodes and
+    near pairs (bounded by the graph)."""
+
+    def __init__(self) -> None:
+        self.prepared: dict[str, tuple[tuple[Any, ...], _Box]] = {}
+        self.pairs: dict[tuple[str, str], tuple[tuple[Any, ...], tuple[Any, ...], Predicate | None]] = {}
+        self.cfg: RelationConfig | None = None
+        self.hits = 0
+
+
+def _box_key(box: OrientedBox) -> tuple[Any, ...]:
+    return (*box.center, *box.extent, box.yaw_rad)
+
+
+def compute_edges(boxes: Mapping[str, OrientedBox], cfg: RelationConfig | None = None,
+                  cache: EdgeCache | None = None) -> list[GraphEdge]:
+    """All edges among ``boxes`` (node id -> box), at most one per ordered pair, sorted by triple. With a
+    ``cache`` (one per graph), pairs whose boxes did not change since the last call are not recomputed."""
     cfg = cfg or RelationConfig()
+    if cache is not None and cache.cfg != cfg:
+        cache.prepared, cache.pairs, cache.cfg = {}, {}, cfg.model_copy()
     ids = sorted(boxes)
-    prepared = [_prep(boxes[i], cfg.min_extent_m) for i in ids]
+    keys = [_box_key(boxes[i]) for i in ids]
+    if cache is None:
+        prepared = [_prep(boxes[i], cfg.min_extent_m) for i in ids]
+    else:
+        prepared = []
+        for i, k in zip(ids, keys, strict=True):
+            hit = cache.prepared.get(i)
+            prepared.append(hit[1] if hit is not None and hit[0] == k else _prep(boxes[i], cfg.min_extent_m))
+        cache.prepared = {i: (k, b) for i, k, b in zip(ids, keys, prepared, strict=True)}
     if len(ids) < 2:
         return []
     # Vectorised horizontal pre-filter on circumscribed circles keeps this ~O(n) for sparse scenes.
@@ -238,10 +268,22 @@ def compute_edges(boxes: Mapping[str, OrientedBox], cfg: RelationConfig | None =
     near = dist <= radii[:, None] + radii[None, :] + cfg.next_to_max_gap_m
     np.fill_diagonal(near, False)
     edges: list[GraphEdge] = []
+    pairs: dict[tuple[str, str], tuple[tuple[Any, ...], tuple[Any, ...], Predicate | None]] = {}
     for i, j in zip(*np.nonzero(near), strict=True):
-        pred = _relation(prepared[i], prepared[j], cfg)
+        if cache is None:
+            pred = _relation(prepared[i], prepared[j], cfg)
+        else:
+            was = cache.pairs.get((ids[i], ids[j]))
+            if was is not None and was[0] == keys[i] and was[1] == keys[j]:
+                pred = was[2]
+                cache.hits += 1
+            else:
+                pred = _relation(prepared[i], prepared[j], cfg)
+            pairs[(ids[i], ids[j])] = (keys[i], keys[j], pred)
         if pred is not None:
             edges.append(GraphEdge(subject_id=ids[i], predicate=pred, object_id=ids[j]))
+    if cache is not None:
+        cache.pairs = pairs
     edges.sort(key=lambda e: (e.subject_id, e.predicate, e.object_id))
     return edges
 
