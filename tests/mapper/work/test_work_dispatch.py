@@ -165,3 +165,40 @@ def test_a_new_job_waiting_too_long_is_dropped_but_a_started_one_is_not() -> Non
     assert d.take_dropped() == [("b#1", "stale")]  # waited 2.1 s
     assert d.expire(10.0) == [] and set(d.jobs) == {"a#1", "c#1"}  # started once / retried: kept
     assert d.counters["jobs_dropped_stale"] == 1
+
+
+def test_equally_loaded_workers_keep_each_source_on_its_last_worker() -> None:
+    """Source affinity: a source's next job goes where its last one went when that worker is among the least
+    loaded (its cached features and depth of the source's keyframes are reused); never onto a busier worker."""
+    d = make(max_in_flight=2)
+    d.worker_up("w1")
+    d.worker_up("w2")
+    d.submit("a#0", "a", now=0.0)
+    d.submit("b#0", "b", now=0.1)
+    assert d.assign(now=1.0) == [("a#0", "w1", 1), ("b#0", "w2", 1)]
+    for job, w in (("a#0", "w1"), ("b#0", "w2")):
+        assert d.result(job, w, now=2.0) is Outcome.ACCEPTED
+    # Both idle: b goes back to w2 although w1 comes first by id (without affinity: w1, then a to w2).
+    d.submit("b#1", "b", now=3.0)
+    d.submit("a#1", "a", now=3.1)
+    assert d.assign(now=3.5) == [("b#1", "w2", 1), ("a#1", "w1", 1)]
+    assert d.counters["jobs_assigned_same_worker"] == 2
+    # Load beats affinity.
+    d.submit("c#0", "c", now=4.0)
+    assert d.assign(now=4.0) == [("c#0", "w1", 1)]  # a new source: the least loaded (w1 and w2 both have 1: w1)
+    d.submit("b#2", "b", now=4.5)
+    assert d.assign(now=4.5) == [("b#2", "w2", 1)]  # w2 has 1 in flight, w1 has 2: b stays on w2
+    d.submit("b#3", "b", now=5.0)
+    assert d.assign(now=5.0) == []  # both full: it waits, not piled onto its worker
+    assert d.result("a#1", "w1", now=5.5) is Outcome.ACCEPTED
+    assert d.assign(now=5.5) == [("b#3", "w1", 1)]  # only w1 has room: affinity yields to load
+
+
+def test_affinity_memory_is_bounded() -> None:
+    d = Dispatcher(DispatchConfig(max_sources=3))
+    d.worker_up("w1")
+    for i in range(10):
+        d.submit(f"s{i}#0", f"s{i}", now=float(i))
+        d.assign(now=float(i))
+        d.result(f"s{i}#0", "w1", now=float(i))
+    assert len(d._affinity) == 3
