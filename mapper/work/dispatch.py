@@ -74,6 +74,7 @@ class DispatchConfig:
     max_workers: int = 256
     max_pending_s: float = 2.0  # a new job waiting longer than this for a worker is dropped (0: never)
     max_sources: int = 4096  # sources whose last worker is remembered (affinity), the least recent forgotten
+    affinity_hold_s: float = 0.5  # a job waits up to this long for its source's last worker when that one is full
 
 
 class Dispatcher:
@@ -133,14 +134,17 @@ class Dispatcher:
         return True
 
     def assign(self, now: float) -> list[tuple[str, str, int]]:
-        """Send pending jobs (oldest first) to the least loaded live workers: ``(job_id, worker_id, attempt)``."""
+        """Send pending jobs (oldest first) to the least loaded live workers: ``(job_id, worker_id, attempt)``.
+        Source affinity (:meth:`_pick`) may hold a job back a little while its worker is full."""
         out = []
         for j in sorted((j for j in self.jobs.values() if j.state is State.PENDING), key=lambda j: j.submitted):
             free = [(len(self.workers[k].in_flight), k) for k in self.live_workers()
                     if len(self.workers[k].in_flight) < self.config.max_in_flight]
             if not free:
                 break
-            wid = self._pick(j.source_id, free)
+            wid = self._pick(j, free, now)
+            if wid is None:
+                continue
             j.state, j.worker, j.since = State.ASSIGNED, wid, now
             j.attempts += 1
             self.workers[wid].in_flight.add(j.job_id)
@@ -148,16 +152,23 @@ class Dispatcher:
             out.append((j.job_id, wid, j.attempts))
         return out
 
-    def _pick(self, source_id: str, free: list[tuple[int, str]]) -> str:
-        """The least loaded of ``free`` ((jobs in flight, worker id)); among ties, the source's last worker, else the
-        first by id. Remembers the choice for the source."""
+    def _pick(self, j: Job, free: list[tuple[int, str]], now: float) -> str | None:
+        """Where job ``j`` goes among ``free`` ((jobs in flight, worker id)): the source's last worker when it is among
+        the least loaded; None (held) while that worker is live but full and the job has waited less than
+        ``affinity_hold_s`` (under full load each worker keeps its sources instead of swapping them at every
+        turn); else the least loaded, first by id. Remembers the choice for the source."""
         least = min(n for n, _ in free)
         ties = sorted(k for n, k in free if n == least)
-        last = self._affinity.pop(source_id, None)
+        last = self._affinity.get(j.source_id)
+        if last is not None and last not in {k for _, k in free} and last in self.live_workers() \
+                and now - j.since < self.config.affinity_hold_s:
+            self.counters["jobs_held_for_affinity"] += 1
+            return None
         wid = last if last in ties else ties[0]
         if wid == last:
             self.counters["jobs_assigned_same_worker"] += 1
-        self._affinity[source_id] = wid
+        self._affinity.pop(j.source_id, None)
+        self._affinity[j.source_id] = wid
         while len(self._affinity) > self.config.max_sources:
             self._affinity.popitem(last=False)
         return wid

@@ -190,8 +190,28 @@ def test_equally_loaded_workers_keep_each_source_on_its_last_worker() -> None:
     assert d.assign(now=4.5) == [("b#2", "w2", 1)]  # w2 has 1 in flight, w1 has 2: b stays on w2
     d.submit("b#3", "b", now=5.0)
     assert d.assign(now=5.0) == []  # both full: it waits, not piled onto its worker
-    assert d.result("a#1", "w1", now=5.5) is Outcome.ACCEPTED
-    assert d.assign(now=5.5) == [("b#3", "w1", 1)]  # only w1 has room: affinity yields to load
+    assert d.result("a#1", "w1", now=5.1) is Outcome.ACCEPTED
+    # w1 has room, b's worker w2 is full: b's job is held for w2 a little (affinity_hold_s)...
+    assert d.assign(now=5.2) == [] and d.counters["jobs_held_for_affinity"] == 1
+    # ... then given to the worker with room.
+    assert d.assign(now=5.6) == [("b#3", "w1", 1)]
+    assert d._affinity["b"] == "w1"
+
+
+def test_a_job_is_not_held_for_a_worker_that_went_away() -> None:
+    d = make(max_in_flight=1)
+    d.worker_up("w1")
+    d.worker_up("w2")
+    d.submit("a#0", "a", now=0.0)
+    d.submit("b#0", "b", now=0.0)
+    assert d.assign(now=0.0) == [("a#0", "w1", 1), ("b#0", "w2", 1)]
+    assert d.result("a#0", "w1", now=0.1) is Outcome.ACCEPTED
+    d.submit("b#1", "b", now=0.2)
+    assert d.assign(now=0.2) == []  # held for w2 (full)
+    d.worker_down("w2", now=0.3)  # b#0 re-issued, b#1 no longer held: w2 is gone
+    assert sorted(d.assign(now=0.3)) == [("b#0", "w1", 2)]
+    assert d.result("b#0", "w1", now=0.4) is Outcome.ACCEPTED
+    assert d.assign(now=0.4) == [("b#1", "w1", 1)]
 
 
 def test_affinity_memory_is_bounded() -> None:
