@@ -15,6 +15,18 @@ from mapper.fusion import sum_by_index, voxel_keys
 from protocol.messages import PointMap
 
 
+def merge_sorted_keys(keys: np.ndarray, add: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The sorted union of two sorted unique key arrays and where each input key lands in it: what
+    ``np.unique(np.concatenate([keys, add]), return_inverse=True)`` gives, by binary search instead of sorting
+    the whole map again at every view."""
+    pos = np.searchsorted(keys, add)
+    known = pos < len(keys)
+    known[known] = keys[pos[known]] == add[known]
+    fresh = add[~known]
+    merged = np.insert(keys, np.searchsorted(keys, fresh), fresh)
+    return merged, np.arange(len(keys)) + np.searchsorted(fresh, keys), np.searchsorted(merged, add)
+
+
 class VoxelMap:
     """Voxel-hashed accumulation of world points."""
 
@@ -49,14 +61,11 @@ class VoxelMap:
         n_new = np.bincount(inv, minlength=len(uk))
         s_new = sum_by_index(inv, pts, len(uk))
         c_new = sum_by_index(inv, cols, len(uk))
-        all_keys = np.concatenate([self.keys, uk])
-        merged, minv = np.unique(all_keys, return_inverse=True)
-        minv = minv.reshape(-1)
+        merged, old, new = merge_sorted_keys(self.keys, uk)
         sums = np.zeros((len(merged), 3))
         csum = np.zeros((len(merged), 3))
         npts = np.zeros(len(merged), dtype=np.int64)
         cnt = np.zeros(len(merged), dtype=np.int64)
-        old, new = minv[: len(self.keys)], minv[len(self.keys) :]
         sums[old] += self.sums
         csum[old] += self.color_sums
         npts[old] += self.npoints

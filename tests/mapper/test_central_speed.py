@@ -91,3 +91,18 @@ def test_edge_cache_gives_the_edges_of_a_fresh_computation() -> None:
     # Another config must not reuse what the old one decided.
     wide = RelationConfig(next_to_max_gap_m=2.0)
     assert compute_edges(boxes, wide, cache) == compute_edges(boxes, wide)
+
+
+def test_merge_sorted_keys_is_np_unique_of_the_union() -> None:
+    from mapper.pointmap import merge_sorted_keys
+
+    rng = np.random.default_rng(4)
+    keys = np.unique(rng.integers(-1000, 1000, 300)).astype(np.int64)
+    for add in (np.unique(rng.integers(-1200, 1200, 200)), np.zeros(0, np.int64), keys[:5], np.array([5000])):
+        add = add.astype(np.int64)
+        merged, old, new = merge_sorted_keys(keys, add)
+        ref, inv = np.unique(np.concatenate([keys, add]), return_inverse=True)
+        assert np.array_equal(merged, ref)
+        assert np.array_equal(old, inv[: len(keys)]) and np.array_equal(new, inv[len(keys) :])
+    merged, old, new = merge_sorted_keys(np.zeros(0, np.int64), np.array([1, 3], np.int64))
+    assert merged.tolist() == [1, 3] and old.tolist() == [] and new.tolist() == [0, 1]
