@@ -16,15 +16,16 @@ from protocol.messages import PointMap
 
 
 def merge_sorted_keys(keys: np.ndarray, add: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """The sorted union of two sorted unique key arrays and where each input key lands in it: what
-    ``np.unique(np.concatenate([keys, add]), return_inverse=True)`` gives, by binary search instead of sorting
-    the whole map again at every view."""
+    """The sorted union of two sorted unique key arrays (what ``np.unique(np.concatenate([keys, add]))`` gives, by
+    binary search instead of sorting the whole map again at every view), where each of ``add`` lands in it, and
+    where in ``keys`` the keys not yet there go (``np.insert`` positions)."""
     pos = np.searchsorted(keys, add)
     known = pos < len(keys)
     known[known] = keys[pos[known]] == add[known]
     fresh = add[~known]
-    merged = np.insert(keys, np.searchsorted(keys, fresh), fresh)
-    return merged, np.arange(len(keys)) + np.searchsorted(fresh, keys), np.searchsorted(merged, add)
+    at = np.searchsorted(keys, fresh)
+    merged = np.insert(keys, at, fresh)
+    return merged, np.searchsorted(merged, add), at
 
 
 class VoxelMap:
@@ -61,15 +62,14 @@ class VoxelMap:
         n_new = np.bincount(inv, minlength=len(uk))
         s_new = sum_by_index(inv, pts, len(uk))
         c_new = sum_by_index(inv, cols, len(uk))
-        merged, old, new = merge_sorted_keys(self.keys, uk)
-        sums = np.zeros((len(merged), 3))
-        csum = np.zeros((len(merged), 3))
-        npts = np.zeros(len(merged), dtype=np.int64)
-        cnt = np.zeros(len(merged), dtype=np.int64)
-        sums[old] += self.sums
-        csum[old] += self.color_sums
-        npts[old] += self.npoints
-        cnt[old] += self.counts
+        merged, new, at = merge_sorted_keys(self.keys, uk)
+
+        def grown(a: np.ndarray) -> np.ndarray:  # the old rows, a zero row at each new key's place
+            return np.insert(a, at, 0, axis=0)
+
+        # ``+ 0.0``: what adding the old sums into zeros gave (-0.0 becomes 0.0, nothing else changes)
+        sums, csum = grown(self.sums) + 0.0, grown(self.color_sums) + 0.0
+        npts, cnt = grown(self.npoints), grown(self.counts)
         sums[new] += s_new
         csum[new] += c_new
         npts[new] += n_new

@@ -100,9 +100,56 @@ def test_merge_sorted_keys_is_np_unique_of_the_union() -> None:
     keys = np.unique(rng.integers(-1000, 1000, 300)).astype(np.int64)
     for add in (np.unique(rng.integers(-1200, 1200, 200)), np.zeros(0, np.int64), keys[:5], np.array([5000])):
         add = add.astype(np.int64)
-        merged, old, new = merge_sorted_keys(keys, add)
+        merged, new, at = merge_sorted_keys(keys, add)
         ref, inv = np.unique(np.concatenate([keys, add]), return_inverse=True)
-        assert np.array_equal(merged, ref)
-        assert np.array_equal(old, inv[: len(keys)]) and np.array_equal(new, inv[len(keys) :])
-    merged, old, new = merge_sorted_keys(np.zeros(0, np.int64), np.array([1, 3], np.int64))
-    assert merged.tolist() == [1, 3] and old.tolist() == [] and new.tolist() == [0, 1]
+        assert np.array_equal(merged, ref) and np.array_equal(new, inv[len(keys) :])
+        fresh = np.setdiff1d(add, keys)
+        assert np.array_equal(np.insert(keys, at, fresh), ref)
+    merged, new, at = merge_sorted_keys(np.zeros(0, np.int64), np.array([1, 3], np.int64))
+    assert merged.tolist() == [1, 3] and new.tolist() == [0, 1] and at.tolist() == [0, 0]
+
+
+def _reference_add(vm: VoxelMap, points: np.ndarray, colors: np.ndarray) -> None:
+    """VoxelMap.add as it was (np.add.at, np.unique of the whole map, zeros then fancy adds)."""
+    from mapper.fusion import voxel_keys
+
+    pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    ok = np.all(np.isfinite(pts), axis=1)
+    pts, cols = pts[ok], np.asarray(colors, dtype=np.float64).reshape(-1, 3)[ok]
+    uk, inv = np.unique(voxel_keys(pts, vm.voxel_m), return_inverse=True)
+    inv = inv.reshape(-1)
+    s_new, c_new = np.zeros((len(uk), 3)), np.zeros((len(uk), 3))
+    np.add.at(s_new, inv, pts)
+    np.add.at(c_new, inv, cols)
+    merged, minv = np.unique(np.concatenate([vm.keys, uk]), return_inverse=True)
+    old, new = minv[: len(vm.keys)], minv[len(vm.keys) :]
+    sums, csum = np.zeros((len(merged), 3)), np.zeros((len(merged), 3))
+    npts, cnt = np.zeros(len(merged), dtype=np.int64), np.zeros(len(merged), dtype=np.int64)
+    sums[old] += vm.sums
+    csum[old] += vm.color_sums
+    npts[old] += vm.npoints
+    cnt[old] += vm.counts
+    sums[new] += s_new
+    csum[new] += c_new
+    npts[new] += np.bincount(inv, minlength=len(uk))
+    cnt[new] += 1
+    vm.keys, vm.sums, vm.color_sums, vm.npoints, vm.counts = merged, sums, csum, npts, cnt
+    if len(vm.keys) > vm.max_voxels:
+        keep = np.sort(np.argsort(-vm.counts, kind="stable")[: vm.max_voxels])
+        vm.keys, vm.sums = vm.keys[keep], vm.sums[keep]
+        vm.color_sums, vm.npoints, vm.counts = vm.color_sums[keep], vm.npoints[keep], vm.counts[keep]
+
+
+def test_voxel_map_add_is_the_old_add_bit_for_bit() -> None:
+    rng = np.random.default_rng(5)
+    fast, slow = VoxelMap(0.05, 3000), VoxelMap(0.05, 3000)
+    for i in range(12):
+        pts = rng.normal(size=(2000, 3)) * (0.3 + 0.1 * i)
+        pts[5, 1] = np.nan
+        cols = rng.integers(0, 255, (2000, 3)).astype(np.uint8)
+        fast.add(pts, cols)
+        _reference_add(slow, pts, cols)
+        for name in ("keys", "sums", "color_sums", "npoints", "counts"):
+            a, b = getattr(fast, name), getattr(slow, name)
+            assert a.dtype == b.dtype and a.tobytes() == b.tobytes(), (i, name)
+    assert len(fast) == 3000  # the budget was reached and applied the same way
