@@ -82,7 +82,8 @@ def _safe_cpu(pid: int) -> float:
 def role_costs(cpu0: dict[str, float], cpu1: dict[str, float], keyframes_done: float,
                jobs_by_worker: dict[str, float]) -> dict[str, float | None]:
     """CPU-seconds per keyframe done per role between two :meth:`RoleClock.sample` s (per job for each worker:
-    ``jobs_by_worker`` the jobs each answered in between); None where nothing was done."""
+    ``jobs_by_worker`` the jobs each answered in between), ``workers`` (all of them) and ``all`` (every role); None
+    where nothing was done."""
     out: dict[str, float | None] = {}
     for role in cpu1:
         spent = cpu1[role] - cpu0.get(role, 0.0)
@@ -94,8 +95,9 @@ def role_costs(cpu0: dict[str, float], cpu1: dict[str, float], keyframes_done: f
             out[f"cpu_s_per_kf.{role}"] = spent / keyframes_done if keyframes_done > 0 else None
     workers = [v for k, v in out.items() if k.startswith("cpu_s_per_kf.worker.") and v is not None]
     out["cpu_s_per_kf.workers"] = sum(workers) if workers else None
-    known = [v for k, v in out.items() if k.startswith("cpu_s_per_kf.") and "worker." not in k and v is not None]
-    out["cpu_s_per_kf.all"] = sum(known) if known else None
+    roles = [v for k, v in out.items() if k.startswith("cpu_s_per_kf.") and k != "cpu_s_per_kf.workers"
+             and v is not None]
+    out["cpu_s_per_kf.all"] = sum(roles) if roles else None  # every role, workers included
     return out
 
 

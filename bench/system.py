@@ -333,7 +333,7 @@ def append_model(md: Path, phases: list[dict[str, Any]]) -> None:
     from bench.report import markdown_table
 
     roles = sorted({k for ph in phases for k in ph if k.startswith(("cpu_s_per_kf.", "cpu_s_per_job."))})
-    cols = ["workers", "consumers", "keyframes_per_s", "keyframes_done_per_s", "model_kf_per_s_here",
+    cols = ["workers", "consumers", "load_avg_1m", "keyframes_per_s", "keyframes_done_per_s", "model_kf_per_s_here",
             "latency_p50_ms", "latency_p99_ms", *roles, "bytes_per_job", "transfer_fetch_s_per_job",
             "result_decode_s_per_job", "job_roundtrip_s"]
     text = ["", "## Scaling model", "",
@@ -397,6 +397,7 @@ def phase_model(diff: Any, roles0: dict[str, float], roles1: dict[str, float], p
     ids = [k.split(".", 1)[1] for k in roles1 if k.startswith("worker.")]
     jobs = {w: diff(f"worker_jobs_done.{w}", 0.0) for w in ids}
     out: dict[str, Any] = dict(role_costs(roles0, roles1, done, jobs))
+    out["load_avg_1m"] = os.getloadavg()[0]  # the machine's load at the phase's end: wall-clock figures depend on it
     accepted = diff("work_results_accepted", 0.0)
     out["transfer_fetch_s_per_job"] = diff("work_fetch_s_sum", 0.0) / accepted if accepted > 0 else None
     out["result_decode_s_per_job"] = diff("work_decode_s_sum", 0.0) / accepted if accepted > 0 else None

@@ -1,0 +1,72 @@
+"""The scaling model of ``argus bench system --workers`` (bench/scaling.py): per-role CPU from /proc and the
+predictions, exact on hand-made numbers."""
+
+from __future__ import annotations
+
+import os
+import threading
+import time
+
+import pytest
+
+from bench.scaling import RoleClock, curve, model_inputs, predict, role_costs, thread_cpu_s
+
+
+def test_thread_cpu_splits_main_thread_from_the_others() -> None:
+    before = thread_cpu_s(os.getpid())
+    stop = time.process_time() + 0.3
+
+    def burn() -> None:
+        x = 0
+        while time.process_time() < stop:
+            x += 1
+
+    t = threading.Thread(target=burn)
+    t0 = time.thread_time()
+    t.start()
+    t.join()
+    after = thread_cpu_s(os.getpid())
+    assert after["threads"] - before["threads"] >= 0.1  # the burning thread is not the main one
+    assert after["main"] - before["main"] <= 0.1 + (time.thread_time() - t0)
+
+
+def test_role_costs_per_keyframe_and_per_job() -> None:
+    cpu0 = {"mapper_main": 10.0, "mapper_threads": 1.0, "router": 0.5, "cameras": 2.0, "worker.w0": 5.0,
+            "worker.w1": 0.0}
+    cpu1 = {"mapper_main": 14.0, "mapper_threads": 2.0, "router": 0.9, "cameras": 2.4, "worker.w0": 13.0,
+            "worker.w1": 6.0}
+    c = role_costs(cpu0, cpu1, keyframes_done=40.0, jobs_by_worker={"w0": 20.0, "w1": 15.0})
+    assert c["cpu_s_per_kf.mapper_main"] == pytest.approx(0.1)
+    assert c["cpu_s_per_kf.mapper_threads"] == pytest.approx(0.025)
+    assert c["cpu_s_per_job.worker.w0"] == pytest.approx(0.4) and c["cpu_s_per_job.worker.w1"] == pytest.approx(0.4)
+    assert c["cpu_s_per_kf.workers"] == pytest.approx(14.0 / 40.0)
+    assert c["cpu_s_per_kf.all"] == pytest.approx((4.0 + 1.0 + 0.4 + 0.4 + 8.0 + 6.0) / 40.0)
+    inputs = model_inputs(c, n_workers=2)
+    assert inputs == pytest.approx({"c": 0.1, "o": 0.025 + 0.01 + 0.01, "w": 0.4})
+    assert model_inputs(c, n_workers=0) is None
+    none = role_costs(cpu0, cpu1, keyframes_done=0.0, jobs_by_worker={})
+    assert none["cpu_s_per_kf.mapper_main"] is None and none["cpu_s_per_job.worker.w0"] is None
+
+
+def test_predictions() -> None:
+    # 2 cores here; a worker 0.4 s per job, the mapper's thread 0.05 s, the rest 0.05 s per keyframe.
+    p1 = predict(0.05, 0.05, 0.4, 1, cores=2)
+    assert p1["shared"] == pytest.approx(2.5) and p1["separate"] == pytest.approx(2.5)
+    p2 = predict(0.05, 0.05, 0.4, 2, cores=2)
+    assert p2["separate"] == pytest.approx(5.0)
+    assert p2["shared"] == pytest.approx(2 / 0.5)  # 2 cores / (c + o + w) = 4.0: 1.6x one worker, not 2x
+    # Many machines: the mapper's single thread is the ceiling, then its cores, then the link.
+    assert predict(0.05, 0.05, 0.4, 64, cores=2)["separate"] == pytest.approx(min(1 / 0.05, 2 / 0.1))
+    assert predict(0.05, 0.05, 0.4, 64, cores=2, bytes_per_job=2e7)["separate"] == pytest.approx(125e6 / 2e7)
+    assert predict(0.05, 0.05, 0.4, 2, cores=2, offered=3.0)["separate"] == 3.0
+    assert predict(0.05, 0.05, 0.4, 0, cores=2)["shared"] == pytest.approx(1 / 0.45)
+    rows = curve({"c": 0.05, "o": 0.05, "w": 0.4}, 2, None, None, counts=(1, 2))
+    assert [r["workers"] for r in rows] == [1, 2]
+    assert rows[1]["model_kf_per_s_this_machine"] == pytest.approx(4.0)
+
+
+def test_role_clock_samples_live_processes() -> None:
+    s = RoleClock(os.getpid(), None, {"w0": os.getpid()}).sample()
+    assert set(s) == {"mapper_main", "mapper_threads", "cameras", "worker.w0"}
+    assert s["worker.w0"] >= s["mapper_main"] > 0
+    assert RoleClock(os.getpid(), 2**22 + 12345, {}).sample()["router"] == 0.0  # a process that ended
