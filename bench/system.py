@@ -11,7 +11,12 @@ equal length measure, with 0, 1 and 10 concurrent query consumers:
   capture stamp of the frame that updated a node) among the delta's nodes, p50 / p99;
 - mapper CPU (cores used, from ``/proc/<pid>/stat``) and peak memory (``VmHWM`` of
   ``/proc/<pid>/status``; psutil is not needed);
-- query latency (``graph/nodes?label=...`` and ``graph/snapshot`` gets), p50 / p99.
+- query latency (``graph/nodes?label=...`` and ``graph/snapshot`` gets), p50 / p99;
+- with ``--workers``: CPU-seconds per keyframe done per role (the mapper's main thread and its other threads,
+  the router, the cameras, each worker), the transfer cost per job (bytes, seconds fetching sources, the
+  mapper's seconds decoding a result) and the scaling model's predicted keyframes/s for N workers here and on
+  their own machines (:mod:`bench.scaling`), under the table of ``system.md``. Give it more keyframes than
+  two workers finish (e.g. ``--cameras 4``) to measure scaling.
 
 Example::
 
@@ -530,7 +535,8 @@ def main(argv: list[str] | None = None) -> int:
                    help="mapper segmenter: classical, or sim (ORACLE: the cameras then also publish ground truth)")
     p.add_argument("--workers", default=None,
                    help="scaling curve: comma-separated counts of argus worker processes, one fresh stack each "
-                   "(e.g. 0,1,2); default: no worker column")
+                   "(e.g. 0,1,2), with CPU-seconds per keyframe per role and the model's predictions; default: no "
+                   "worker column")
     p.add_argument("--torch-threads", type=int, default=None,
                    help="torch threads of the mapper and of each worker (1: one core each, for scaling curves)")
     p.add_argument("--quick", action="store_true", help="short run (1 camera, 10 s phases)")
