@@ -255,7 +255,7 @@ class Offloader:
             try:
                 products = decode_result(res, p.job)
                 self.counters.add("work_decode_s_sum", time.perf_counter() - t0)  # the mapper's cost of a result
-                fetch = float(res.timings_s.get("fetch", 0.0))  # the worker pulling the source keyframes
+                fetch = float(res.timings_s.get("fetch", 0.0))  # the worker getting the window's images
                 self.counters.add("work_fetch_s_sum", fetch if 0.0 <= fetch <= 3600.0 else 0.0)  # NaN: not added
             except ResultRejected as e:
                 problem = e.reason
