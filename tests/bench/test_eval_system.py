@@ -68,3 +68,9 @@ def test_system_bench_scaling_with_workers(tmp_path: Path) -> None:
     assert alone["worker_job_s"] is None and alone["bytes_per_job"] is None
     assert all(p["keyframes_done_per_s"] > 0 for p in phases)
     assert "| workers |" in (tmp_path / "system.md").read_text()
+    # The scaling model: CPU-seconds per keyframe per role, and predictions from the worker phase.
+    assert alone["cpu_s_per_kf.mapper_main"] > 0 and "model_curve" not in alone
+    assert helped["cpu_s_per_job.worker.w0"] > 0 and helped["cpu_s_per_kf.router"] >= 0
+    assert 0 < helped["model_c_s"] < helped["model_w_s"] + helped["model_c_s"]
+    assert [r["workers"] for r in helped["model_curve"]][:3] == [0, 1, 2] and helped["model_kf_per_s_here"] > 0
+    assert "## Scaling model" in (tmp_path / "system.md").read_text()
