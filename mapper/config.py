@@ -244,6 +244,12 @@ class SingleViewConfig(BaseModel):
         description="each of the two colour clusters of the floor sample holding this share of it is a floor of "
         "its own (an apartment camera sees other rooms' floors through doorways); above 0.5: one floor model",
     )
+    other_floor: bool = Field(
+        default=True,
+        description="an object whose floor contacts all fail the floor-colour test is still placed from them when "
+        "the colour under them is unlike the background just above the object (another room's floor seen "
+        "through a doorway, not a wall going on above and below a wall-mounted object)",
+    )
     free_space_check: bool = Field(
         default=True,
         description="a placement that another calibrated camera saw as free space (its floor, learnt from under "
@@ -257,7 +263,7 @@ class SingleViewConfig(BaseModel):
         return SingleViewParams(floor_z_m=self.floor_z_m, max_range_m=self.max_range_m,
                                 max_extent_m=self.max_extent_m, confidence=self.confidence,
                                 floor_colour_sigma=self.floor_colour_sigma,
-                                floor_cluster_share=self.floor_cluster_share)
+                                floor_cluster_share=self.floor_cluster_share, other_floor=self.other_floor)
 
 
 class PointMapConfig(BaseModel):

@@ -72,6 +72,7 @@ class SingleViewParams:
     trim_margin: float = 0.05  # IoU by which a trimmed subset must beat all the contacts
     floor_colour_sigma: float = 3.0  # contacts whose colour below is farther from the floor's (robust sigmas): dropped
     floor_cluster_share: float = 0.3  # a colour cluster this big of the floor sample is a floor too (> 0.5: off)
+    other_floor: bool = True  # contacts unlike the floor: kept when unlike the background above the object too
     refine_evals: int = 300  # silhouette refinement of the box (0: off), cost evaluations
     refine_slack_m: float = 0.05  # contacts this far outside the refined footprint cost nothing
     refine_contact_weight: float = 1.0  # IoU per metre of a contact outside the refined footprint
@@ -306,7 +307,9 @@ def place_objects(masks: Sequence[np.ndarray], K: F64, T_world_cam: F64,
         contacts.append((cols.astype(float), low.astype(float), below))
     floor_cols = [None if c is None else _floor_columns(*c, p) for c in contacts]
     if image is not None:
-        floor_cols = _floor_looking(floor_cols, image, p)
+        seen_cols = _floor_looking(floor_cols, image, p)
+        floor_cols = [_other_floor(g, c, masks[i], owner, image, p) for i, (g, c) in
+                      enumerate(zip(floor_cols, seen_cols, strict=True))] if p.other_floor else seen_cols
     for level in range(p.max_support_levels + 1):
         placed_any = False
         for i, c in enumerate(contacts):
@@ -520,6 +523,28 @@ def _floor_looking(cols: list[tuple[F64, F64] | None], image: np.ndarray, p: Sin
             ok |= (np.abs(x - mu) / sd).max(axis=1) <= sigma
         out.append((u[ok], v[ok]))
     return out
+
+
+def _other_floor(geo: tuple[F64, F64] | None, seen: tuple[F64, F64] | None, mask: np.ndarray, owner: np.ndarray,
+                 image: np.ndarray, p: SingleViewParams) -> tuple[F64, F64] | None:
+    """The floor columns ``seen`` that passed the floor-colour test, or, when too few did, all the geometric
+    floor columns ``geo`` if what lies under them is unlike what lies just above the object's top in the same
+    columns (the background there, ``p.floor_colour_sigma`` robust sigmas apart in Lab): the object stands on
+    a floor the view's other objects do not (another room's, seen through a doorway), not in front of a wall
+    that goes on above and below it (a TV on a wall bracket)."""
+    if geo is None or seen is None or len(seen[0]) >= p.min_contact_columns or len(geo[0]) < p.min_contact_columns:
+        return seen
+    h = image.shape[0]
+    u = geo[0].astype(int)
+    lab = cv2.cvtColor(np.ascontiguousarray(image), cv2.COLOR_RGB2LAB).astype(np.float64)
+    under = lab[np.minimum(geo[1].astype(int) + 3, h - 1), u]
+    rows = np.maximum(np.argmax(mask[:, u], axis=0) - 3, 0)  # just above each column's top pixel
+    bg = owner[rows, u] < 0
+    if int(bg.sum()) < p.min_contact_columns:
+        return seen
+    mu, sd = _robust_model(under)
+    apart = float(np.max(np.abs(np.median(lab[rows[bg], u[bg]], axis=0) - mu) / sd))
+    return geo if apart > p.floor_colour_sigma else seen
 
 
 def box_from_contacts(pts: F64, mask: np.ndarray, others: np.ndarray, K: F64, T_world_cam: F64, support: int,

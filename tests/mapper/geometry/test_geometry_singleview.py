@@ -382,3 +382,51 @@ def test_two_floors_in_view_are_both_floor_and_a_wall_is_not() -> None:
     one_floor = SingleViewParams(floor_cluster_share=0.6)
     assert set(range(60)) <= set(_floor_looking(cols, two, one_floor)[0][0].astype(int).tolist())
     assert not set(range(60, 92)) & set(_floor_looking(cols, two, one_floor)[0][0].astype(int).tolist())
+
+
+def _two_room_image(T_world_cam: np.ndarray) -> np.ndarray:
+    """The camera's room floor (brown) within 5 m, another room's floor (pale blue tiles, seen through a doorway)
+    from 5 to 8 m, a green wall beyond: each pixel by where its ray meets the floor plane."""
+    vs, us = np.mgrid[0:INTR.height, 0:INTR.width]
+    rays = pixel_rays(K, us.reshape(-1).astype(float), vs.reshape(-1).astype(float)) @ T_world_cam[:3, :3].T
+    with np.errstate(divide="ignore", invalid="ignore"):
+        s = -T_world_cam[2, 3] / rays[:, 2]
+    foot = np.where(s > 0, np.hypot(s * rays[:, 0], s * rays[:, 1]), np.inf).reshape(INTR.height, INTR.width)
+    img = np.empty((INTR.height, INTR.width, 3), np.uint8)
+    img[:] = (90, 140, 90)
+    img[foot < 8.0] = (170, 190, 220)
+    img[foot < 5.0] = (150, 110, 70)
+    return img
+
+
+def test_an_object_on_another_rooms_floor_is_placed_from_it() -> None:
+    """A cabinet 6.5 m away stands on the floor of another room, which no nearer object stands on: its contacts
+    fail the floor-colour test. What lies under it (tiles) is unlike what lies just above it (the wall), so it
+    stands on a floor: it is placed from those contacts (``other_floor``), and left unplaced with it off. A TV
+    on a wall bracket has the same wall above and below it and stays unplaced
+    (``test_an_object_seen_against_the_wall_is_not_pushed_through_it``)."""
+    from mapper.geometry.singleview import _other_floor
+
+    d = np.array([2.8, 2.2]) / np.hypot(2.8, 2.2)  # the camera's horizontal viewing direction
+    far = box(*(CAM[:2, 3] + 6.5 * d), 0.0, 0.5, 0.5, 0.9, yaw_deg=38.0)
+    near = [box(1.8, 1.6, 0.0, 0.5, 0.5, 0.5), box(2.4, 1.0, 0.0, 0.6, 0.4, 0.8), box(1.2, 2.2, 0.0, 0.4, 0.4, 0.6)]
+    masks = [silhouette(far)] + [silhouette(b) for b in near]
+    image = _two_room_image(CAM)
+    placed = place_objects(masks, K, CAM, image=image)
+    assert placed[0] is not None and placed[0].support == -1
+    assert np.linalg.norm(placed[0].center - far.center) < 0.25  # coarse at 6.5 m, well within a node match
+    blind = place_objects(masks, K, CAM)[0]  # the same contacts as with no colour test at all
+    assert blind is not None and np.allclose(placed[0].center, blind.center)
+    assert all(b is not None and np.linalg.norm(b.center - t.center) < 0.15
+               for b, t in zip(placed[1:], near, strict=True))
+    assert place_objects(masks, K, CAM, SingleViewParams(other_floor=False), image=image)[0] is None
+    # the same contacts with the tiles' colour above the object too: a surface behind it, not a floor under it
+    cols = (np.arange(300.0, 310.0), np.full(10, 200.0))
+    flat = np.full((INTR.height, INTR.width, 3), 200, np.uint8)
+    mask = np.zeros((INTR.height, INTR.width), bool)
+    mask[150:201, 300:310] = True
+    owner = np.where(mask, 0, -1)
+    empty = (cols[0][:0], cols[1][:0])
+    assert _other_floor(cols, empty, mask, owner, flat, SingleViewParams()) == empty
+    flat[:150] = (90, 140, 90)
+    assert _other_floor(cols, empty, mask, owner, flat, SingleViewParams()) == cols
