@@ -87,6 +87,8 @@ class MapperNode(Process):
         out["graph_version"] = self.core.version
         out["nodes"] = len(self.core.store.nodes)
         out["edges"] = len(self.core.store.edges)
+        out["keyframes_stored"] = len(self.core.keyframes)  # bounded: keyframes.max_keyframes
+        out["pointmap_voxels"] = len(self.core.voxels)  # bounded: point_map.max_voxels
         if self.offloader is not None:
             out.update(self.offloader.extra_counters())
         times = self.core.update_times_s
