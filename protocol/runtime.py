@@ -56,3 +56,17 @@ def kill_with_parent() -> Callable[[], None] | None:
         prctl(_PR_SET_PDEATHSIG, int(signal.SIGKILL))
 
     return preexec
+
+
+def release_free_heap() -> bool | None:
+    """Give the C heap's free pages back to the system (glibc ``malloc_trim(0)``, every arena): after a burst
+    of large temporary arrays (a planner decision, a keyframe) glibc keeps freed memory mapped (its mmap
+    threshold rises with each large free, so later arrays come from the heap, and a live object near the top
+    of a heap pins everything below it), and a process's resident memory creeps up in plateaus without a leak.
+    True when memory was released, False when there was none to release, None where there is no glibc.
+    Costs well under 10 ms after a decision's burst; call it after a burst, not in a tight loop."""
+    try:
+        trim = ctypes.CDLL(None).malloc_trim
+    except (OSError, AttributeError):  # not glibc
+        return None
+    return bool(trim(0))
