@@ -7,6 +7,7 @@ import logging
 import signal
 import sys
 import threading
+import time
 from collections.abc import Callable
 
 _PR_SET_PDEATHSIG = 1
@@ -70,3 +71,25 @@ def release_free_heap() -> bool | None:
     except (OSError, AttributeError):  # not glibc
         return None
     return bool(trim(0))
+
+
+class HeapReleaser:
+    """:func:`release_free_heap` at most once per ``period_s`` (0: never), for a loop that calls it after work."""
+
+    def __init__(self, period_s: float, clock: Callable[[], float] = time.monotonic) -> None:
+        self.period_s, self.clock = period_s, clock
+        self.releases = 0
+        self._last: float | None = None
+
+    def __call__(self) -> bool:
+        """Release now if the period has passed since the last release; True when it did."""
+        if self.period_s <= 0:
+            return False
+        now = self.clock()
+        if self._last is not None and now - self._last < self.period_s:
+            return False
+        self._last = now
+        if release_free_heap() is None:
+            return False
+        self.releases += 1
+        return True

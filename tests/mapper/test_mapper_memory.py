@@ -1,0 +1,85 @@
+"""The mapper's and the worker's freed heap goes back to the system: at most once per period in the mapper's loop
+(:class:`protocol.runtime.HeapReleaser`), after each job in a worker."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import pytest
+
+import protocol.runtime
+from mapper.config import GeometryConfig, MapperConfig, PerceptionConfig
+from mapper.core import MapperCore
+from mapper.node import MapperNode
+from mapper.work.config import WorkerConfig
+from mapper.work.worker import WorkerNode
+from protocol.runtime import HeapReleaser
+
+
+class Clock:
+    def __init__(self) -> None:
+        self.t = 100.0
+
+    def __call__(self) -> float:
+        return self.t
+
+
+@pytest.fixture
+def releases(monkeypatch: pytest.MonkeyPatch) -> list[int]:
+    calls: list[int] = []
+    monkeypatch.setattr(protocol.runtime, "release_free_heap", lambda: calls.append(1) or True)
+    return calls
+
+
+def test_heap_releaser_releases_at_most_once_per_period(releases: list[int]) -> None:
+    clock = Clock()
+    r = HeapReleaser(5.0, clock=clock)
+    assert r() is True and r() is False  # the first call releases; the next one within the period does not
+    clock.t += 4.9
+    assert r() is False
+    clock.t += 0.1
+    assert r() is True and r.releases == 2 and len(releases) == 2
+    never = HeapReleaser(0.0, clock=clock)
+    assert never() is False and never.releases == 0 and len(releases) == 2
+
+
+def test_heap_releaser_reports_nothing_without_glibc(monkeypatch: pytest.MonkeyPatch) -> None:
+    monkeypatch.setattr(protocol.runtime, "release_free_heap", lambda: None)
+    r = HeapReleaser(1.0)
+    assert r() is False and r.releases == 0
+
+
+class Sink:
+    def put(self, *_: Any, **__: Any) -> None:
+        pass
+
+
+def test_the_mapper_loop_releases_the_heap_once_per_period(releases: list[int]) -> None:
+    cfg = MapperConfig(geometry=GeometryConfig(backend="oracle"), perception=PerceptionConfig(segmenter="sim",
+                                                                                           embedder="sim"),
+                       release_heap_period_s=5.0)
+    node = MapperNode(cfg, core=MapperCore(cfg))
+    clock = Clock()
+    node._release_heap = HeapReleaser(cfg.release_heap_period_s, clock=clock)
+    node.outbox.session, node.outbox.pubs = Sink(), {"delta": Sink(), "snapshot": Sink(), "map": Sink()}
+    for _ in range(3):
+        node._step(timeout_s=0.0)
+    assert node.counters.get("heap_releases") == 1
+    clock.t += 5.0
+    node._step(timeout_s=0.0)
+    assert node.counters.get("heap_releases") == 2 and len(releases) == 2
+    assert MapperConfig().release_heap_period_s == 5.0
+
+
+def test_a_worker_releases_the_heap_after_each_job_unless_told_not_to(monkeypatch: pytest.MonkeyPatch) -> None:
+    import mapper.work.worker as worker
+
+    calls: list[int] = []
+    monkeypatch.setattr(worker, "release_free_heap", lambda: calls.append(1) or True)
+    node = WorkerNode(WorkerConfig(id="w"))
+    node.release_heap()
+    node.release_heap()
+    assert node.counters.get("heap_releases") == 2 and calls == [1, 1]
+    off = WorkerNode(WorkerConfig(id="w", release_heap_after_job=False))
+    off.release_heap()
+    assert off.counters.get("heap_releases") == 0 and calls == [1, 1]
