@@ -47,8 +47,8 @@ DROP_COUNTERS = ("frames_dropped", "sources_refused", "decode_errors", "header_e
 MAPPER_SIZES = ("nodes", "edges", "keyframes_stored", "pointmap_voxels", "keyframe_store_jpegs",
                 "frame_bytes_buffered")
 """Mapper Status counters that must stay bounded (sampled as ``mapper.<name>``)."""
-PLANNER_SIZES = ("graph_nodes", "point_map_points", "hypotheses", "frontier_points", "failed_viewpoints",
-                 "visited_viewpoints", "completion_cache")
+PLANNER_SIZES = ("graph_nodes", "point_map_points", "history_views", "blacklisted_viewpoints", "hypotheses",
+                 "frontier_points")
 """Planner Status counters that must stay bounded (sampled as ``planner.<name>`` where the planner reports them)."""
 REST_PERCENTILE = 10.0
 """A window's resting RSS: this percentile of its samples (spikes while a process works are not a leak)."""

@@ -111,6 +111,15 @@ class PlannerNode(PlannerInbox, Process):
             self.pending[rid] = Pending("", None, now_s, len(self.graph.nodes))  # nothing to do: back off
         return sent
 
+    def _extra_counters(self) -> dict[str, float]:
+        """Status extras: the robots and the graph followed, and the sizes that must stay bounded (a soak samples
+        them): remembered views (``max_history``), points of the held map, blacklisted viewpoints."""
+        pm = self.point_map
+        return {"robots": len(self.states), "graph_nodes": len(self.graph.nodes), "graph_version": self.graph.version,
+                "history_views": len(self.planner.history),
+                "point_map_points": 0 if pm is None else int(pm.points.shape[0]),
+                "blacklisted_viewpoints": sum(len(b) for b in list(self.planner.blacklist.values()))}
+
     def _release_heap(self) -> None:
         """After a decision's burst of temporary arrays, its freed memory back to the system (the resting RSS
         stays flat: ``protocol.runtime.release_free_heap``)."""
@@ -176,8 +185,7 @@ class PlannerNode(PlannerInbox, Process):
                               (k.all_robot_viewpoints, self.on_viewpoints)):
             node.subscribe(key, callback)
         node.watch_alive(k.all_alive_of(ROBOT_ROLE), self.on_alive)
-        node.status(extra=lambda: {"robots": len(self.states), "graph_nodes": len(self.graph.nodes),
-                                   "graph_version": self.graph.version})
+        node.status(extra=self._extra_counters)
         c = self.config
         log.info("planner %s up: strategy %s, sampler %s", c.node_id, c.planner.strategy, c.planner.sampler.kind)
         self._initial_queries(node.session)

@@ -109,6 +109,10 @@ def test_the_planner_node_releases_the_heap_after_each_decision_even_a_failed_on
     monkeypatch.setattr(failing.planner, "plan", boom)
     failing.plan_once(now_s=0.0)
     assert failing.counters.get("plan_errors") == 1 and failing.counters.get("heap_releases") == 1
+    sizes = node._extra_counters()
+    assert sizes["history_views"] == 1 and sizes["point_map_points"] == 0 and sizes["blacklisted_viewpoints"] == 0
+    node.planner.mark_failed("r1", 0)
+    assert node._extra_counters()["blacklisted_viewpoints"] == 1
     off = _planner_node(release=False)
     off.plan_once(now_s=0.0)
     assert off.counters.get("decisions") == 1 and off.counters.get("heap_releases") == 0 and len(calls) == 2
