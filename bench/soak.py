@@ -263,15 +263,15 @@ def _fmt(v: float | None, spec: str = ".0f") -> str:
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="argus bench soak", description=__doc__.split("\n\n")[0],
+    p = argparse.ArgumentParser(prog="argus bench soak", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--minutes", type=float, default=30.0, help="length of the run")
     p.add_argument("--warmup-min", type=float, default=5.0, help="minutes before RSS growth is measured")
     p.add_argument("--cameras", type=int, default=4, help="extra simulated cameras (plus the demo's robot and camera)")
     p.add_argument("--fps", type=float, default=2.0, help="frames per second per extra camera")
     p.add_argument("--sample-s", type=float, default=10.0, help="seconds between samples")
-    p.add_argument("--width", type=int, default=320)
-    p.add_argument("--height", type=int, default=240)
+    p.add_argument("--width", type=int, default=320, help="extra cameras' image width")
+    p.add_argument("--height", type=int, default=240, help="extra cameras' image height")
     p.add_argument("--workers", type=int, default=0,
                    help="argus worker processes beside the stack (then the RGB-only demo: ORACLE inputs stay local)")
     p.add_argument("--quick", action="store_true", help="2 minutes, 1 minute warm-up, 2 cameras, 5 s samples")
