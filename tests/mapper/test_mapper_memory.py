@@ -105,6 +105,27 @@ def test_the_point_map_keeps_its_voxel_budget_and_the_most_observed_voxels() -> 
     assert {(0.5, 0.5, 0.5), (1.5, 0.5, 0.5)} <= kept  # the least observed went first
 
 
+def test_the_point_map_never_holds_more_than_its_budget_even_in_the_middle_of_an_add() -> None:
+    """Regression (soak: the mapper's status showed 302,306 voxels for a budget of 300,000): the merged voxels
+    were stored before the trim, so the status thread could read one view's voxels over the budget."""
+    import numpy as np
+
+    from mapper.pointmap import VoxelMap
+
+    sizes: list[int] = []
+
+    class Watched(VoxelMap):
+        def __setattr__(self, name: str, value: object) -> None:
+            if name == "keys":
+                sizes.append(len(value))  # type: ignore[arg-type]
+            super().__setattr__(name, value)
+
+    vm = Watched(voxel_m=1.0, max_voxels=5)
+    for i in range(4):
+        vm.add(np.array([[10.5 + i + j, 0.5, 0.5] for j in range(4)]))
+    assert len(vm) == 5 and max(sizes) == 5
+
+
 def test_the_keyframe_store_and_recent_frames_keep_their_budget() -> None:
     from mapper.config import KeyframeConfig
     from mapper.keyframes import KeyframeStore
