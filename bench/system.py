@@ -224,6 +224,7 @@ class GraphWatch:
         self.status: dict[str, float] = {}
         self.status_pid: int | None = None
         self.workers: dict[str, dict[str, float]] = {}  # worker id -> its latest Status counters
+        self.others: dict[str, dict[str, float]] = {}  # "<role>/<id>" of other roles -> its latest Status counters
         self._subs = [session.declare_subscriber(keys.graph_delta, self._on_delta),
                       session.declare_subscriber(keys.all_status, self._on_status)]
 
@@ -250,6 +251,8 @@ class GraphWatch:
                 self.status = dict(st.counters)
             elif st.role == "worker" and (st.node_id in self.workers or len(self.workers) < 64):
                 self.workers[st.node_id] = dict(st.counters)
+            elif (name := f"{st.role}/{st.node_id}") in self.others or len(self.others) < 64:
+                self.others[name] = dict(st.counters)
 
     def take(self) -> tuple[list[float], int, dict[str, float]]:
         with self._lock:
@@ -260,6 +263,11 @@ class GraphWatch:
     def worker_status(self) -> dict[str, dict[str, float]]:
         with self._lock:
             return {k: dict(v) for k, v in self.workers.items()}
+
+    def other_status(self) -> dict[str, dict[str, float]]:
+        """The latest Status counters of every other process (planner, robots, ...), by ``<role>/<id>``."""
+        with self._lock:
+            return {k: dict(v) for k, v in self.others.items()}
 
     def close(self) -> None:
         for s in self._subs:
@@ -366,13 +374,20 @@ def _launch(endpoint: str, site: str, mapper_settings: dict[str, Any], n_workers
     settings = {"site": site, "zenoh": zenoh, **mapper_settings}
     procs: list[dict[str, Any]] = [
         {"name": "router", "command": "router", "args": ["--listen", endpoint, "--site", site]},
-        {"name": "mapper", "command": "mapper", "settings": settings}]
+        {"name": "mapper", "command": "mapper", "settings": settings},
+        *worker_procs(endpoint, site, n_workers, torch_threads)]
+    return LaunchFile.model_validate({"site": site, "endpoint": endpoint, "stop_timeout_s": 10, "process": procs})
+
+
+def worker_procs(endpoint: str, site: str, n_workers: int, torch_threads: int | None = None) -> list[dict[str, Any]]:
+    """Launch-file entries of ``n_workers`` ``argus worker`` processes (ids w0, w1, ...) joining ``endpoint``."""
+    procs: list[dict[str, Any]] = []
     for i in range(n_workers):
-        ws: dict[str, Any] = {"id": f"w{i}", "site": site, "zenoh": zenoh}
+        ws: dict[str, Any] = {"id": f"w{i}", "site": site, "zenoh": {"mode": "client", "connect": [endpoint]}}
         if torch_threads is not None:
             ws["torch_threads"] = torch_threads
         procs.append({"name": f"worker{i}", "command": "worker", "node_id": f"w{i}", "settings": ws})
-    return LaunchFile.model_validate({"site": site, "endpoint": endpoint, "stop_timeout_s": 10, "process": procs})
+    return procs
 
 
 def _keyframes_done(diff: Any) -> float:

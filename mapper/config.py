@@ -360,6 +360,12 @@ class MapperConfig(MapperCoreConfig):
     )
     max_oracle_cache: int = Field(default=64, ge=1, description="ORACLE samples buffered (memory bound)")
     status_period_s: float = Field(default=1.0, gt=0.0, description="status publishing period")
+    release_heap_period_s: float = Field(
+        default=5.0, ge=0.0,
+        description="give the C heap's freed memory back to the system at most once per this many seconds (glibc "
+        "malloc_trim, a few ms; counter heap_releases): keyframes' large temporary arrays otherwise leave the "
+        "resting RSS creeping up in plateaus (0: never)",
+    )
     rerun: RerunConfig = Field(default_factory=RerunConfig, description="Rerun output")
     log_level: Literal["DEBUG", "INFO", "WARNING", "ERROR"] = Field(default="INFO", description="log level")
     workers: OffloadConfig = Field(

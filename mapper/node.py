@@ -34,6 +34,7 @@ from protocol.keys import Keys
 from protocol.messages import GraphDelta, OracleFrame
 from protocol.node import Node, Process
 from protocol.ratelog import RateLimitedLog
+from protocol.runtime import HeapReleaser
 from protocol.transport import Counters, Frame, StatusReporter
 
 if TYPE_CHECKING:
@@ -63,6 +64,7 @@ class MapperNode(Process):
         self.core.reserve = lambda version, next_id: self.keeper.reserve(version, next_id, self.core)
         self.offloader: Offloader | None = None
         self._robots = LruCache(config.max_sources)  # source ids of robot frames (their keyframes are marked)
+        self._release_heap = HeapReleaser(config.release_heap_period_s)
         self.node = Node(config.zenoh, self.keys, ROLE, config.id, counters=self.counters,
                          status_period_s=config.status_period_s, logger=log)
         if config.workers.enabled and not self.intake.needs_oracle:  # jobs carry no ORACLE samples
@@ -87,6 +89,8 @@ class MapperNode(Process):
         out["graph_version"] = self.core.version
         out["nodes"] = len(self.core.store.nodes)
         out["edges"] = len(self.core.store.edges)
+        out["keyframes_stored"] = len(self.core.keyframes)  # bounded: keyframes.max_keyframes
+        out["pointmap_voxels"] = len(self.core.voxels)  # bounded: point_map.max_voxels
         if self.offloader is not None:
             out.update(self.offloader.extra_counters())
         times = self.core.update_times_s
@@ -142,6 +146,8 @@ class MapperNode(Process):
         self.outbox.periodic()
         self.intake.bad_input.flush()
         self.save()
+        if self._release_heap():
+            self.counters.add("heap_releases")
 
     def _finish_jobs(self, offloader: Offloader) -> None:
         """Keyframes back from workers (or left to the mapper) into the graph, then jobs out."""

@@ -74,11 +74,10 @@ class VoxelMap:
         csum[new] += c_new
         npts[new] += n_new
         cnt[new] += 1
+        if len(merged) > self.max_voxels:  # trimmed before it is stored: a reader never sees more than the budget
+            keep = np.sort(np.argsort(-cnt, kind="stable")[: self.max_voxels])
+            merged, sums, csum, npts, cnt = merged[keep], sums[keep], csum[keep], npts[keep], cnt[keep]
         self.keys, self.sums, self.color_sums, self.npoints, self.counts = merged, sums, csum, npts, cnt
-        if len(self.keys) > self.max_voxels:
-            keep = np.sort(np.argsort(-self.counts, kind="stable")[: self.max_voxels])
-            self.keys, self.sums = self.keys[keep], self.sums[keep]
-            self.color_sums, self.npoints, self.counts = self.color_sums[keep], self.npoints[keep], self.counts[keep]
 
     def points(self) -> np.ndarray:
         """(N, 3) float32 mean point per voxel."""

@@ -37,6 +37,13 @@ class VisibilityConfig(_Model):
     max_occluder_points: int = Field(
         default=60000, ge=100, description="map points used for occlusion (deterministic subsample above)"
     )
+    panorama_batch_pairs: int = Field(
+        default=250_000,
+        ge=1,
+        description="(camera position, occluder) pairs binned at once while building panoramas: bounds the "
+        "planner's transient memory (about 110 bytes per pair: 4M pairs peaked at ~450 MiB per decision, "
+        "250k at ~55 MiB, no slower); the z-buffers do not depend on it",
+    )
     image_margin_frac: float = Field(
         default=0.03,
         ge=0.0,
@@ -183,5 +190,10 @@ class PlannerNodeConfig(_Model):
         "(RobotState.last_frame_seq against the graph's frames) before planning its next goal; 0: do not wait",
     )
     status_period_s: float = Field(default=1.0, gt=0.0, description="status publication period")
+    release_heap_after_plan: bool = Field(
+        default=True,
+        description="after each decision, give the C heap's freed memory back to the system (glibc malloc_trim; "
+        "a few ms): without it the resting RSS creeps up in plateaus after decisions' large temporary arrays",
+    )
     query_timeout_s: float = Field(default=2.0, gt=0.0, description="start-up query timeout")
     log_level: str = Field(default="INFO", description="logging level")

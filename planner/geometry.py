@@ -173,7 +173,7 @@ class Panoramas:
 
     def _build(self, rows: list[int]) -> None:
         pts = self.occluders
-        chunk = max(1, 4_000_000 // max(1, pts.shape[0]))
+        chunk = max(1, self.cfg.panorama_batch_pairs // max(1, pts.shape[0]))  # bounds the temporaries below
         for c0 in range(0, len(rows), chunk):
             rr = rows[c0 : c0 + chunk]
             zb = np.full((len(rr), self.n_bins), np.inf, dtype=np.float32)

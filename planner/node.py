@@ -20,6 +20,7 @@ from planner.schedule import Pending, goal_due
 from protocol.codec import DecodeError, M, decode, encode
 from protocol.messages import GraphSnapshot, NbvGoal, RobotState, ViewpointSet
 from protocol.node import Node, Process
+from protocol.runtime import release_free_heap
 
 if TYPE_CHECKING:
     import zenoh
@@ -84,6 +85,8 @@ class PlannerNode(PlannerInbox, Process):
             for rid in robots:  # back off instead of retrying in a tight loop
                 self.pending[rid] = Pending("", None, now_s, len(self.graph.nodes))
             return []
+        finally:
+            self._release_heap()
         info = self.planner.info
         self.counters.add("decisions")
         self.counters.set("decision_ms_last", info.decision_s * 1e3)
@@ -107,6 +110,21 @@ class PlannerNode(PlannerInbox, Process):
         for rid in robots.keys() - {g.robot_id for g in goals}:
             self.pending[rid] = Pending("", None, now_s, len(self.graph.nodes))  # nothing to do: back off
         return sent
+
+    def _extra_counters(self) -> dict[str, float]:
+        """Status extras: the robots and the graph followed, and the sizes that must stay bounded (a soak samples
+        them): remembered views (``max_history``), points of the held map, blacklisted viewpoints."""
+        pm = self.point_map
+        return {"robots": len(self.states), "graph_nodes": len(self.graph.nodes), "graph_version": self.graph.version,
+                "history_views": len(self.planner.history),
+                "point_map_points": 0 if pm is None else int(pm.points.shape[0]),
+                "blacklisted_viewpoints": sum(len(b) for b in list(self.planner.blacklist.values()))}
+
+    def _release_heap(self) -> None:
+        """After a decision's burst of temporary arrays, its freed memory back to the system (the resting RSS
+        stays flat: ``protocol.runtime.release_free_heap``)."""
+        if self.config.release_heap_after_plan and release_free_heap() is not None:
+            self.counters.add("heap_releases")
 
     def _reporter_error(self, msg: str) -> None:
         self.node.error(msg)
@@ -167,8 +185,7 @@ class PlannerNode(PlannerInbox, Process):
                               (k.all_robot_viewpoints, self.on_viewpoints)):
             node.subscribe(key, callback)
         node.watch_alive(k.all_alive_of(ROBOT_ROLE), self.on_alive)
-        node.status(extra=lambda: {"robots": len(self.states), "graph_nodes": len(self.graph.nodes),
-                                   "graph_version": self.graph.version})
+        node.status(extra=self._extra_counters)
         c = self.config
         log.info("planner %s up: strategy %s, sampler %s", c.node_id, c.planner.strategy, c.planner.sampler.kind)
         self._initial_queries(node.session)

@@ -7,6 +7,7 @@ import logging
 import signal
 import sys
 import threading
+import time
 from collections.abc import Callable
 
 _PR_SET_PDEATHSIG = 1
@@ -56,3 +57,39 @@ def kill_with_parent() -> Callable[[], None] | None:
         prctl(_PR_SET_PDEATHSIG, int(signal.SIGKILL))
 
     return preexec
+
+
+def release_free_heap() -> bool | None:
+    """Give the C heap's free pages back to the system (glibc ``malloc_trim(0)``, every arena): after a burst
+    of large temporary arrays (a planner decision, a keyframe) glibc keeps freed memory mapped (its mmap
+    threshold rises with each large free, so later arrays come from the heap, and a live object near the top
+    of a heap pins everything below it), and a process's resident memory creeps up in plateaus without a leak.
+    True when memory was released, False when there was none to release, None where there is no glibc.
+    Costs well under 10 ms after a decision's burst; call it after a burst, not in a tight loop."""
+    try:
+        trim = ctypes.CDLL(None).malloc_trim
+    except (OSError, AttributeError):  # not glibc
+        return None
+    return bool(trim(0))
+
+
+class HeapReleaser:
+    """:func:`release_free_heap` at most once per ``period_s`` (0: never), for a loop that calls it after work."""
+
+    def __init__(self, period_s: float, clock: Callable[[], float] = time.monotonic) -> None:
+        self.period_s, self.clock = period_s, clock
+        self.releases = 0
+        self._last: float | None = None
+
+    def __call__(self) -> bool:
+        """Release now if the period has passed since the last release; True when it did."""
+        if self.period_s <= 0:
+            return False
+        now = self.clock()
+        if self._last is not None and now - self._last < self.period_s:
+            return False
+        self._last = now
+        if release_free_heap() is None:
+            return False
+        self.releases += 1
+        return True

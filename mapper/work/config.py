@@ -71,4 +71,10 @@ class WorkerConfig(BaseModel):
     image_cache: int = Field(default=64, ge=0, description="decoded source keyframes kept (they recur across jobs)")
     max_image_pixels: int = Field(default=4096 * 4096, ge=1, description="largest image decoded")
     status_period_s: float = Field(default=1.0, gt=0.0, description="status publishing period")
+    release_heap_after_job: bool = Field(
+        default=True,
+        description="after each job, give the C heap's freed memory back to the system (glibc malloc_trim, a few "
+        "ms; counter heap_releases): a job's large temporary arrays otherwise leave the resting RSS creeping up "
+        "(a 30-minute soak: 523 -> 865 MiB, 635 MiB right after one release)",
+    )
     log_level: Literal["DEBUG", "INFO", "WARNING", "ERROR"] = Field(default="INFO", description="log level")

@@ -31,6 +31,7 @@ from protocol.jpeg import JpegError, decode_jpeg
 from protocol.keys import Keys
 from protocol.messages import WorkAck, WorkFrame, WorkJob, WorkResult
 from protocol.node import Node, Process
+from protocol.runtime import release_free_heap
 from protocol.transport import Counters, decode_message_sample
 
 if TYPE_CHECKING:
@@ -200,6 +201,12 @@ class WorkerNode(Process):
                 self._put("result", self.do(job))
                 with self._cond:
                     self._jobs.popleft()
+                self.release_heap()
+
+    def release_heap(self) -> None:
+        """After a job, its freed memory back to the system (``protocol.runtime.release_free_heap``)."""
+        if self.config.release_heap_after_job and release_free_heap() is not None:
+            self.counters.add("heap_releases")
 
     def _next(self, timeout_s: float) -> WorkJob | None:
         """The oldest held job (it stays held, counting against queue_depth, until answered)."""
