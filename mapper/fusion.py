@@ -63,10 +63,17 @@ class FusionConfig(BaseModel):
         description="erode masks by this many pixels (at the depth's resolution) before back-projection: "
         "estimated depth bleeds across object edges",
     )
-    dbscan_eps_m: float = Field(default=0.1, gt=0.0, description="DBSCAN neighbourhood radius, metres")
+    dbscan_eps_m: float = Field(
+        default=0.2, gt=0.0,
+        description="DBSCAN neighbourhood radius, metres; a detection keeps its largest cluster. Estimated depth on "
+        "a textureless object is its textured parts (a table's two ends, a stool's legs): at 0.1 m only one part "
+        "was kept and each view made a fragment",
+    )
     dbscan_min_samples: int = Field(default=4, ge=1, description="DBSCAN core point neighbour count")
     overlap_radius_m: float | None = Field(
-        default=None, description="neighbour radius of the overlap measure (default: voxel_m)"
+        default=0.06,
+        description="neighbour radius of the overlap measure (None: voxel_m). Two keyframes' estimated depth of "
+        "one surface differs by a few centimetres; at the 3 cm voxel they did not overlap and made two nodes",
     )
     geo_weight: float = Field(default=1.0, ge=0.0, description="weight of geometric overlap in the match score")
     sem_weight: float = Field(default=1.0, ge=0.0, description="weight of descriptor similarity in the score")
@@ -572,7 +579,10 @@ class ObjectMap:
             # Being in front of a node proves nothing about a different object: the image only vouches for
             # a node that looks like the detection.
             held = inside.get(node.node_id, 0.0) if sim >= cfg.merge_similarity else 0.0
-            ov = max(overlap_fraction(obj.points, node, cfg.radius_m), held)
+            # Two single-view guesses are one object when their rays say so (triangulate_coarse), not because
+            # their guessed boxes touch: they are judged at the voxel, measured depth at its noise.
+            radius = cfg.voxel_m if (node.rays and obj.ray_origin is not None) else cfg.radius_m
+            ov = max(overlap_fraction(obj.points, node, radius), held)
             if ov < cfg.min_overlap:
                 continue
             score = cfg.geo_weight * ov + cfg.sem_weight * sim

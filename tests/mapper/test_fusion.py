@@ -105,6 +105,35 @@ class TestHelpers:
         objs, _ = lift_detections(dets, world_points(T, depth), conf, depth, cfg)
         assert len(objs) == 1
 
+    def test_object_whose_depth_comes_in_parts_is_lifted_whole(self) -> None:
+        # Estimated depth on a textureless table top is its two textured ends, 15 cm apart: both are the table.
+        # A layer 0.6 m behind (depth bled in from the wall) is still left out.
+        h, w = 40, 60
+        xs = np.linspace(0.0, 0.75, w)
+        pw = np.zeros((h, w, 3), np.float32)
+        pw[..., 0] = xs[None, :]
+        pw[..., 1] = np.linspace(2.0, 2.3, h)[:, None]
+        pw[..., 2] = 0.75
+        conf = np.ones((h, w), np.float32)
+        conf[:, (xs > 0.3) & (xs < 0.45)] = 0.0  # the textureless middle
+        pw[30:, 50:, 1] += 0.6  # the wall's depth in one corner of the mask
+        depth = pw[..., 1].copy()
+        det = Detection(mask=np.ones((h, w), bool), label="table", confidence=0.9,
+                        descriptor=label_descriptor("table"))
+        (obj,), _ = lift_detections([det], pw, conf, depth, FusionConfig())
+        assert obj.points[:, 0].min() < 0.05 and obj.points[:, 0].max() > 0.7
+        assert obj.points[:, 1].max() < 2.35
+
+    def test_one_surface_estimated_a_few_cm_apart_is_one_node(self) -> None:
+        # Two keyframes' estimated depth of one side of a dresser, 4 cm apart along the view: one object.
+        rng = np.random.default_rng(4)
+        side = np.column_stack([rng.uniform(0, 0.8, 400), np.full(400, 2.0), rng.uniform(0, 0.8, 400)])
+        omap = ObjectMap(FusionConfig())
+        for k, dy in enumerate((0.0, 0.04)):
+            pts = (side + [0.0, dy, 0.0]).astype(np.float32)
+            omap.integrate([Object3D(pts, "dresser", 0.9, label_descriptor("dresser"))], "robot0", k + 1)
+        assert len(omap.nodes) == 1
+
     def test_outside_fraction_flags_depth_under_the_floor(self) -> None:
         cfg = FusionConfig()
         T = look_at([0.0, -2.0, 1.0], [0.0, 0.0, 0.3])
