@@ -13,10 +13,11 @@ equal length measure, with 0, 1 and 10 concurrent query consumers:
   ``/proc/<pid>/status``; psutil is not needed);
 - query latency (``graph/nodes?label=...`` and ``graph/snapshot`` gets), p50 / p99;
 - with ``--workers``: CPU-seconds per keyframe done per role (the mapper's main thread and its other threads,
-  the router, the cameras, each worker), the transfer cost per job (bytes; seconds the worker takes to get
-  the window's images: source fetches and JPEG decoding; the mapper's seconds decoding a result) and the scaling model's predicted keyframes/s for N workers here and on
-  their own machines (:mod:`bench.scaling`), under the table of ``system.md``. Give it more keyframes than
-  two workers finish (e.g. ``--cameras 4``) to measure scaling.
+  the router, the cameras, each worker), the transfer cost per job (bytes; seconds the worker takes to get the
+  window's images: source fetches and JPEG decoding; the mapper's seconds decoding a result) and the scaling
+  model's predicted keyframes/s for N workers here and on their own machines (:mod:`bench.scaling`), under the
+  table of ``system.md``. Give it more keyframes than two workers finish (e.g. ``--cameras 4``) to measure
+  scaling.
 
 Example::
 
