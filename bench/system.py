@@ -215,6 +215,16 @@ class Consumer:
             self._stop.wait(max(0.0, 1.0 / self.rate_hz - (time.perf_counter() - t0)))
 
 
+def delta_latency_ms(delta: GraphDelta, now_ns: int) -> float | None:
+    """Capture-to-graph latency of a delta that changed nodes: from the capture stamp of the keyframe whose
+    processing made it (``delta.stamp_ns``) to ``now_ns``; None for a delta that changed no node. (The newest
+    ``last_seen_ns`` of its nodes is not that: a delta that only re-sends older nodes, merged or pruned by
+    maintenance, would read as their age.)"""
+    if not delta.upserted or delta.stamp_ns <= 0:
+        return None
+    return (now_ns - delta.stamp_ns) / 1e6
+
+
 class GraphWatch:
     """Delta latencies and the mapper's Status counters."""
 
@@ -237,10 +247,8 @@ class GraphWatch:
             return
         with self._lock:
             self.deltas += 1
-            if d.upserted:
-                newest = max(n.last_seen_ns for n in d.upserted)
-                if newest > 0:
-                    self.latencies_ms.append((now - newest) / 1e6)
+            if (ms := delta_latency_ms(d, now)) is not None:
+                self.latencies_ms.append(ms)
 
     def _on_status(self, sample: Any) -> None:
         try:

@@ -9,7 +9,9 @@ from pathlib import Path
 
 import pytest
 
-from bench.system import _pct, proc_cpu_s, proc_mem_mb
+from bench.system import _pct, delta_latency_ms, proc_cpu_s, proc_mem_mb
+from protocol.messages import GraphDelta
+from tests.support.messages import node_msg
 
 
 def test_proc_cpu_counts_this_process_work() -> None:
@@ -37,6 +39,17 @@ def test_percentiles() -> None:
 
 @pytest.mark.slow
 @pytest.mark.integration
+def test_delta_latency_is_from_the_capture_of_the_keyframe_that_made_it() -> None:
+    # Maintenance re-sends a node last seen 100 s ago in the delta of a keyframe captured 0.4 s ago: 400 ms,
+    # not 100 s (the node's age).
+    now = 1_000_000_000_000
+    old = node_msg("n000001").model_copy(update={"last_seen_ns": now - 100_000_000_000})
+    delta = GraphDelta(version=2, stamp_ns=now - 400_000_000, upserted=[old])
+    assert delta_latency_ms(delta, now) == pytest.approx(400.0)
+    assert delta_latency_ms(delta.model_copy(update={"upserted": []}), now) is None  # no node changed
+    assert delta_latency_ms(delta.model_copy(update={"stamp_ns": 0}), now) is None
+
+
 def test_system_bench_quick(tmp_path: Path) -> None:
     from bench.system import main
 
