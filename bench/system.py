@@ -7,8 +7,8 @@ equal length measure, with 0, 1 and 10 concurrent query consumers:
 
 - offered and sustained ingest (frames the mapper received / turned into keyframes per second, from
   its Status counters), frames dropped (sent but never processed);
-- end-to-end latency capture -> graph delta: delta receipt time minus the newest ``last_seen_ns`` (the
-  capture stamp of the frame that updated a node) among the delta's nodes, p50 / p99;
+- end-to-end latency capture -> graph delta: delta receipt time minus the capture stamp of the keyframe whose
+  processing made the delta (``GraphDelta.stamp_ns``), over deltas that changed nodes, p50 / p99;
 - mapper CPU (cores used, from ``/proc/<pid>/stat``) and peak memory (``VmHWM`` of
   ``/proc/<pid>/status``; psutil is not needed);
 - query latency (``graph/nodes?label=...`` and ``graph/snapshot`` gets), p50 / p99;

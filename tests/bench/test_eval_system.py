@@ -37,8 +37,6 @@ def test_percentiles() -> None:
     assert _pct([1.0, 2.0, 3.0], 50) == 2.0
 
 
-@pytest.mark.slow
-@pytest.mark.integration
 def test_delta_latency_is_from_the_capture_of_the_keyframe_that_made_it() -> None:
     # Maintenance re-sends a node last seen 100 s ago in the delta of a keyframe captured 0.4 s ago: 400 ms,
     # not 100 s (the node's age).
@@ -50,6 +48,8 @@ def test_delta_latency_is_from_the_capture_of_the_keyframe_that_made_it() -> Non
     assert delta_latency_ms(delta.model_copy(update={"stamp_ns": 0}), now) is None
 
 
+@pytest.mark.slow
+@pytest.mark.integration
 def test_system_bench_quick(tmp_path: Path) -> None:
     from bench.system import main
 
