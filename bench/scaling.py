@@ -30,7 +30,8 @@ LINK_BYTES_PER_S = 125e6
 """The link assumed between machines: 1 Gbit/s."""
 
 
-def _stat_cpu_s(path: Path) -> float:
+def stat_cpu_s(path: Path) -> float:
+    """User + system CPU seconds in a ``/proc`` ``stat`` file (a process's or one of its threads')."""
     text = path.read_text()
     fields = text[text.rindex(")") + 2 :].split()
     return (int(fields[11]) + int(fields[12])) / _CLK_TCK
@@ -42,7 +43,7 @@ def thread_cpu_s(pid: int) -> dict[str, float]:
     main = other = 0.0
     for task in Path(f"/proc/{pid}/task").iterdir():
         try:
-            cpu = _stat_cpu_s(task / "stat")
+            cpu = stat_cpu_s(task / "stat")
         except (FileNotFoundError, ProcessLookupError):  # the thread ended meanwhile
             continue
         if task.name == str(pid):

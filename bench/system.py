@@ -39,19 +39,16 @@ from typing import Any
 import numpy as np
 
 from bench.report import write_report
+from bench.scaling import stat_cpu_s
 from protocol.codec import DecodeError, decode, encode
 from protocol.keys import Keys
 from protocol.messages import FrameHeader, GraphDelta, OracleFrame, SourceKind, Status, rows
-
-_CLK_TCK = os.sysconf("SC_CLK_TCK") if hasattr(os, "sysconf") else 100
 
 
 # --- /proc sampling ------------------------------------------------------------------------------
 def proc_cpu_s(pid: int) -> float:
     """User + system CPU seconds of a process (Linux ``/proc/<pid>/stat``)."""
-    text = Path(f"/proc/{pid}/stat").read_text()
-    fields = text[text.rindex(")") + 2 :].split()
-    return (int(fields[11]) + int(fields[12])) / _CLK_TCK
+    return stat_cpu_s(Path(f"/proc/{pid}/stat"))
 
 
 def proc_mem_mb(pid: int) -> dict[str, float]:
@@ -467,8 +464,8 @@ def _run_stack(cams: list[CameraFrames], fps: float, phase_s: float, warmup_s: f
             raise RuntimeError("mapper did not come up:\n" + "\n".join(lines[-30:]))
         mapper_pid = next(c.pid for c in stack.children if c.spec.name == "mapper")
         assert mapper_pid is not None
-        worker_pids = [c.pid for c in stack.children if c.spec.command == "worker" and c.pid is not None]
         clock = role_clock(stack, mapper_pid)
+        worker_pids = list(clock.workers.values())
         session = open_session(ZenohSettings(mode="client", connect=[endpoint]))
         watch = GraphWatch(session, keys)
         players = [CameraPlayer(session, keys, cam, fps) for cam in cams]
