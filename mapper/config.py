@@ -257,6 +257,18 @@ class SingleViewConfig(BaseModel):
         "camera now sees floor in place of is removed (taken away)",
     )
 
+    background_check: bool = Field(
+        default=True,
+        description="a placement whose surface lies, along its mask's rays, behind nearly all the confident depth "
+        "the same keyframe measured around the mask (a monitor on a desk read as standing on the floor metres "
+        "behind the wall) is refused (``mapper.geometry.background``); views with no confident depth around the "
+        "mask are not checked",
+    )
+    background_margin_m: float = Field(
+        default=0.3, ge=0.0,
+        description="how far (metres) behind the 90th percentile of the depth around the mask a placement may lie",
+    )
+
     def params(self) -> SingleViewParams:
         from mapper.geometry.singleview import SingleViewParams
 

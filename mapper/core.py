@@ -35,10 +35,11 @@ from mapper.fusion import (
     outside_fraction,
     resize_mask,
 )
+from mapper.geometry.background import behind_background
 from mapper.geometry.contract import Reconstructor, View
 from mapper.geometry.features import Features, LruCache, extract_features
 from mapper.geometry.posecheck import rotation_between
-from mapper.geometry.singleview import SeenView, depth_to_world, layout_depth, place_objects
+from mapper.geometry.singleview import PlacedBox, SeenView, depth_to_world, layout_depth, place_objects
 from mapper.geometry.support import MappedTop, place_on_mapped_support, place_on_measured_support
 from mapper.graph_store import GraphStore
 from mapper.intake import view_problem
@@ -437,6 +438,8 @@ class MapperCore:
                         self._count("detections_placed_on_mapped_support")
                 if b is not None:
                     placed[i] = b
+        if sv.background_check and placed:
+            placed = self._in_front_of_background(view, dets, placed, vg, T_world_cam)
         if not placed:
             return []
         pick = sorted(placed)
@@ -445,6 +448,21 @@ class MapperCore:
         objs, _ = lift_detections([dets[i] for i in pick], depth_to_world(depth, K, T_world_cam), conf, depth,
                                   self.config.fusion)
         return [dataclasses.replace(o, ray_origin=T_world_cam[:3, 3].copy()) for o in objs]
+
+    def _in_front_of_background(self, view: View, dets: list[Detection], placed: dict[int, PlacedBox],
+                                vg: ViewGeometry, T_world_cam: np.ndarray) -> dict[int, PlacedBox]:
+        """``placed`` without the boxes that lie behind the depth this keyframe measured around their masks."""
+        hd, wd = vg.depth_m.shape
+        Kd = intrinsics_of(view).scaled(wd, hd).K()
+        kept = {}
+        for i, b in placed.items():
+            if behind_background(b, resize_mask(dets[i].mask, hd, wd), vg.depth_m, vg.confidence, Kd, T_world_cam,
+                                 min_confidence=self.config.fusion.min_depth_confidence,
+                                 margin_m=self.config.single_view.background_margin_m):
+                self._count("placements_behind_background")
+            else:
+                kept[i] = b
+        return kept
 
     def _mapped_tops(self, min_side_m: float = 0.2, z_range_m: tuple[float, float] = (0.2, 2.2)) -> list[MappedTop]:
         """Top faces of the measured nodes (not single-view guesses) big enough to stand things on."""
