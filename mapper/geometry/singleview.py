@@ -712,18 +712,26 @@ class SeenView:
 
 def relocate_along_ray(points: F64, origin: F64, descriptor: np.ndarray, views: Sequence[SeenView],
                        min_similarity: float, max_range_m: float = 12.0, step_m: float = 0.05,
-                       min_agree: float = 0.3, max_free: float = 0.3) -> F64 | None:
+                       min_agree: float = 0.3, max_free: float = 0.3, below_floor_m: float = 0.05) -> F64 | None:
     """Where along the ray from ``origin`` through the points' centroid the object agrees best with
     ``views`` (most points on similar detections, few in free space): the shift to apply to the points,
-    or None when no depth reaches ``min_agree`` with at most ``max_free`` in free space."""
-    c = np.asarray(points, np.float64).mean(axis=0)
+    or None when no depth reaches ``min_agree`` with at most ``max_free`` in free space. Depths that would
+    put the object's lowest point more than ``below_floor_m`` under the views' floor are not tried: a ray
+    that goes on under the floor meets nothing (another object of the same kind, seen by another camera
+    elsewhere along the ray's line of sight, agrees there only by chance)."""
+    pts = np.asarray(points, np.float64)
+    c = pts.mean(axis=0)
     ray = c - origin
     dist = float(np.linalg.norm(ray))
     if dist < 1e-6:
         return None
     ray /= dist
+    floor = min((sv.floor_z_m for sv in views), default=-np.inf)
+    low = float(pts[:, 2].min()) - float(c[2])  # the lowest point under the centroid
     best: tuple[float, float] | None = None
     for s in np.arange(0.3, max_range_m, step_m):
+        if origin[2] + s * ray[2] + low < floor - below_floor_m:
+            continue
         shifted = points + (origin + s * ray - c)
         n = agree = free = 0
         for sv in views:

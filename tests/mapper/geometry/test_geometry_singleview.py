@@ -201,6 +201,29 @@ def test_relocation_needs_agreement() -> None:
     assert relocate_along_ray(pts, np.array([0.0, 0.0, 2.5]), label_descriptor("crate"), [seen_nothing], 0.8) is None
 
 
+def test_relocation_never_puts_an_object_under_the_floor() -> None:
+    """Camera B saw an object of the same kind where camera A's ray to the node goes on under the floor (another
+    crate farther away, in line with that ray's continuation): the node is not moved there."""
+    origin = CAM[:3, 3]
+    rng = np.random.default_rng(2)
+    pts = np.array([2.0, 1.6, 0.3]) + rng.uniform(-0.1, 0.1, (100, 3))
+    ray = pts.mean(0) - origin
+    under = origin + (origin[2] + 0.6) / -ray[2] * ray  # where the ray is 0.6 m under the floor
+    cam_b = look_at([0.3, 4.8, 2.5], [2.5, 2.0, 0.0])
+    pc = (under + (pts - pts.mean(0)) - cam_b[:3, 3]) @ cam_b[:3, :3]
+    uv = pc[:, :2] / pc[:, 2:3] * np.diag(K)[:2] + K[:2, 2]
+    owner = np.full((INTR.height, INTR.width), -1, np.int16)
+    u0, v0 = np.floor(uv.min(0)).astype(int) - 2
+    u1, v1 = np.ceil(uv.max(0)).astype(int) + 2
+    assert 0 <= u0 < u1 < INTR.width and 0 <= v0 < v1 < INTR.height  # B sees where the ray goes under the floor
+    owner[v0:v1, u0:u1] = 0
+    seen = SeenView(K, cam_b, owner, np.zeros_like(owner, bool), label_descriptor("crate")[None].astype(np.float32))
+    crate = label_descriptor("crate")
+    anywhere = relocate_along_ray(pts, origin, crate, [seen], 0.8, below_floor_m=np.inf)
+    assert anywhere is not None and (pts + anywhere)[:, 2].min() < -0.3  # what the search found before
+    assert relocate_along_ray(pts, origin, crate, [seen], 0.8) is None
+
+
 def test_an_object_seen_against_the_wall_is_not_pushed_through_it() -> None:
     """A TV on a wall bracket, 1 m above the floor: under it the camera sees the wall, and its floor ray
     would place it 8 m away. The floor under the other objects' feet looks different, so with the image the
