@@ -379,7 +379,8 @@ class MapperCore:
         self.keyframes.add(view, T_world_cam, depth_m, depth_map)
         if self.loops is not None:
             h, w = view.image.shape[:2]
-            self.loops.remember(view.key, vg.depth_m, vg.confidence, K_out, (w, h), T_world_cam)
+            self.loops.remember(view.key, vg.depth_m, vg.confidence, K_out, intrinsics_of(view).K(), (w, h),
+                                T_world_cam)
         # Measured depth: the detections are also matched to nodes in the image (confident depth only).
         sure = np.where(vg.confidence >= self.config.fusion.min_depth_confidence, vg.depth_m, 0.0)
         kv = KeyframeView(K_out, T_world_cam, sure)

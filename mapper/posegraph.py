@@ -29,6 +29,7 @@ import collections
 import math
 from dataclasses import dataclass, field
 
+import cv2
 import gtsam
 import numpy as np
 from numpy.typing import NDArray
@@ -68,6 +69,15 @@ class PoseGraphConfig(BaseModel):
     loop_min_inliers: int = Field(default=40, ge=6, description="PnP inliers needed for a loop measurement")
     loop_min_inlier_ratio: float = Field(default=0.3, ge=0, le=1, description="PnP inliers / 2D-3D matches needed")
     loop_reproj_px: float = Field(default=3.0, gt=0, description="PnP RANSAC reprojection threshold (px)")
+    loop_max_rotation_disagreement_deg: float = Field(
+        default=1.0, gt=0, description="a PnP rotation this far from the essential matrix's refutes the loop (deg)"
+    )
+    loop_max_direction_disagreement_deg: float = Field(
+        default=20.0, gt=0,
+        description="a PnP direction of travel this far from the essential matrix's refutes the loop (deg); checked "
+        "when the cameras are at least ``loop_min_baseline_m`` apart",
+    )
+    loop_min_baseline_m: float = Field(default=0.2, ge=0, description="see loop_max_direction_disagreement_deg")
     loop_max_height_m: float = Field(
         default=0.1, gt=0, description="a measured camera height this far from the prior's refutes the loop (m)"
     )
@@ -256,18 +266,21 @@ def candidates(g: SourceGraph, new: int, cfg: PoseGraphConfig, have: set[Key]) -
 # -- keyframe memory and measurement ----------------------------------------------------------------
 @dataclass(frozen=True)
 class LoopKeyframe:
-    """What a past keyframe keeps for loop closure: features with a depth, as points in its camera frame,
-    and the pose (camera to world) they were measured at."""
+    """What a past keyframe keeps for loop closure: features with a depth (pixels, descriptors and points in
+    its camera frame) and the pose (camera to world) they were measured at, with its intrinsics."""
 
+    uv: NDArray[np.float32]  # (n, 2) full-image pixels
     desc: NDArray[np.uint8]  # (n, 128) RootSIFT descriptors scaled to 0..255
     points_cam: NDArray[np.float32]  # (n, 3)
     T_world_cam: F64
+    K: F64
 
     @staticmethod
     def build(feats: features.Features, depth_m: NDArray[np.floating], confidence: NDArray[np.floating],
-              K_depth: F64, image_size: tuple[int, int], T_world_cam: F64, min_confidence: float) -> LoopKeyframe:
-        """Lift ``feats`` (full-image pixels of an image ``image_size`` = (w, h)) with a depth map at its own
-        intrinsics ``K_depth``; features without confident depth, or on a depth edge, are left out."""
+              K_depth: F64, K: F64, image_size: tuple[int, int], T_world_cam: F64,
+              min_confidence: float) -> LoopKeyframe:
+        """Lift ``feats`` (pixels of an image ``image_size`` = (w, h) with intrinsics ``K``) with a depth map
+        at its own intrinsics ``K_depth``; features without confident depth, or on a depth edge, are left out."""
         h, w = depth_m.shape
         sx, sy = w / image_size[0], h / image_size[1]
         u = np.round((feats.uv[:, 0] + 0.5) * sx - 0.5).astype(np.int64)
@@ -281,10 +294,11 @@ class LoopKeyframe:
             ok &= np.abs(dn - d) <= 0.05 * np.maximum(d, 1e-6)
         X = np.stack([(u - K_depth[0, 2]) / K_depth[0, 0] * d, (v - K_depth[1, 2]) / K_depth[1, 1] * d, d], axis=1)
         desc = np.clip(np.round(feats.desc[ok] * 255.0), 0, 255).astype(np.uint8)
-        return LoopKeyframe(desc, X[ok].astype(np.float32), np.asarray(T_world_cam, np.float64))
+        return LoopKeyframe(feats.uv[ok].astype(np.float32), desc, X[ok].astype(np.float32),
+                            np.asarray(T_world_cam, np.float64), np.asarray(K, np.float64))
 
     def features(self) -> features.Features:
-        return features.Features(np.zeros((len(self.desc), 2)), self.desc.astype(np.float32) / 255.0)
+        return features.Features(self.uv.astype(np.float64), self.desc.astype(np.float32) / 255.0)
 
 
 @dataclass(frozen=True)
@@ -296,15 +310,49 @@ class Measurement:
     reason: str
 
 
+def epipolar(uv_old: F64, uv_new: F64, K_old: F64, K_new: F64, thresh_px: float
+             ) -> tuple[NDArray[np.bool_], F64 | None, F64 | None]:
+    """Essential-matrix RANSAC: inliers, and the new camera's rotation ``R_new_old`` and unit translation
+    direction ``t_new_old`` (x_new = R x_old + t) that the images alone give (None, None when it fails)."""
+    n = len(uv_old)
+    if n < 8:
+        return np.zeros(n, bool), None, None
+    na, nb = features.normalise(uv_old, K_old), features.normalise(uv_new, K_new)
+    f = 0.5 * (K_old[0, 0] + K_new[0, 0])
+    # USAC with local optimisation: a plain RANSAC minimal-sample E is off by degrees at a few pixels of tolerance.
+    E, mask = cv2.findEssentialMat(na, nb, np.eye(3), method=cv2.USAC_ACCURATE, prob=0.999, threshold=thresh_px / f)
+    if E is None or mask is None or E.shape != (3, 3):
+        return np.zeros(n, bool), None, None
+    inl = mask.reshape(-1).astype(bool)
+    if inl.sum() < 8:
+        return inl, None, None
+    _, R, t, _ = cv2.recoverPose(E, na[inl], nb[inl], np.eye(3))
+    return inl, np.asarray(R, np.float64), np.asarray(t, np.float64).reshape(3)
+
+
 def measure(query: features.Features, K: F64, old: LoopKeyframe, cfg: PoseGraphConfig) -> Measurement:
-    """PnP of the new keyframe's features ``query`` (intrinsics ``K``) against an old keyframe's lifted ones."""
+    """PnP of the new keyframe's features ``query`` (intrinsics ``K``) against an old keyframe's lifted ones,
+    on the matches the epipolar geometry keeps, and checked against it: the old keyframe's depth may be wrong
+    (stereo failures), the images' own relative rotation and direction of travel are not."""
     m = features.match_features(query, old.features())
     if len(m) < cfg.loop_min_inliers:
         return Measurement(None, 0, "loops_refused_few_matches")
-    X_world = old.points_cam[m[:, 1]].astype(np.float64) @ old.T_world_cam[:3, :3].T + old.T_world_cam[:3, 3]
-    T, inl = pnp_pose(query.uv[m[:, 0]], X_world, K, cfg.loop_reproj_px)
+    uv_new, uv_old = query.uv[m[:, 0]], old.uv[m[:, 1]].astype(np.float64)
+    inl_e, R_e, t_e = epipolar(uv_old, uv_new, old.K, K, cfg.loop_reproj_px)
+    if R_e is None or t_e is None or inl_e.sum() < cfg.loop_min_inliers:
+        return Measurement(None, int(inl_e.sum()), "loops_refused_few_inliers")
+    X_world = old.points_cam[m[inl_e, 1]].astype(np.float64) @ old.T_world_cam[:3, :3].T + old.T_world_cam[:3, 3]
+    T, inl = pnp_pose(uv_new[inl_e], X_world, K, cfg.loop_reproj_px)
     if T is None or inl < cfg.loop_min_inliers or inl < cfg.loop_min_inlier_ratio * len(m):
         return Measurement(None, inl, "loops_refused_few_inliers")
+    T_new_old = np.linalg.inv(T) @ old.T_world_cam  # old camera coordinates into the new camera's
+    R_pnp, t_pnp = T_new_old[:3, :3], T_new_old[:3, 3]
+    rot_deg = math.degrees(math.acos(np.clip((np.trace(R_pnp.T @ R_e) - 1.0) / 2.0, -1.0, 1.0)))
+    baseline = float(np.linalg.norm(t_pnp))
+    dir_deg = math.degrees(math.acos(np.clip(t_pnp @ t_e / max(baseline, 1e-12), -1.0, 1.0)))
+    if rot_deg > cfg.loop_max_rotation_disagreement_deg or (
+            baseline >= cfg.loop_min_baseline_m and dir_deg > cfg.loop_max_direction_disagreement_deg):
+        return Measurement(None, inl, "loops_refused_epipolar")
     return Measurement(T, inl, "ok")
 
 
@@ -341,12 +389,13 @@ class LoopCloser:
         self._query.put(key, query)
         before = [se2(e) for e in g.est]
         T_pred = lift(g.correction()) @ T_odom
+        # Unconfirmed measurements wait ``confirm_keyframes`` keyframes for a second opinion.
+        g.loops = [lp for lp in g.loops if lp.confirmed or (g.index(lp.new) or -1) >= new - cfg.confirm_keyframes]
         added = False
         for i in candidates(g, new, cfg, set(self.memory)):
             lp = self._measure(g, i, new, query, K, T_pred)
             if lp is not None:
                 added |= self._confirm(g, lp)
-        g.loops = [lp for lp in g.loops if lp.confirmed or (g.index(lp.new) or -1) >= new - cfg.confirm_keyframes]
         if not added:
             return {}
         g.solve()
@@ -414,13 +463,13 @@ class LoopCloser:
         return agreed
 
     def remember(self, key: Key, depth_m: NDArray[np.floating], confidence: NDArray[np.floating], K_depth: F64,
-                 image_size: tuple[int, int], T_world_cam: F64) -> None:
+                 K: F64, image_size: tuple[int, int], T_world_cam: F64) -> None:
         """Keep a processed keyframe's features (extracted by :meth:`keyframe`) with its reconstructed depth and
         refined pose, as a future loop candidate. Bounded by ``max_keyframes`` per source overall."""
         query = self._query.get(key)
         if not isinstance(query, features.Features):
             return
-        self.memory[key] = LoopKeyframe.build(query, depth_m, confidence, K_depth, image_size, T_world_cam,
+        self.memory[key] = LoopKeyframe.build(query, depth_m, confidence, K_depth, K, image_size, T_world_cam,
                                               self.cfg.min_confidence)
         while len(self.memory) > self.cfg.max_keyframes * max(1, len(self.graphs)):
             self.memory.popitem(last=False)
@@ -429,7 +478,7 @@ class LoopCloser:
         """A stored keyframe's pose moved by ``delta`` (4x4, world frame): its loop features follow."""
         lk = self.memory.get(key)
         if lk is not None:
-            self.memory[key] = LoopKeyframe(lk.desc, lk.points_cam, delta @ lk.T_world_cam)
+            self.memory[key] = LoopKeyframe(lk.uv, lk.desc, lk.points_cam, delta @ lk.T_world_cam, lk.K)
 
 
 def node_move(centre: F64, deltas: list[F64]) -> F64:
