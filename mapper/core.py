@@ -186,7 +186,7 @@ class MapperCore:
         of the nodes moved."""
         assert self.loops is not None and view.T_world_cam is not None
         feats = extract_features(view.image, self.config.pose_graph.max_features)
-        deltas = self.loops.keyframe(view.key, view.T_world_cam, feats, intrinsics_of(view).K())
+        deltas = self.loops.keyframe(view.key, view.T_world_cam, feats, intrinsics_of(view).K(), view.image)
         for key, delta in deltas.items():
             self.keyframes.move(key, delta)
             self.loops.move_memory(key, delta)

@@ -100,6 +100,21 @@ class PoseGraphConfig(BaseModel):
         description="Huber threshold on loop factors (sigmas). Convex on purpose: a redescending kernel (Cauchy) "
         "keeps a many-sigma loop from pulling the path off the odometry at all, and loops are verified first",
     )
+    manhattan: bool = Field(
+        default=False,
+        description="the site's walls run along the world's x and y axes (a Manhattan world, like the simulated "
+        "apartments): each keyframe's horizontal image lines then measure its absolute heading modulo 90 deg, a "
+        "unary factor that stops heading drift between loops. Off for sites without that structure",
+    )
+    manhattan_sigma_deg: float = Field(default=1.5, gt=0, description="std-dev of one keyframe's line heading (deg)")
+    manhattan_min_concentration: float = Field(
+        default=0.6, ge=0, le=1,
+        description="the lines' directions must agree this well (resultant length of 4x their angles, 0..1)",
+    )
+    manhattan_min_lines: int = Field(default=6, ge=2, description="horizontal line segments needed")
+    manhattan_max_correction_deg: float = Field(
+        default=12.0, gt=0, description="a line heading farther than this from the current estimate is refused (deg)"
+    )
     max_features: int = Field(default=1000, ge=50, description="SIFT features kept per keyframe")
     min_confidence: float = Field(default=0.5, ge=0, le=1, description="depth confidence to lift a feature")
     max_keyframes: int = Field(default=600, ge=10, description="keyframes per source in the graph (oldest dropped)")
@@ -157,6 +172,36 @@ def tilt_deg(A: F64, B: F64) -> float:
     return float(np.degrees(np.arccos(np.clip(c, -1.0, 1.0))))
 
 
+def line_heading(image: NDArray[np.uint8], K: F64, T_world_cam: F64, min_length_px: int = 20,
+                 min_plane_tilt_deg: float = 20.0) -> tuple[float, float, int] | None:
+    """How far the horizontal lines an image shows are turned from the world's x / y axes, given the camera
+    pose ``T_world_cam``: (offset in (-45, 45] deg as radians, concentration 0..1, lines used), None with
+    fewer than 2 lines. In a Manhattan world the offset is the pose's heading error (modulo 90 deg).
+
+    Each segment (Canny + probabilistic Hough) spans a plane through the camera centre; a horizontal world
+    line lies along the horizontal direction of that plane. Planes close to vertical are skipped (they hold
+    vertical edges, whose horizontal direction means nothing). Directions are averaged as 4x their angle,
+    weighted by segment length."""
+    grey = cv2.cvtColor(np.ascontiguousarray(image), cv2.COLOR_RGB2GRAY)
+    segs = cv2.HoughLinesP(cv2.Canny(grey, 50, 150), 1, np.pi / 360, 25, minLineLength=min_length_px, maxLineGap=3)
+    if segs is None:
+        return None
+    s = np.asarray(segs, np.float64).reshape(-1, 4)
+    Kinv = np.linalg.inv(K)
+    a = np.concatenate([s[:, :2], np.ones((len(s), 1))], axis=1) @ Kinv.T
+    b = np.concatenate([s[:, 2:], np.ones((len(s), 1))], axis=1) @ Kinv.T
+    n = np.cross(a, b) @ T_world_cam[:3, :3].T  # plane normals in the world
+    n /= np.maximum(np.linalg.norm(n, axis=1, keepdims=True), 1e-12)
+    keep = np.abs(n[:, 2]) >= math.sin(math.radians(min_plane_tilt_deg))
+    if keep.sum() < 2:
+        return None
+    d = np.cross(n[keep], np.array([0.0, 0.0, 1.0]))  # the plane's horizontal direction
+    ang = np.arctan2(d[:, 1], d[:, 0])
+    w = np.hypot(s[keep, 2] - s[keep, 0], s[keep, 3] - s[keep, 1])
+    c, sn = float(np.sum(w * np.cos(4 * ang))), float(np.sum(w * np.sin(4 * ang)))
+    return math.atan2(sn, c) / 4.0, math.hypot(c, sn) / float(w.sum()), int(keep.sum())
+
+
 # -- the graph --------------------------------------------------------------------------------------
 @dataclass
 class Loop:
@@ -180,6 +225,7 @@ class SourceGraph:
     est: list[F64] = field(default_factory=list)  # planar corrected pose per keyframe
     path_m: list[float] = field(default_factory=list)  # distance driven up to each keyframe
     loops: list[Loop] = field(default_factory=list)
+    headings: dict[Key, float] = field(default_factory=dict)  # absolute heading measurements (rad), by keyframe
 
     def index(self, key: Key) -> int | None:
         try:
@@ -207,6 +253,7 @@ class SourceGraph:
             gone = self.keys[0]
             del self.keys[0], self.odom[0], self.est[0], self.path_m[0]
             self.loops = [lp for lp in self.loops if lp.old != gone]
+            self.headings.pop(gone, None)
         return self.est[-1]
 
     def predicted_rel(self, old: int, new: int) -> F64:
@@ -236,6 +283,15 @@ class SourceGraph:
             a, b = self.index(lp.old), self.index(lp.new)
             if lp.confirmed and a is not None and b is not None:
                 graph.add(gtsam.BetweenFactorPose2(X(a), X(b), gtsam.Pose2(*lp.rel), loop_noise))
+        if self.headings:
+            # Heading only: the position sigmas are so wide that the factor holds nothing else.
+            head_noise = gtsam.noiseModel.Robust.Create(
+                gtsam.noiseModel.mEstimator.Huber.Create(c.loop_huber),
+                gtsam.noiseModel.Diagonal.Sigmas(np.array([1e3, 1e3, math.radians(c.manhattan_sigma_deg)])))
+            for i, k in enumerate(self.keys):
+                th = self.headings.get(k)
+                if th is not None:
+                    graph.add(gtsam.PriorFactorPose2(X(i), gtsam.Pose2(self.est[i][0], self.est[i][1], th), head_noise))
         out = gtsam.LevenbergMarquardtOptimizer(graph, values, gtsam.LevenbergMarquardtParams()).optimize()
         self.est = [np.array([out.atPose2(X(i)).x(), out.atPose2(X(i)).y(), out.atPose2(X(i)).theta()])
                     for i in range(len(self.keys))]
@@ -376,7 +432,8 @@ class LoopCloser:
         g = self.graphs.get(source_id)
         return lift(g.correction()) if g is not None else np.eye(4)
 
-    def keyframe(self, key: Key, T_odom: F64, query: features.Features, K: F64) -> dict[Key, F64]:
+    def keyframe(self, key: Key, T_odom: F64, query: features.Features, K: F64,
+                 image: NDArray[np.uint8] | None = None) -> dict[Key, F64]:
         """Add a keyframe of a moving source (its odometry prior ``T_odom``, its image's features ``query`` at
         intrinsics ``K``: :func:`mapper.geometry.features.extract_features`), measure loops to old keyframes
         and re-solve when one is confirmed. Returns, per keyframe whose correction changed by more than
@@ -396,6 +453,8 @@ class LoopCloser:
             lp = self._measure(g, i, new, query, K, T_pred)
             if lp is not None:
                 added |= self._confirm(g, lp)
+        if cfg.manhattan and image is not None:
+            added |= self._heading(g, key, image, K, T_odom)
         if not added:
             return {}
         g.solve()
@@ -408,6 +467,24 @@ class LoopCloser:
             if float(np.hypot(*(e[:2] - b[:2, 2]))) + abs(wrap(float(e[2] - from_se2(b)[2]))) > cfg.min_move_m:
                 moved[k] = lift(se2(e) @ np.linalg.inv(b))
         return moved
+
+    def _heading(self, g: SourceGraph, key: Key, image: NDArray[np.uint8], K: F64, T_odom: F64) -> bool:
+        """Measure the new keyframe's absolute heading from its lines (``manhattan``); True when kept."""
+        cfg = self.cfg
+        got = line_heading(image, K, T_odom)
+        if got is None or got[1] < cfg.manhattan_min_concentration or got[2] < cfg.manhattan_min_lines:
+            self._count("headings_unclear")
+            return False
+        # The true heading is the odometry's minus the offset, modulo 90 deg: take the one nearest the estimate.
+        th = planar(T_odom)[2] - got[0]
+        est = float(g.est[-1][2])
+        th = est + wrap(4.0 * (th - est)) / 4.0
+        if abs(math.degrees(wrap(th - est))) > cfg.manhattan_max_correction_deg:
+            self._count("headings_refused_too_far")
+            return False
+        g.headings[key] = th
+        self._count("headings_measured")
+        return True
 
     def _measure(self, g: SourceGraph, old: int, new: int, query: features.Features, K: F64,
                  T_pred: F64) -> Loop | None:
