@@ -12,9 +12,16 @@ one: a pose graph per moving source whose nodes are its keyframes, joined by
   geometry agrees (inliers, camera height and tilt, a bounded correction) and confirmed by a second,
   independent measurement (another old keyframe, or the next keyframe); robust (Huber) noise.
 
+* optionally (``manhattan``: a site whose walls follow the world's x and y axes, like the simulated
+  apartments) a unary heading factor per keyframe from its horizontal image lines (:func:`line_heading`):
+  the heading modulo 90 deg, measured afresh at every keyframe, so heading drift cannot build up between
+  loops. On the recorded demo runs it took the robot's heading error from 3.4-4.0 deg to 0.4-0.5 deg
+  (median) and its position error from 0.25 to 0.07 m on two of three runs.
+
 Robots drive on a floor, so the graph is planar (``Pose2``: camera centre x, y and optical-axis heading);
 height, pitch and roll stay the prior's. The graph is small (a few hundred keyframes) and solved in batch
-(Levenberg-Marquardt) after each accepted loop; between loops a new keyframe takes the last correction.
+(Levenberg-Marquardt) whenever a keyframe brings a loop or a heading; otherwise a new keyframe takes the last
+correction.
 
 The correction of keyframe ``i`` is the planar world transform ``D_i`` with ``pose_i = D_i @ odom_i``
 (:func:`lift` makes it 4x4). The mapper applies the newest correction to the source's incoming frames and,
@@ -451,7 +458,7 @@ class LoopCloser:
         before = [se2(e) for e in g.est]
         T_pred = lift(g.correction()) @ T_odom
         # Unconfirmed measurements wait ``confirm_keyframes`` keyframes for a second opinion.
-        g.loops = [lp for lp in g.loops if lp.confirmed or (g.index(lp.new) or -1) >= new - cfg.confirm_keyframes]
+        g.loops = [lp for lp in g.loops if lp.confirmed or _at_least(g.index(lp.new), new - cfg.confirm_keyframes)]
         added = False
         for i in candidates(g, new, cfg, set(self.memory)):
             lp = self._measure(g, i, new, query, K, T_pred)
@@ -462,7 +469,7 @@ class LoopCloser:
         if not added:
             return {}
         g.solve()
-        self._count("loop_solves")
+        self._count("pose_graph_solves")
         moved = {}
         for k, e, b in zip(g.keys[:-1], g.est[:-1], before[:-1], strict=True):
             # A turn counts by what it does 1 m in front of the camera.
@@ -560,6 +567,10 @@ class LoopCloser:
         lk = self.memory.get(key)
         if lk is not None:
             self.memory[key] = LoopKeyframe(lk.uv, lk.desc, lk.points_cam, delta @ lk.T_world_cam, lk.K)
+
+
+def _at_least(i: int | None, lowest: int) -> bool:
+    return i is not None and i >= lowest
 
 
 def node_move(centre: F64, deltas: list[F64]) -> F64:
