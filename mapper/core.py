@@ -185,8 +185,13 @@ class MapperCore:
         stored keyframes and the nodes fused from them. Returns the view with its corrected prior and the ids
         of the nodes moved."""
         assert self.loops is not None and view.T_world_cam is not None
-        feats = extract_features(view.image, self.config.pose_graph.max_features)
-        deltas = self.loops.keyframe(view.key, view.T_world_cam, feats, intrinsics_of(view).K(), view.image)
+        try:
+            feats = extract_features(view.image, self.config.pose_graph.max_features)
+            deltas = self.loops.keyframe(view.key, view.T_world_cam, feats, intrinsics_of(view).K(), view.image)
+        except Exception as e:  # noqa: BLE001 - the keyframe goes on with its source's last correction
+            self._count("pose_graph_errors")
+            log.warning("pose graph: keyframe %s#%d failed: %s: %s", view.source_id, view.seq, type(e).__name__, e)
+            return self._corrected(view), set()
         for key, delta in deltas.items():
             self.keyframes.move(key, delta)
             self.loops.move_memory(key, delta)

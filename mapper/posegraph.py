@@ -452,6 +452,8 @@ class LoopCloser:
         the new one."""
         cfg = self.cfg
         g = self.graphs.setdefault(key[0], SourceGraph(cfg))
+        if g.index(key) is not None:  # the same keyframe again (a forced re-ingest): nothing new to add
+            return {}
         g.add(key, planar(T_odom))
         new = len(g.keys) - 1
         self._query.put(key, query)

@@ -62,3 +62,23 @@ def test_a_loop_moves_stored_keyframes_and_their_nodes() -> None:
     assert {n.node_id for n in delta.upserted} >= set(moved)  # the moved nodes are re-sent
     stored = {v.key: v for v in core.keyframes.views()}
     assert stored[("robot1", 0)].T_world_cam[0, 3] == pytest.approx(EYES[0][0] + 0.3)
+
+
+def test_a_failing_pose_graph_is_counted_and_the_keyframe_goes_on() -> None:
+    core = core_with_loops()
+    assert core.loops is not None
+
+    def broken(*a, **k):  # type: ignore[no-untyped-def]
+        raise ValueError("boom")
+
+    core.loops.keyframe = broken  # type: ignore[method-assign]
+    delta = core.ingest(view(EYES[0], 0))
+    assert delta is not None and len(delta.upserted) > 0
+    assert core.counters["pose_graph_errors"] == 1
+
+
+def test_the_same_keyframe_twice_is_one_graph_node() -> None:
+    core = core_with_loops()
+    core.ingest(view(EYES[0], 0))
+    core.ingest(view(EYES[0], 0), force_keyframe=True)
+    assert core.loops is not None and core.loops.graphs["robot1"].keys == [("robot1", 0)]
