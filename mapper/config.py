@@ -13,6 +13,7 @@ from mapper.fusion import FusionConfig
 from mapper.geometry.registry import RECONSTRUCTORS
 from mapper.intake import InputLimits
 from mapper.perception.registry import EMBEDDERS, SEGMENTERS
+from mapper.posegraph import PoseGraphConfig
 from mapper.relations import RelationConfig
 from mapper.work.config import OffloadConfig
 from protocol.keys import SiteName
@@ -306,6 +307,11 @@ class MapperCoreConfig(BaseModel):
     )
     single_view: SingleViewConfig = Field(
         default_factory=SingleViewConfig, description="single-view floor geometry for views without stereo partners"
+    )
+    pose_graph: PoseGraphConfig = Field(
+        default_factory=PoseGraphConfig,
+        description="loop closure of moving sources' odometry: a planar pose graph over their keyframes with "
+        "odometry and verified loop factors; corrects their later frames and moves what earlier ones fused",
     )
     limits: InputLimits = Field(
         default_factory=InputLimits,

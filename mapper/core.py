@@ -46,6 +46,7 @@ from mapper.intake import view_problem
 from mapper.keyframes import KeyframeSelector, KeyframeStore, intrinsics_of
 from mapper.perception.base import Detection, Embedder, Mask2D, Segmenter, ViewGeometry
 from mapper.pointmap import VoxelMap
+from mapper.posegraph import Key, LoopCloser, node_move
 from mapper.relations import EdgeCache, compute_edges, refine_with_points
 from mapper.work.compute import KeyframeProducts, compute_keyframe
 from protocol.messages import GraphDelta, GraphNode, GraphSnapshot, PointMap
@@ -123,6 +124,10 @@ class MapperCore:
         self._offloaded_key: tuple[str, int] | None = None  # the last view whose work was offloaded
         self._bad_input = RateLimitedLog(log)
         self._edges = EdgeCache()  # relations of node pairs whose boxes did not change are not recomputed
+        # Loop closure of moving sources' odometry, and which of their keyframes each node was fused from (the
+        # last few: a node follows them when a loop moves them).
+        self.loops = LoopCloser(cfg.pose_graph) if cfg.pose_graph.enabled else None
+        self._fused_from: dict[str, list[Key]] = {}
 
     def views_to_keep(self) -> list[View]:
         """Every view a later window or retry may still use: the stored keyframes and recent frames, and the
@@ -152,10 +157,69 @@ class MapperCore:
             return None
         if not (self.selector.consider(view) or force_keyframe):
             self._count("views_not_keyframe")
-            self.keyframes.note_frame(view)
+            self.keyframes.note_frame(self._corrected(view))
             return None
         self._count("keyframes")
-        return self._finish(view, [r for r in [self._timed(view)] if r is not None])
+        moved: set[str] = set()
+        if self.loops is not None and self._drifts(view):
+            view, moved = self._close_loops(view)
+        results = [r for r in [self._timed(view)] if r is not None]
+        if moved:
+            results.append(UpdateResult(changed=moved))
+        return self._finish(view, results)
+
+    def _drifts(self, view: View) -> bool:
+        """Whether ``view``'s pose is odometry that drifts: a prior, not a calibration, whose errors are not
+        independent per frame (those are no chain to correct)."""
+        r = view.prior_rel_rot_deg
+        return view.T_world_cam is not None and not view.pose_trusted and (r is None or np.isfinite(r))
+
+    def _corrected(self, view: View) -> View:
+        """``view`` with its source's newest loop-closure correction applied to its pose prior."""
+        if self.loops is None or not self._drifts(view) or view.source_id not in self.loops.graphs:
+            return view
+        assert view.T_world_cam is not None
+        return dataclasses.replace(view, T_world_cam=self.loops.correction(view.source_id) @ view.T_world_cam)
+
+    def _close_loops(self, view: View) -> tuple[View, set[str]]:
+        """Add a moving source's keyframe to its pose graph (``mapper.posegraph``); when a loop closes, move the
+        stored keyframes and the nodes fused from them. Returns the view with its corrected prior and the ids
+        of the nodes moved."""
+        assert self.loops is not None and view.T_world_cam is not None
+        try:
+            feats = extract_features(view.image, self.config.pose_graph.max_features)
+            deltas = self.loops.keyframe(view.key, view.T_world_cam, feats, intrinsics_of(view).K(), view.image)
+        except Exception as e:  # noqa: BLE001 - the keyframe goes on with its source's last correction
+            self._count("pose_graph_errors")
+            log.warning("pose graph: keyframe %s#%d failed: %s: %s", view.source_id, view.seq, type(e).__name__, e)
+            return self._corrected(view), set()
+        for key, delta in deltas.items():
+            self.keyframes.move(key, delta)
+            self.loops.move_memory(key, delta)
+        moved = self._move_nodes(deltas) if deltas else set()
+        self.counters.update(self.loops.counters)
+        self._count("keyframes_moved_by_loops", len(deltas))
+        self._count("nodes_moved_by_loops", len(moved))
+        return self._corrected(view), moved
+
+    def _move_nodes(self, deltas: dict[Key, np.ndarray]) -> set[str]:
+        """Move each node fused from keyframes that ``deltas`` moved by their mean (its unmoved keyframes count
+        as staying put)."""
+        moved = set()
+        for node_id, keys in list(self._fused_from.items()):
+            node = self.objects.nodes.get(node_id)
+            if node is None:
+                del self._fused_from[node_id]
+                continue
+            if not any(k in deltas for k in keys):
+                continue
+            T = node_move(node.points.mean(0), [deltas.get(k, np.eye(4)) for k in keys])
+            R, t = T[:3, :3], T[:3, 3]
+            node.points = (node.points @ R.T.astype(np.float32) + t.astype(np.float32)).astype(node.points.dtype)
+            node.rays = [(R @ o + t, R @ d) for o, d in node.rays]
+            node.touch()
+            moved.add(node_id)
+        return moved
 
     def _finish(self, view: View, results: list[UpdateResult]) -> GraphDelta | None:
         """Retry a deferred keyframe when ``view``'s processing changed something, and commit it all."""
@@ -319,6 +383,10 @@ class MapperCore:
         # Only the depth check reads the stored maps: do not pay for them when it is off.
         depth_map = downsample(vg.depth_m, vg.confidence, K_out, T_world_cam, dc.map_width, 0.5) if dc.enabled else None
         self.keyframes.add(view, T_world_cam, depth_m, depth_map)
+        if self.loops is not None:
+            h, w = view.image.shape[:2]
+            self.loops.remember(view.key, vg.depth_m, vg.confidence, K_out, intrinsics_of(view).K(), (w, h),
+                                T_world_cam)
         # Measured depth: the detections are also matched to nodes in the image (confident depth only).
         sure = np.where(vg.confidence >= self.config.fusion.min_depth_confidence, vg.depth_m, 0.0)
         kv = KeyframeView(K_out, T_world_cam, sure)
@@ -385,6 +453,8 @@ class MapperCore:
                     T_world_cam, floor_masks, self.config.single_view.floor_z_m)
                 self._seen.put(view.source_id, seen)
         res = self.objects.integrate(objs, view.source_id, view.stamp_ns or time.time_ns(), kv)
+        if self.loops is not None:
+            self._note_fused(view.key, res)
         if single_view:
             # Other cameras' placements of the same objects fix their depth, and what they saw as free space
             # refutes placements; cameras that never move make few keyframes, so this runs now, not every
@@ -402,6 +472,16 @@ class MapperCore:
         times["fusion"] = time.perf_counter() - t
         self.last = KeyframeResult(view, T_world_cam, vg, len(dets), lift, times)
         return res
+
+    def _note_fused(self, key: Key, res: UpdateResult, keep: int = 16) -> None:
+        """Remember that keyframe ``key`` changed the nodes of ``res`` (its last ``keep`` keyframes per node)."""
+        for node_id in res.removed:
+            self._fused_from.pop(node_id, None)
+        for node_id in res.changed - res.removed:
+            keys = self._fused_from.setdefault(node_id, [])
+            if key not in keys:
+                keys.append(key)
+                del keys[:-keep]
 
     def _place_depthless(self, view: View, T_world_cam: np.ndarray, dets: list[Detection],
                          which: list[int], vg: ViewGeometry) -> list[Object3D]:

@@ -160,6 +160,18 @@ class KeyframeStore:
         # The source's frames before this keyframe are older views of what it sees: it replaces them.
         self._recent.pop(view.source_id, None)
 
+    def move(self, key: tuple[str, int], delta: np.ndarray) -> bool:
+        """A stored keyframe's pose was corrected by ``delta`` (4x4 world transform, left-multiplied): its
+        prior and its depth map's pose follow. False when it is not stored."""
+        for i, s in enumerate(self._frames):
+            if s.view.key == key and s.view.T_world_cam is not None:
+                dm = s.depth_map
+                if dm is not None:
+                    dm = DepthMap(dm.depth_m, dm.K, delta @ dm.T_world_cam)
+                self._frames[i] = _Stored(replace(s.view, T_world_cam=delta @ s.view.T_world_cam), s.depth_m, dm)
+                return True
+        return False
+
     def depth_of(self, view: View, default: float) -> float:
         """Typical depth recorded for a stored view, else ``default``."""
         for s in self._frames:
