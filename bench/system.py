@@ -396,6 +396,21 @@ def worker_procs(endpoint: str, site: str, n_workers: int, torch_threads: int | 
     return procs
 
 
+DROP_REASONS = ("superseded", "stale", "full", "given_up")
+"""Why the mapper dropped keyframe jobs (``keyframes_dropped.<reason>.<source>`` in its status)."""
+
+
+def drops_by_reason(status0: dict[str, float], status1: dict[str, float]) -> dict[str, float]:
+    """Keyframes dropped during a phase per reason, summed over sources: ``dropped.<reason>``."""
+    out = {f"dropped.{r}": 0.0 for r in DROP_REASONS}
+    for name, v in status1.items():
+        parts = name.split(".", 2)
+        if len(parts) == 3 and parts[0] == "keyframes_dropped":
+            key = f"dropped.{parts[1]}"
+            out[key] = out.get(key, 0.0) + float(v) - float(status0.get(name, 0.0))
+    return out
+
+
 def _keyframes_done(diff: Any) -> float:
     """Keyframes whose work finished: done in the mapper's thread, or sent out and back (or done by the mapper)."""
     return (diff("keyframes") - diff("keyframes_offloaded", 0.0) + diff("work_results_accepted", 0.0)
@@ -510,6 +525,7 @@ def _run_stack(cams: list[CameraFrames], fps: float, phase_s: float, warmup_s: f
                 "keyframes_per_s": keyframes / dt,
                 "keyframes_done_per_s": _keyframes_done(diff) / dt,
                 "keyframes_dropped": diff("keyframes_dropped", 0.0),
+                **drops_by_reason(status0, status1),
                 "keyframes_deferred": diff("keyframes_deferred"),
                 "dropped": dropped,
                 "dropped_frac": dropped / max(received, 1.0),

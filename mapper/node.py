@@ -85,6 +85,7 @@ class MapperNode(Process):
     # -- main loop -------------------------------------------------------------------------------------
     def _extra_counters(self) -> dict[str, float]:
         out = dict(self.core.counters)
+        out.update(self.core.stages.counters())
         out.update(self.intake.extra_counters())
         out["graph_version"] = self.core.version
         out["nodes"] = len(self.core.store.nodes)
@@ -171,7 +172,7 @@ class MapperNode(Process):
         if frame.header.source_kind == "robot":
             self._robots.put(view.source_id, True)
         if self.offloader is not None:
-            self.offloader.remember(view.key, frame.jpeg)  # a keyframe's JPEG answers workers' fetches
+            self.offloader.remember(view.key, frame.jpeg, frame.received_ns)  # answers workers' fetches
         delta = self.core.ingest(view)
         if self.offloader is not None:
             self.offloader.prune(self.core.views_to_keep())
