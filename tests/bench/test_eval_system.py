@@ -95,3 +95,16 @@ def test_system_bench_scaling_with_workers(tmp_path: Path) -> None:
     assert 0 < helped["model_c_s"] < helped["model_w_s"] + helped["model_c_s"]
     assert [r["workers"] for r in helped["model_curve"]][:3] == [0, 1, 2] and helped["model_kf_per_s_here"] > 0
     assert "## Scaling model" in (tmp_path / "system.md").read_text()
+
+
+def test_rendered_frames_are_kept_and_reused(tmp_path: Path) -> None:
+    from bench.system import cached_cameras
+
+    first = cached_cameras(tmp_path, 1, 2, 64, 48, "apartment", 0, False)
+    (kept,) = list(tmp_path.iterdir())
+    again = cached_cameras(tmp_path, 1, 2, 64, 48, "apartment", 0, False)
+    assert again[0].jpegs == first[0].jpegs and again[0].source_id == "simcam0"
+    kept.write_bytes(b"")  # proof the second call read the file: an empty one cannot be unpickled
+    with pytest.raises(EOFError):
+        cached_cameras(tmp_path, 1, 2, 64, 48, "apartment", 0, False)
+    assert len(cached_cameras(None, 1, 2, 64, 48, "apartment", 0, False)[0].jpegs) == 2
