@@ -193,6 +193,10 @@ class Offloader:
         """Whether jobs are out (the mapper then polls for results more often)."""
         return bool(self._pending)
 
+    def has_news(self) -> bool:
+        """Whether acks or results wait to be taken (:meth:`step`)."""
+        return bool(self._inbox)
+
     def step(self) -> list[Finished]:
         """Take acks and results, re-issue overdue jobs; the keyframes to finish now, in arrival order (then
         :meth:`send`, so the jobs finishing them made go out at once)."""

@@ -322,3 +322,33 @@ def test_keyframes_finished_together_keep_their_jpegs_for_later_windows() -> Non
     stored = {v.key for v in node.core.keyframes.views()}
     assert {("r1", int(j.split("#")[1])) for j in out} <= stored
     assert stored <= set(o._jpegs), "every stored keyframe's JPEG answers workers' fetches"
+
+
+def test_a_result_in_is_finished_before_the_next_frame_of_a_batch() -> None:
+    """The mapper's loop takes a worker's result (and sends the worker its next job) between two frames of a
+    batch, not after the whole batch (regression: with 8 cameras, a batch held results while workers idled)."""
+    from mapper.config import MapperConfig
+    from mapper.node import MapperNode
+    from protocol.messages import FrameHeader
+    from protocol.transport import Frame
+
+    node = MapperNode(MapperConfig(site="t"))
+    o = node.offloader
+    assert o is not None
+    jpegs, poses, intr = frames()
+    for i in range(3):
+        h = FrameHeader(source_id=f"r{i}", source_kind="robot", seq=0, stamp_ns=1000, width=160, height=120,
+                        intrinsics=intr, T_world_cam=poses[i])
+        node.intake.slots.put(f"argus/t/robot/r{i}/frame", Frame(h, jpegs[i], f"argus/t/robot/r{i}/frame", 0))
+    events: list[str] = []
+
+    def process(frame: Frame, *_: Any) -> None:
+        events.append(f"frame {frame.header.source_id}")
+        if frame.header.source_id == "r1":
+            o._inbox.append(("ack", b"a worker's answer came in"))
+
+    node._process = process  # type: ignore[method-assign]
+    node._finish_jobs = lambda _o: events.append("jobs")  # type: ignore[method-assign]
+    node.outbox.periodic = lambda force=False: None  # type: ignore[method-assign]  # no session here
+    node._step(timeout_s=0.0)
+    assert events == ["frame r0", "frame r1", "jobs", "frame r2", "jobs"]
