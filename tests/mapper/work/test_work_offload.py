@@ -347,8 +347,8 @@ def test_a_result_in_is_finished_before_the_next_frame_of_a_batch() -> None:
         if frame.header.source_id == "r1":
             o._inbox.append(("ack", b"a worker's answer came in"))
 
-    node._process = process  # type: ignore[method-assign]
-    node._finish_jobs = lambda _o: events.append("jobs")  # type: ignore[method-assign]
+    node._process = process  # type: ignore[method-assign,assignment]
+    node._finish_jobs = lambda _o: events.append("jobs")  # type: ignore[method-assign,assignment]
     node.outbox.periodic = lambda force=False: None  # type: ignore[method-assign]  # no session here
     node._step(timeout_s=0.0)
     assert events == ["frame r0", "frame r1", "jobs", "frame r2", "jobs"]
