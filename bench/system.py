@@ -602,6 +602,8 @@ def main(argv: list[str] | None = None) -> int:
                    help="torch threads of the mapper and of each worker (1: one core each, for scaling curves)")
     p.add_argument("--quick", action="store_true", help="short run (1 camera, 10 s phases)")
     p.add_argument("--out", type=Path, default=Path("bench_out/system"))
+    p.add_argument("--mapper-set", dest="mapper_set", action="append", default=[], metavar="PATH=VALUE",
+                   help="mapper setting, e.g. --mapper-set workers.max_frame_age_s=1.0 (argus mapper --describe)")
     p.add_argument("--frames-cache", type=Path, default=None,
                    help="folder keeping the rendered frames between runs (same cameras, size, frames and seed: "
                    "not rendered again; delete it when the simulator changes)")
@@ -613,6 +615,17 @@ def main(argv: list[str] | None = None) -> int:
                                        "perception": {"segmenter": a.segmenter, "embedder": a.segmenter}}
     if a.torch_threads is not None:
         mapper_settings["torch_threads"] = a.torch_threads
+    for item in a.mapper_set:
+        from protocol.tomlconfig import ConfigError, parse_value, set_path
+
+        path, sep, text = item.partition("=")
+        try:
+            if not sep:
+                raise ConfigError("not PATH=VALUE")
+            set_path(mapper_settings, path.strip(), parse_value(text.strip()))
+        except ConfigError as e:
+            print(f"argus bench system: --mapper-set {item!r}: {e}", file=sys.stderr)
+            return 2
     workers = None if a.workers is None else [int(w) for w in a.workers.split(",") if w.strip()]
     try:
         run(a.cameras, a.fps, a.phase_s, a.warmup_s, a.width, a.height, a.frames_per_camera, consumers,

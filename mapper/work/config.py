@@ -46,11 +46,18 @@ class OffloadConfig(BaseModel):
         "this plus one job (~0.5 s on one core) plus the frame's wait before it reached the mapper. A job "
         "re-issued after its worker failed is kept (no gap). 0: no deadline",
     )
+    fair_order: bool = Field(
+        default=True,
+        description="a free worker takes the job of the source served least recently (each with its freshest "
+        "keyframe): past capacity every camera is mapped in turn. False: the job submitted first, which may serve "
+        "a few sources again and again (their windows then reuse the worker's cached depth: cheaper jobs)",
+    )
     max_result_bytes: int = Field(default=32 * 1024 * 1024, ge=1024, description="larger results are refused")
 
     def dispatch(self) -> DispatchConfig:
         return DispatchConfig(self.ack_timeout_s, self.result_timeout_s, self.max_attempts, self.quarantine_after,
-                              self.max_in_flight, self.max_jobs, max_frame_age_s=self.max_frame_age_s)
+                              self.max_in_flight, self.max_jobs, max_frame_age_s=self.max_frame_age_s,
+                              fair=self.fair_order)
 
 
 class WorkerConfig(BaseModel):

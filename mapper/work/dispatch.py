@@ -82,6 +82,7 @@ class DispatchConfig:
     max_frame_age_s: float = 1.5  # a never-started job whose frame is older is dropped as stale (0: never)
     max_sources: int = 4096  # sources whose last worker is remembered (affinity), the least recent forgotten
     affinity_hold_s: float = 0.5  # a job waits up to this long for its source's last worker when that one is full
+    fair: bool = True  # least recently served source first (False: the job submitted first)
 
 
 class Dispatcher:
@@ -160,9 +161,10 @@ class Dispatcher:
 
     def _order(self, j: Job) -> tuple[float, float, float, float]:
         """Sort key of a pending job: re-issued ones first (oldest first), then the least recently served
-        source, its fresh keyframe before a retried older one, then the older frame."""
-        if j.attempts > 0:
-            return (0.0, j.submitted, 0.0, 0.0)
+        source, its fresh keyframe before a retried older one, then the older frame (not ``fair``: the job
+        submitted first)."""
+        if j.attempts > 0 or not self.config.fair:
+            return (0.0 if j.attempts > 0 else 1.0, j.submitted, 0.0, 0.0)
         return (1.0, self._served.get(j.source_id, float("-inf")), 0.0 if j.fresh else 1.0, j.captured)
 
     def assign(self, now: float) -> list[tuple[str, str, int]]:

@@ -268,3 +268,14 @@ def test_affinity_memory_is_bounded() -> None:
         d.assign(now=float(i))
         d.result(f"s{i}#0", "w1", now=float(i))
     assert len(d._affinity) == 3
+
+
+def test_without_fair_order_the_job_submitted_first_goes_first() -> None:
+    d = make(max_in_flight=1, fair=False)
+    d.worker_up("w")
+    d.submit("a#1", "a", 0.0)
+    assert d.assign(0.0) == [("a#1", "w", 1)]
+    d.submit("a#2", "a", 0.3)
+    d.submit("c#1", "c", 0.7)
+    assert d.result("a#1", "w", 0.8) is Outcome.ACCEPTED
+    assert d.assign(0.8) == [("a#2", "w", 1)]  # fair: c#1 (never served)
