@@ -237,6 +237,8 @@ class Offloader:
             payload = encode(p.job)
             self._session.put(self.keys.work_job(worker_id), payload, encoding=message_encoding(WorkJob))
             self.counters.add("jobs_sent")
+            if attempt == 1:  # how often each source is served (fair_order)
+                self.counters.add(f"jobs_sent.{p.view.source_id}")
             self.counters.add("work_job_bytes", len(payload))
         except Exception as e:  # noqa: BLE001 - the job times out and is re-issued
             log.warning("sending job %s to %s failed: %s", job_id, worker_id, e)

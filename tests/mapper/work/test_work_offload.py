@@ -225,6 +225,7 @@ def test_a_keyframe_whose_frame_came_in_too_long_ago_is_dropped_as_stale_per_sou
     assert o.offload(old[0], old, 0)  # handled (not done by the mapper), but too old to be a job
     assert o.step() == [] and o.send() == []
     assert [decode(p, WorkJob).job_id for _, p in sent.puts] == ["r1#6"]
+    assert counters.get("jobs_sent.r1") == 1  # served once
     assert counters.get("keyframes_dropped.stale.r1") == 1 and counters.get("keyframes_dropped") == 1
     assert o.extra_counters()["work_jobs_dropped_stale"] == 1
 
