@@ -119,6 +119,30 @@ def render_cameras(n: int, frames_per_camera: int, width: int, height: int, fami
     return cams
 
 
+def cached_cameras(cache: Path | None, n: int, frames_per_camera: int, width: int, height: int, family: str,
+                   seed: int, oracle: bool) -> list[CameraFrames]:
+    """:func:`render_cameras`, or its earlier output kept under ``cache`` (a pickle this bench wrote; the
+    rendering is deterministic for these arguments and the simulator's code, so delete the folder when that
+    changes). Rendering 8 cameras takes minutes on a busy machine; repeated runs need not pay it again."""
+    import pickle
+
+    path = None
+    if cache is not None:
+        path = cache / f"cams_{n}x{frames_per_camera}_{width}x{height}_{family}_{seed}_{int(oracle)}.pkl"
+        if path.exists():
+            with path.open("rb") as f:
+                cams: list[CameraFrames] = pickle.load(f)  # noqa: S301 - written by this function
+            return cams
+    cams = render_cameras(n, frames_per_camera, width, height, family, seed, oracle=oracle)
+    if path is not None:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        tmp = path.with_suffix(".tmp")
+        with tmp.open("wb") as f:
+            pickle.dump(cams, f)
+        tmp.replace(path)
+    return cams
+
+
 class CameraPlayer:
     """Publishes one camera's frames at ``fps`` on its frame key, stamped at the put."""
 
@@ -317,14 +341,14 @@ def _log(msg: str) -> None:
 def run(cameras: int, fps: float, phase_s: float, warmup_s: float, width: int, height: int,
         frames_per_camera: int, consumers: list[int], mapper_settings: dict[str, Any], out: Path,
         family: str = "apartment", seed: int = 0, consumer_rate_hz: float = 10.0,
-        workers: list[int] | None = None) -> dict[str, Any]:
+        workers: list[int] | None = None, frames_cache: Path | None = None) -> dict[str, Any]:
     """Run the benchmark and write ``system.json`` / ``system.md`` under ``out``. With ``workers`` (counts of
     ``argus worker`` processes, one fresh stack each, the same frames): the scaling curve, one row per count."""
     t_render = time.monotonic()
     geo = mapper_settings.get("geometry", {}).get("backend", "mvs")
     per = mapper_settings.get("perception", {})
     oracle = geo == "oracle" or "sim" in (per.get("segmenter"), per.get("embedder"))
-    cams = render_cameras(cameras, frames_per_camera, width, height, family, seed, oracle=oracle)
+    cams = cached_cameras(frames_cache, cameras, frames_per_camera, width, height, family, seed, oracle)
     _log(f"rendered {cameras} x {frames_per_camera} frames at {width}x{height} in "
          f"{time.monotonic() - t_render:.1f}s")
     results: dict[str, Any] = {"cameras": cameras, "fps": fps, "width": width, "height": height,
@@ -394,6 +418,21 @@ def worker_procs(endpoint: str, site: str, n_workers: int, torch_threads: int | 
             ws["torch_threads"] = torch_threads
         procs.append({"name": f"worker{i}", "command": "worker", "node_id": f"w{i}", "settings": ws})
     return procs
+
+
+DROP_REASONS = ("superseded", "stale", "full", "given_up")
+"""Why the mapper dropped keyframe jobs (``keyframes_dropped.<reason>.<source>`` in its status)."""
+
+
+def drops_by_reason(status0: dict[str, float], status1: dict[str, float]) -> dict[str, float]:
+    """Keyframes dropped during a phase per reason, summed over sources: ``dropped.<reason>``."""
+    out = {f"dropped.{r}": 0.0 for r in DROP_REASONS}
+    for name, v in status1.items():
+        parts = name.split(".", 2)
+        if len(parts) == 3 and parts[0] == "keyframes_dropped":
+            key = f"dropped.{parts[1]}"
+            out[key] = out.get(key, 0.0) + float(v) - float(status0.get(name, 0.0))
+    return out
 
 
 def _keyframes_done(diff: Any) -> float:
@@ -510,6 +549,7 @@ def _run_stack(cams: list[CameraFrames], fps: float, phase_s: float, warmup_s: f
                 "keyframes_per_s": keyframes / dt,
                 "keyframes_done_per_s": _keyframes_done(diff) / dt,
                 "keyframes_dropped": diff("keyframes_dropped", 0.0),
+                **drops_by_reason(status0, status1),
                 "keyframes_deferred": diff("keyframes_deferred"),
                 "dropped": dropped,
                 "dropped_frac": dropped / max(received, 1.0),
@@ -562,6 +602,11 @@ def main(argv: list[str] | None = None) -> int:
                    help="torch threads of the mapper and of each worker (1: one core each, for scaling curves)")
     p.add_argument("--quick", action="store_true", help="short run (1 camera, 10 s phases)")
     p.add_argument("--out", type=Path, default=Path("bench_out/system"))
+    p.add_argument("--mapper-set", dest="mapper_set", action="append", default=[], metavar="PATH=VALUE",
+                   help="mapper setting, e.g. --mapper-set workers.max_frame_age_s=1.0 (argus mapper --describe)")
+    p.add_argument("--frames-cache", type=Path, default=None,
+                   help="folder keeping the rendered frames between runs (same cameras, size, frames and seed: "
+                   "not rendered again; delete it when the simulator changes)")
     a = p.parse_args(argv)
     if a.quick:
         a.cameras, a.phase_s, a.warmup_s, a.frames_per_camera = min(a.cameras, 2), 10.0, 8.0, 8
@@ -570,10 +615,21 @@ def main(argv: list[str] | None = None) -> int:
                                        "perception": {"segmenter": a.segmenter, "embedder": a.segmenter}}
     if a.torch_threads is not None:
         mapper_settings["torch_threads"] = a.torch_threads
+    for item in a.mapper_set:
+        from protocol.tomlconfig import ConfigError, parse_value, set_path
+
+        path, sep, text = item.partition("=")
+        try:
+            if not sep:
+                raise ConfigError("not PATH=VALUE")
+            set_path(mapper_settings, path.strip(), parse_value(text.strip()))
+        except ConfigError as e:
+            print(f"argus bench system: --mapper-set {item!r}: {e}", file=sys.stderr)
+            return 2
     workers = None if a.workers is None else [int(w) for w in a.workers.split(",") if w.strip()]
     try:
         run(a.cameras, a.fps, a.phase_s, a.warmup_s, a.width, a.height, a.frames_per_camera, consumers,
-            mapper_settings, a.out, consumer_rate_hz=a.consumer_rate, workers=workers)
+            mapper_settings, a.out, consumer_rate_hz=a.consumer_rate, workers=workers, frames_cache=a.frames_cache)
     except Exception as e:  # noqa: BLE001 - a failed run is one message and exit 1
         print(f"argus bench system: {type(e).__name__}: {e}", file=sys.stderr)
         return 1

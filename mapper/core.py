@@ -49,6 +49,7 @@ from mapper.pointmap import VoxelMap
 from mapper.posegraph import Key, LoopCloser, node_move
 from mapper.relations import EdgeCache, compute_edges, refine_with_points
 from mapper.work.compute import KeyframeProducts, compute_keyframe
+from mapper.work.latency import StageTimes
 from protocol.messages import GraphDelta, GraphNode, GraphSnapshot, PointMap
 from protocol.query import GraphQuery
 from protocol.ratelog import RateLimitedLog
@@ -128,6 +129,8 @@ class MapperCore:
         # last few: a node follows them when a loop moves them).
         self.loops = LoopCloser(cfg.pose_graph) if cfg.pose_graph.enabled else None
         self._fused_from: dict[str, list[Key]] = {}
+        self.stages = StageTimes()  # where keyframes' capture-to-graph time goes (status: kf_s.*)
+        self._retried: collections.deque[tuple[str, int]] = collections.deque(maxlen=16)  # deferred, retried
 
     def views_to_keep(self) -> list[View]:
         """Every view a later window or retry may still use: the stored keyframes and recent frames, and the
@@ -160,6 +163,7 @@ class MapperCore:
             self.keyframes.note_frame(self._corrected(view))
             return None
         self._count("keyframes")
+        self.stages.age("age_at_ingest", view.stamp_ns, time.time_ns())
         moved: set[str] = set()
         if self.loops is not None and self._drifts(view):
             view, moved = self._close_loops(view)
@@ -228,6 +232,8 @@ class MapperCore:
             for _ in range(len(self._deferred)):
                 old = self._deferred.popleft()
                 if self.keyframes.neighbours(old, self.selector.scene_depth(old.source_id)):
+                    self.stages.age("deferred_wait", old.stamp_ns, time.time_ns())
+                    self._retried.append(old.key)
                     # Checked for a moved camera when it came in; re-checking it now could only unflag the
                     # camera on an image taken before it moved.
                     extra = self._timed(old, check_pose=False)
@@ -239,6 +245,9 @@ class MapperCore:
             return None
         removed = set().union(*(r.removed for r in results))
         changed = set().union(*(r.changed for r in results)) - removed
+        if changed or removed:
+            retry = "_retry" if view.key in self._retried else ""
+            self.stages.age(f"age_at_commit{retry}", view.stamp_ns, time.time_ns())
         return self._commit(changed, removed, view.stamp_ns or time.time_ns(), {view.source_id: view.seq})
 
     def complete(self, view: View, products: KeyframeProducts | None) -> GraphDelta | None:

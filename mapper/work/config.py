@@ -38,16 +38,26 @@ class OffloadConfig(BaseModel):
         description="keyframe jobs held (pending or in flight); each holds a decoded image. Beyond it new "
         "keyframes are dropped (jobs_dropped_full); per source only the freshest pending job is kept",
     )
-    max_pending_s: float = Field(
-        default=2.0, ge=0.0,
-        description="a keyframe waiting longer for a free worker is dropped (keyframes_dropped.stale.<source>): "
-        "past capacity, latency stays bounded and the freshest keyframes are mapped (0: wait forever)",
+    max_frame_age_s: float = Field(
+        default=1.5, ge=0.0,
+        description="deadline of a keyframe job: one whose frame reached the mapper longer ago than this, when it "
+        "is made a job or while it waits for a free worker, is dropped (keyframes_dropped.stale.<source>) and the "
+        "source's next, fresher keyframe is mapped instead. Past capacity, capture-to-graph latency stays near "
+        "this plus one job (~0.5 s on one core) plus the frame's wait before it reached the mapper. A job "
+        "re-issued after its worker failed is kept (no gap). 0: no deadline",
+    )
+    fair_order: bool = Field(
+        default=True,
+        description="a free worker takes the job of the source served least recently (each with its freshest "
+        "keyframe): past capacity every camera is mapped in turn. False: the job submitted first, which may serve "
+        "a few sources again and again (their windows then reuse the worker's cached depth: cheaper jobs)",
     )
     max_result_bytes: int = Field(default=32 * 1024 * 1024, ge=1024, description="larger results are refused")
 
     def dispatch(self) -> DispatchConfig:
         return DispatchConfig(self.ack_timeout_s, self.result_timeout_s, self.max_attempts, self.quarantine_after,
-                              self.max_in_flight, self.max_jobs, max_pending_s=self.max_pending_s)
+                              self.max_in_flight, self.max_jobs, max_frame_age_s=self.max_frame_age_s,
+                              fair=self.fair_order)
 
 
 class WorkerConfig(BaseModel):

@@ -14,11 +14,17 @@ rejected ``quarantine_after`` times is quarantined (no more jobs) until its live
 (a restarted process).
 
 Backpressure: at most one pending job per source, the freshest (a newer keyframe of the source replaces it:
-dropped as ``superseded``), a new job that waited ``max_pending_s`` for a worker is dropped (``stale``: with
-more sources than the workers keep up with, latency stays bounded instead of every source's job queueing behind
-all the others'), and at most ``max_jobs`` jobs in all (a new one beyond that: dropped as ``full``). A job
-already started once (re-issued) and an older keyframe retried are never dropped for staleness.
-Every outcome is counted in :attr:`Dispatcher.counters`.
+dropped as ``superseded``); a job whose frame is older than ``max_frame_age_s`` when it is submitted or while it
+waits for a worker is dropped (``stale``: its frame's age is given at :meth:`Dispatcher.submit`, so an older
+keyframe retried once it had stereo partners ages from its capture, not from its retry; with more sources than
+the workers keep up with, latency stays bounded and the sources' fresher frames are mapped instead); and at most
+``max_jobs`` jobs in all (a new one beyond that: dropped as ``full``). A job already started once (re-issued
+after its worker went away or failed) is never dropped for staleness: the graph must have no gap.
+
+Order: when a worker has room, re-issued jobs go first (oldest first), then the source served least recently
+(its last job sent longest ago; never served: first) with its freshest pending job, ties by older frame first.
+Fair: a source whose keyframes come often cannot keep the others waiting, and each source is served with the
+newest keyframe it has. Every outcome is counted in :attr:`Dispatcher.counters`.
 """
 
 from __future__ import annotations
@@ -53,6 +59,7 @@ class Job:
     since: float = 0.0  # when it entered its state
     submitted: float = 0.0  # re-issued jobs go before newer ones
     fresh: bool = True  # a source's newest keyframe (False: an older keyframe retried, never superseded)
+    captured: float = 0.0  # when its frame was taken in, on the caller's clock (``now`` less its age at submit)
 
 
 @dataclass
@@ -72,9 +79,10 @@ class DispatchConfig:
     max_in_flight: int = 2
     max_jobs: int = 16
     max_workers: int = 256
-    max_pending_s: float = 2.0  # a new job waiting longer than this for a worker is dropped (0: never)
+    max_frame_age_s: float = 1.5  # a never-started job whose frame is older is dropped as stale (0: never)
     max_sources: int = 4096  # sources whose last worker is remembered (affinity), the least recent forgotten
     affinity_hold_s: float = 0.5  # a job waits up to this long for its source's last worker when that one is full
+    fair: bool = True  # least recently served source first (False: the job submitted first)
 
 
 class Dispatcher:
@@ -87,6 +95,7 @@ class Dispatcher:
         self._done: collections.OrderedDict[str, None] = collections.OrderedDict()  # recent done ids
         self.counters: collections.Counter[str] = collections.Counter()
         self._affinity: collections.OrderedDict[str, str] = collections.OrderedDict()  # source -> last worker
+        self._served: collections.OrderedDict[str, float] = collections.OrderedDict()  # source -> last job sent
         self.dropped: list[tuple[str, str]] = []
         """``(job_id, reason)`` of jobs dropped or given up since the caller last took them (:meth:`take_dropped`)."""
 
@@ -114,13 +123,18 @@ class Dispatcher:
         return sorted(k for k, w in self.workers.items() if not w.quarantined)
 
     # -- jobs ---------------------------------------------------------------------------------------
-    def submit(self, job_id: str, source_id: str, now: float, fresh: bool = True) -> bool:
-        """Add a job (False: a duplicate of a known or recently done job, ignored; or dropped). A ``fresh`` job
-        (the source's newest keyframe) drops the source's older fresh job still pending (``superseded``); an older
-        keyframe retried (``fresh`` False: deferred until it had stereo partners) is not superseded. With
+    def submit(self, job_id: str, source_id: str, now: float, fresh: bool = True, age_s: float = 0.0) -> bool:
+        """Add a job (False: a duplicate of a known or recently done job, ignored; or dropped). ``age_s``: how
+        old its frame is now (a job already older than ``max_frame_age_s`` is dropped as ``stale``). A ``fresh``
+        job (the source's newest keyframe) drops the source's older fresh job still pending (``superseded``); an
+        older keyframe retried (``fresh`` False: deferred until it had stereo partners) is not superseded. With
         ``max_jobs`` jobs already, the new one is dropped (``full``)."""
         if job_id in self.jobs or job_id in self._done:
             self.counters["jobs_duplicate_submit"] += 1
+            return False
+        if self._too_old(max(age_s, 0.0)):
+            self.dropped.append((job_id, "stale"))
+            self.counters["jobs_dropped_stale"] += 1
             return False
         for j in list(self.jobs.values()):
             if fresh and j.fresh and j.source_id == source_id and j.state is State.PENDING:
@@ -129,15 +143,37 @@ class Dispatcher:
             self.dropped.append((job_id, "full"))
             self.counters["jobs_dropped_full"] += 1
             return False
-        self.jobs[job_id] = Job(job_id, source_id, since=now, submitted=now, fresh=fresh)
+        self.jobs[job_id] = Job(job_id, source_id, since=now, submitted=now, fresh=fresh,
+                                captured=now - max(age_s, 0.0))
         self.counters["jobs_submitted"] += 1
         return True
 
+    def _too_old(self, age_s: float) -> bool:
+        return self.config.max_frame_age_s > 0 and age_s > self.config.max_frame_age_s
+
+    def drop_stale(self, now: float) -> list[str]:
+        """Drop the pending jobs never started whose frame is older than ``max_frame_age_s`` (returned)."""
+        out = [j.job_id for j in self.jobs.values()
+               if j.state is State.PENDING and j.attempts == 0 and self._too_old(now - j.captured)]
+        for job_id in out:
+            self._drop(job_id, "stale")
+        return out
+
+    def _order(self, j: Job) -> tuple[float, float, float, float]:
+        """Sort key of a pending job: re-issued ones first (oldest first), then the least recently served
+        source, its fresh keyframe before a retried older one, then the older frame (not ``fair``: the job
+        submitted first)."""
+        if j.attempts > 0 or not self.config.fair:
+            return (0.0 if j.attempts > 0 else 1.0, j.submitted, 0.0, 0.0)
+        return (1.0, self._served.get(j.source_id, float("-inf")), 0.0 if j.fresh else 1.0, j.captured)
+
     def assign(self, now: float) -> list[tuple[str, str, int]]:
-        """Send pending jobs (oldest first) to the least loaded live workers: ``(job_id, worker_id, attempt)``.
-        Source affinity (:meth:`_pick`) may hold a job back a little while its worker is full."""
+        """Send pending jobs to the least loaded live workers, in :meth:`_order` (stale ones dropped first):
+        ``(job_id, worker_id, attempt)``. Source affinity (:meth:`_pick`) may hold a job back a little while its
+        worker is full."""
+        self.drop_stale(now)
         out = []
-        for j in sorted((j for j in self.jobs.values() if j.state is State.PENDING), key=lambda j: j.submitted):
+        for j in sorted((j for j in self.jobs.values() if j.state is State.PENDING), key=self._order):
             free = [(len(self.workers[k].in_flight), k) for k in self.live_workers()
                     if len(self.workers[k].in_flight) < self.config.max_in_flight]
             if not free:
@@ -148,6 +184,10 @@ class Dispatcher:
             j.state, j.worker, j.since = State.ASSIGNED, wid, now
             j.attempts += 1
             self.workers[wid].in_flight.add(j.job_id)
+            self._served.pop(j.source_id, None)
+            self._served[j.source_id] = now
+            while len(self._served) > self.config.max_sources:
+                self._served.popitem(last=False)
             self.counters["jobs_assigned"] += 1
             out.append((j.job_id, wid, j.attempts))
         return out
@@ -221,14 +261,10 @@ class Dispatcher:
         return True
 
     def expire(self, now: float) -> list[str]:
-        """Re-issue jobs whose ack or result is overdue (returned)."""
+        """Drop stale pending jobs (:meth:`drop_stale`); re-issue jobs whose ack or result is overdue (returned)."""
         c = self.config
+        self.drop_stale(now)
         jobs = list(self.jobs.values())
-        if c.max_pending_s > 0:
-            for j in jobs:
-                if j.state is State.PENDING and j.fresh and j.attempts == 0 and now - j.submitted > c.max_pending_s:
-                    self._drop(j.job_id, "stale")
-            jobs = list(self.jobs.values())
         late_ack = [j.job_id for j in jobs if j.state is State.ASSIGNED and now - j.since > c.ack_timeout_s]
         late = [j.job_id for j in jobs if j.state is State.ACKED and now - j.since > c.result_timeout_s]
         return self._reissue(late_ack, now, "jobs_reissued_no_ack") + self._reissue(late, now, "jobs_reissued_late")

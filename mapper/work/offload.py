@@ -29,6 +29,7 @@ from mapper.work.compute import KeyframeProducts
 from mapper.work.config import OffloadConfig
 from mapper.work.dispatch import Dispatcher, Outcome
 from mapper.work.jobs import ResultRejected, decode_result, make_job
+from mapper.work.latency import StageTimes
 from protocol.codec import DecodeError, decode, encode
 from protocol.keys import Keys
 from protocol.messages import WorkAck, WorkJob, WorkResult
@@ -52,6 +53,7 @@ class Pending:
     target: int
     job: WorkJob
     submitted: float = 0.0  # time.monotonic() when made a job
+    sent: float = 0.0  # time.monotonic() when last sent to a worker
 
 
 @dataclass
@@ -74,10 +76,12 @@ class Offloader:
         self._lock = threading.Lock()  # the dispatcher (liveliness callbacks) and the JPEG store (queries)
         self._pending: dict[str, Pending] = {}
         self._jpegs: collections.OrderedDict[tuple[str, int], bytes] = collections.OrderedDict()
+        self._received: dict[tuple[str, int], int] = {}  # when each remembered frame reached the mapper (ns)
         self._inbox: collections.deque[tuple[str, bytes]] = collections.deque(maxlen=8 * config.max_jobs)
         self._newest: dict[str, int] = {}  # newest seq remembered per source (bounded by the mapper's sources)
         self._session: zenoh.Session | None = None
         self._decls: list[Any] = []
+        self.stages = StageTimes()  # a job's stages (status: kf_s.*)
 
     # -- Zenoh -----------------------------------------------------------------------------------------
     def open(self, session: zenoh.Session) -> None:
@@ -141,10 +145,12 @@ class Offloader:
             log.debug("keyframe query %s failed: %s", query.key_expr, e)
 
     # -- the keyframe store ------------------------------------------------------------------------------
-    def remember(self, key: tuple[str, int], jpeg: bytes) -> None:
-        """Keep a frame's JPEG while it may become a keyframe (see :meth:`prune`)."""
+    def remember(self, key: tuple[str, int], jpeg: bytes, received_ns: int | None = None) -> None:
+        """Keep a frame's JPEG while it may become a keyframe (see :meth:`prune`), and when it reached the mapper
+        (``received_ns``, ``time.time_ns()`` of this machine; default now): a job's deadline counts from then."""
         with self._lock:
             self._jpegs[key] = jpeg
+            self._received[key] = time.time_ns() if received_ns is None else received_ns
             if len(self._newest) > 4096:  # made-up source ids must not grow it without bound
                 self._newest.clear()
             self._newest[key[0]] = max(key[1], self._newest.get(key[0], -1))
@@ -157,6 +163,7 @@ class Offloader:
         with self._lock:
             for key in [k for k in self._jpegs if k not in keep]:
                 del self._jpegs[key]
+                self._received.pop(key, None)
         self.counters.set("keyframe_store_jpegs", len(self._jpegs))
 
     # -- the core's hook ----------------------------------------------------------------------------------
@@ -172,16 +179,23 @@ class Offloader:
             log.debug("keyframe %s done here: no JPEG of %s", view.key, missing or [view.key])
             return False
         job = make_job(views, target, jpeg, 1, self.perception, self.core_config)
+        now_ns = time.time_ns()
         with self._lock:
             fresh = view.seq >= self._newest.get(view.source_id, -1)  # else a deferred keyframe retried
-            if self.dispatcher.submit(job.job_id, view.source_id, time.monotonic(), fresh):
+            age_s = (now_ns - self._received.get(view.key, now_ns)) / 1e9
+            if self.dispatcher.submit(job.job_id, view.source_id, time.monotonic(), fresh, age_s):
                 self._pending[job.job_id] = Pending(view, views, target, job, time.monotonic())
+        self.stages.age("age_at_submit" if fresh else "age_at_submit_retry", view.stamp_ns, time.time_ns())
         return True
 
     # -- the mapper's thread ---------------------------------------------------------------------------
     def busy(self) -> bool:
         """Whether jobs are out (the mapper then polls for results more often)."""
         return bool(self._pending)
+
+    def has_news(self) -> bool:
+        """Whether acks or results wait to be taken (:meth:`step`)."""
+        return bool(self._inbox)
 
     def step(self) -> list[Finished]:
         """Take acks and results, re-issue overdue jobs; the keyframes to finish now, in arrival order (then
@@ -215,11 +229,16 @@ class Offloader:
     def _send(self, job_id: str, worker_id: str, attempt: int) -> None:
         p = self._pending[job_id]
         p.job = p.job.model_copy(update={"attempt": attempt})
+        p.sent = time.monotonic()
+        self.stages.add("wait_pending", p.sent - p.submitted)
+        self.stages.age("age_at_send", p.view.stamp_ns, time.time_ns())
         assert self._session is not None
         try:
             payload = encode(p.job)
             self._session.put(self.keys.work_job(worker_id), payload, encoding=message_encoding(WorkJob))
             self.counters.add("jobs_sent")
+            if attempt == 1:  # how often each source is served (fair_order)
+                self.counters.add(f"jobs_sent.{p.view.source_id}")
             self.counters.add("work_job_bytes", len(payload))
         except Exception as e:  # noqa: BLE001 - the job times out and is re-issued
             log.warning("sending job %s to %s failed: %s", job_id, worker_id, e)
@@ -271,6 +290,8 @@ class Offloader:
             return []
         del self._pending[res.job_id]
         self.counters.add("work_roundtrip_s_sum", now - p.submitted)  # submitted -> result in, waits included
+        self.stages.add("job_roundtrip", now - p.sent)
+        self.stages.age("age_at_result", p.view.stamp_ns, time.time_ns())
         return [Finished(p.view, products=products)]
 
     def _dropped(self) -> list[Finished]:
@@ -298,4 +319,5 @@ class Offloader:
             out["jobs_in_flight"] = float(d.in_flight())
             for wid, w in d.workers.items():
                 out[f"worker_jobs_done.{wid}"] = float(w.done)
+        out.update(self.stages.counters())
         return out

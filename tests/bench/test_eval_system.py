@@ -9,7 +9,7 @@ from pathlib import Path
 
 import pytest
 
-from bench.system import _pct, delta_latency_ms, proc_cpu_s, proc_mem_mb
+from bench.system import _pct, delta_latency_ms, drops_by_reason, proc_cpu_s, proc_mem_mb
 from protocol.messages import GraphDelta
 from tests.support.messages import node_msg
 
@@ -46,6 +46,14 @@ def test_delta_latency_is_from_the_capture_of_the_keyframe_that_made_it() -> Non
     assert delta_latency_ms(delta, now) == pytest.approx(400.0)
     assert delta_latency_ms(delta.model_copy(update={"upserted": []}), now) is None  # no node changed
     assert delta_latency_ms(delta.model_copy(update={"stamp_ns": 0}), now) is None
+
+
+def test_drops_per_reason_are_summed_over_sources_for_the_phase() -> None:
+    s0 = {"keyframes_dropped.stale.a": 2.0, "keyframes_dropped.superseded.a": 1.0, "keyframes_dropped": 3.0}
+    s1 = {"keyframes_dropped.stale.a": 5.0, "keyframes_dropped.stale.b": 1.0, "keyframes_dropped.superseded.a": 1.0,
+          "keyframes_dropped.full.c.d": 4.0, "keyframes_dropped": 11.0}
+    assert drops_by_reason(s0, s1) == {"dropped.superseded": 0.0, "dropped.stale": 4.0, "dropped.full": 4.0,
+                                       "dropped.given_up": 0.0}
 
 
 @pytest.mark.slow
@@ -87,3 +95,16 @@ def test_system_bench_scaling_with_workers(tmp_path: Path) -> None:
     assert 0 < helped["model_c_s"] < helped["model_w_s"] + helped["model_c_s"]
     assert [r["workers"] for r in helped["model_curve"]][:3] == [0, 1, 2] and helped["model_kf_per_s_here"] > 0
     assert "## Scaling model" in (tmp_path / "system.md").read_text()
+
+
+def test_rendered_frames_are_kept_and_reused(tmp_path: Path) -> None:
+    from bench.system import cached_cameras
+
+    first = cached_cameras(tmp_path, 1, 2, 64, 48, "apartment", 0, False)
+    (kept,) = list(tmp_path.iterdir())
+    again = cached_cameras(tmp_path, 1, 2, 64, 48, "apartment", 0, False)
+    assert again[0].jpegs == first[0].jpegs and again[0].source_id == "simcam0"
+    kept.write_bytes(b"")  # proof the second call read the file: an empty one cannot be unpickled
+    with pytest.raises(EOFError):
+        cached_cameras(tmp_path, 1, 2, 64, 48, "apartment", 0, False)
+    assert len(cached_cameras(None, 1, 2, 64, 48, "apartment", 0, False)[0].jpegs) == 2

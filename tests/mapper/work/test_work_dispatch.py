@@ -6,7 +6,8 @@ from mapper.work.dispatch import DispatchConfig, Dispatcher, Outcome, State
 
 
 def make(**kw: float) -> Dispatcher:
-    d = Dispatcher(DispatchConfig(**kw))  # type: ignore[arg-type]
+    """A dispatcher with no frame-age deadline unless one is given (the times below are arbitrary)."""
+    d = Dispatcher(DispatchConfig(**{"max_frame_age_s": 0.0, **kw}))  # type: ignore[arg-type]
     return d
 
 
@@ -152,19 +153,64 @@ def test_the_worker_table_is_bounded() -> None:
     assert d.live_workers() == ["b", "c"]
 
 
-def test_a_new_job_waiting_too_long_is_dropped_but_a_started_one_is_not() -> None:
-    d = Dispatcher(DispatchConfig(max_pending_s=2.0, max_in_flight=1, ack_timeout_s=1.0))
+def test_a_job_whose_frame_is_too_old_is_dropped_but_a_started_one_is_not() -> None:
+    d = make(max_frame_age_s=2.0, max_in_flight=1, ack_timeout_s=1.0)
     d.worker_up("w")
     d.submit("a#1", "a", 0.0)
-    d.submit("b#1", "b", 0.5)
-    d.submit("c#1", "c", 0.6, fresh=False)  # an older keyframe retried
+    d.submit("b#1", "b", 0.5, age_s=0.3)  # its frame reached the mapper at 0.2
+    d.submit("c#1", "c", 0.6, fresh=False, age_s=0.8)  # an older keyframe retried: it ages from its frame
     assert d.assign(0.6) == [("a#1", "w", 1)]
     assert d.expire(1.7) == ["a#1"]  # no ack within 1 s: re-issued (pending again, started once)
-    assert d.expire(2.45) == [] and "b#1" in d.jobs  # b#1 waited 1.95 s: not yet
-    assert d.expire(2.6) == []
-    assert d.take_dropped() == [("b#1", "stale")]  # waited 2.1 s
-    assert d.expire(10.0) == [] and set(d.jobs) == {"a#1", "c#1"}  # started once / retried: kept
+    assert d.take_dropped() == [] and "c#1" in d.jobs  # c#1's frame is 1.9 s old: not yet
+    assert d.expire(1.85) == [] and d.take_dropped() == [("c#1", "stale")]  # 2.05 s
+    assert "b#1" in d.jobs  # 1.65 s
+    assert d.expire(2.25) == [] and d.take_dropped() == [("b#1", "stale")]  # 2.05 s
+    assert d.expire(10.0) == [] and set(d.jobs) == {"a#1"}  # started once: kept (the graph has no gap)
+    assert d.counters["jobs_dropped_stale"] == 2
+
+
+def test_a_job_already_too_old_when_submitted_is_dropped_as_stale() -> None:
+    """A deferred keyframe retried long after its capture never becomes a job: its source's fresher keyframes
+    are mapped instead (before: retried keyframes were never dropped for age and came out seconds late)."""
+    d = make(max_frame_age_s=1.5)
+    d.worker_up("w")
+    assert not d.submit("a#3", "a", 10.0, fresh=False, age_s=1.6)
+    assert d.take_dropped() == [("a#3", "stale")] and d.jobs == {}
     assert d.counters["jobs_dropped_stale"] == 1
+    assert d.submit("a#9", "a", 10.0, age_s=0.1)  # fresh enough
+    assert d.assign(10.0) == [("a#9", "w", 1)]
+
+
+def test_a_slot_that_frees_takes_the_least_recently_served_source() -> None:
+    """Fair order: the source whose last job went out longest ago is served first, even when another source's
+    pending keyframe is older (before: oldest submission first, so a source whose keyframes came at the right
+    moments was served again and again)."""
+    d = make(max_in_flight=1)
+    d.worker_up("w")
+    d.submit("a#1", "a", 0.0)
+    assert d.assign(0.0) == [("a#1", "w", 1)]  # a served at 0.0
+    d.submit("b#1", "b", 0.1)
+    assert d.result("a#1", "w", 0.2) is Outcome.ACCEPTED
+    assert d.assign(0.2) == [("b#1", "w", 1)]  # b served at 0.2
+    d.submit("a#2", "a", 0.3)  # a's older pending keyframe...
+    d.submit("b#2", "b", 0.5)
+    d.submit("c#1", "c", 0.7)  # ...and a source never served
+    assert d.result("b#1", "w", 0.8) is Outcome.ACCEPTED
+    assert d.assign(0.8) == [("c#1", "w", 1)]  # never served first, though its frame is the newest
+    assert d.result("c#1", "w", 0.9) is Outcome.ACCEPTED
+    assert d.assign(0.9) == [("a#2", "w", 1)]  # a (served at 0.0) before b (at 0.2)
+
+
+def test_each_source_is_served_with_its_freshest_keyframe() -> None:
+    """A source with a retried older keyframe and a fresh one pending: the fresh one goes first."""
+    d = make(max_in_flight=1)
+    d.worker_up("w")
+    d.submit("a#7", "a", 1.0)  # the fresh keyframe
+    d.submit("a#3", "a", 1.1, fresh=False)  # an older one, deferred and retried
+    assert d.assign(1.2) == [("a#7", "w", 1)]
+    d.submit("b#1", "b", 1.3)
+    assert d.result("a#7", "w", 1.4) is Outcome.ACCEPTED
+    assert d.assign(1.4) == [("b#1", "w", 1)]  # a was just served: b first
 
 
 def test_equally_loaded_workers_keep_each_source_on_its_last_worker() -> None:
@@ -222,3 +268,14 @@ def test_affinity_memory_is_bounded() -> None:
         d.assign(now=float(i))
         d.result(f"s{i}#0", "w1", now=float(i))
     assert len(d._affinity) == 3
+
+
+def test_without_fair_order_the_job_submitted_first_goes_first() -> None:
+    d = make(max_in_flight=1, fair=False)
+    d.worker_up("w")
+    d.submit("a#1", "a", 0.0)
+    assert d.assign(0.0) == [("a#1", "w", 1)]
+    d.submit("a#2", "a", 0.3)
+    d.submit("c#1", "c", 0.7)
+    assert d.result("a#1", "w", 0.8) is Outcome.ACCEPTED
+    assert d.assign(0.8) == [("a#2", "w", 1)]  # fair: c#1 (never served)

@@ -4,6 +4,7 @@ mapper's Offloader, in-process: no Zenoh). RGB-only geometry (mvs) and classical
 from __future__ import annotations
 
 import functools
+import time
 from typing import Any
 
 import numpy as np
@@ -208,6 +209,27 @@ def test_offloader_declines_without_a_live_worker_and_sends_to_the_least_loaded(
     assert o.extra_counters()["work_jobs_dropped_superseded"] == 1
 
 
+def test_a_keyframe_whose_frame_came_in_too_long_ago_is_dropped_as_stale_per_source() -> None:
+    """The job deadline counts from when the frame reached the mapper (its own clock), so a deferred keyframe
+    retried seconds later is dropped (keyframes_dropped.stale.<source>), not mapped late; a fresh one is sent."""
+    o, sent, counters = offloader(max_frame_age_s=1.5)
+    o.dispatcher.worker_up("a")
+    jpegs = frames()[0]
+    old, new = window_of(3), window_of(6)
+    now = time.time_ns()
+    for v in old:
+        o.remember(v.key, jpegs[v.seq], received_ns=now - 2_000_000_000)  # 2 s ago
+    for v in new:
+        o.remember(v.key, jpegs[v.seq], received_ns=now)
+    assert o.offload(new[0], new, 0)
+    assert o.offload(old[0], old, 0)  # handled (not done by the mapper), but too old to be a job
+    assert o.step() == [] and o.send() == []
+    assert [decode(p, WorkJob).job_id for _, p in sent.puts] == ["r1#6"]
+    assert counters.get("jobs_sent.r1") == 1  # served once
+    assert counters.get("keyframes_dropped.stale.r1") == 1 and counters.get("keyframes_dropped") == 1
+    assert o.extra_counters()["work_jobs_dropped_stale"] == 1
+
+
 def test_duplicate_results_are_ignored_and_a_lost_job_reissued() -> None:
     o, sent, counters = offloader()
     o.dispatcher.worker_up("a")
@@ -285,7 +307,7 @@ def test_keyframes_finished_together_keep_their_jpegs_for_later_windows() -> Non
     for i in range(4):
         h = FrameHeader(source_id="r1", source_kind="robot", seq=i, stamp_ns=1000 + i, width=160, height=120,
                         intrinsics=intr, T_world_cam=poses[i])
-        node._process(Frame(h, jpegs[i], "argus/t/robot/r1/frame", 0), vs[i].image, None)
+        node._process(Frame(h, jpegs[i], "argus/t/robot/r1/frame", time.time_ns()), vs[i].image, None)
         o.send()  # as the mapper's loop does after each frame: the worker takes up to two at once
     out = [k for k in o._pending]
     assert len(out) >= 2, out
@@ -301,3 +323,33 @@ def test_keyframes_finished_together_keep_their_jpegs_for_later_windows() -> Non
     stored = {v.key for v in node.core.keyframes.views()}
     assert {("r1", int(j.split("#")[1])) for j in out} <= stored
     assert stored <= set(o._jpegs), "every stored keyframe's JPEG answers workers' fetches"
+
+
+def test_a_result_in_is_finished_before_the_next_frame_of_a_batch() -> None:
+    """The mapper's loop takes a worker's result (and sends the worker its next job) between two frames of a
+    batch, not after the whole batch (regression: with 8 cameras, a batch held results while workers idled)."""
+    from mapper.config import MapperConfig
+    from mapper.node import MapperNode
+    from protocol.messages import FrameHeader
+    from protocol.transport import Frame
+
+    node = MapperNode(MapperConfig(site="t"))
+    o = node.offloader
+    assert o is not None
+    jpegs, poses, intr = frames()
+    for i in range(3):
+        h = FrameHeader(source_id=f"r{i}", source_kind="robot", seq=0, stamp_ns=1000, width=160, height=120,
+                        intrinsics=intr, T_world_cam=poses[i])
+        node.intake.slots.put(f"argus/t/robot/r{i}/frame", Frame(h, jpegs[i], f"argus/t/robot/r{i}/frame", 0))
+    events: list[str] = []
+
+    def process(frame: Frame, *_: Any) -> None:
+        events.append(f"frame {frame.header.source_id}")
+        if frame.header.source_id == "r1":
+            o._inbox.append(("ack", b"a worker's answer came in"))
+
+    node._process = process  # type: ignore[method-assign,assignment]
+    node._finish_jobs = lambda _o: events.append("jobs")  # type: ignore[method-assign,assignment]
+    node.outbox.periodic = lambda force=False: None  # type: ignore[method-assign]  # no session here
+    node._step(timeout_s=0.0)
+    assert events == ["frame r0", "frame r1", "jobs", "frame r2", "jobs"]
