@@ -44,6 +44,7 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from mapper.geometry import features
 from mapper.geometry.register import pnp_pose
+from protocol.poses import rotation_angle_deg, wrap_angle, yaw_of
 
 F64 = NDArray[np.float64]
 Key = tuple[str, int]
@@ -137,7 +138,7 @@ class PoseGraphConfig(BaseModel):
 # -- planar poses -------------------------------------------------------------------------------------
 def planar(T_world_cam: F64) -> F64:
     """(x, y, heading) of a camera: its centre on the floor plane and its optical axis' heading (rad)."""
-    return np.array([T_world_cam[0, 3], T_world_cam[1, 3], math.atan2(T_world_cam[1, 2], T_world_cam[0, 2])])
+    return np.array([T_world_cam[0, 3], T_world_cam[1, 3], yaw_of(T_world_cam)])
 
 
 def se2(p: F64) -> F64:
@@ -159,10 +160,6 @@ def lift(D: F64) -> F64:
     return T
 
 
-def wrap(a: float) -> float:
-    return (a + math.pi) % (2 * math.pi) - math.pi
-
-
 def odometry_sigmas(rel: F64, cfg: PoseGraphConfig) -> F64:
     """Std-devs (x, y, theta) of an odometry step ``rel`` (x, y, theta) under the random-walk drift model."""
     d = float(np.hypot(rel[0], rel[1]))
@@ -179,8 +176,7 @@ def tilt_deg(A: F64, B: F64) -> float:
     ya, yb = planar(A)[2], planar(B)[2]
     Ra = lift(se2(np.array([0.0, 0.0, -ya])))[:3, :3] @ A[:3, :3]
     Rb = lift(se2(np.array([0.0, 0.0, -yb])))[:3, :3] @ B[:3, :3]
-    c = (np.trace(Ra.T @ Rb) - 1.0) / 2.0
-    return float(np.degrees(np.arccos(np.clip(c, -1.0, 1.0))))
+    return rotation_angle_deg(Ra, Rb)
 
 
 def line_heading(image: NDArray[np.uint8], K: F64, T_world_cam: F64, min_length_px: int = 20,
@@ -318,7 +314,7 @@ def candidates(g: SourceGraph, new: int, cfg: PoseGraphConfig, have: set[Key]) -
         if g.keys[i] not in have or g.path_m[new] - g.path_m[i] < cfg.loop_min_travel_m:
             continue
         d = float(np.hypot(*(g.est[i][:2] - p[:2])))
-        a = abs(math.degrees(wrap(float(g.est[i][2] - p[2]))))
+        a = abs(math.degrees(wrap_angle(float(g.est[i][2] - p[2]))))
         if d <= cfg.loop_max_distance_m and a <= cfg.loop_max_angle_deg:
             scored.append((d + a / 45.0, i))
     chosen: list[int] = []
@@ -377,26 +373,6 @@ class Measurement:
     reason: str
 
 
-def epipolar(uv_old: F64, uv_new: F64, K_old: F64, K_new: F64, thresh_px: float
-             ) -> tuple[NDArray[np.bool_], F64 | None, F64 | None]:
-    """Essential-matrix RANSAC: inliers, and the new camera's rotation ``R_new_old`` and unit translation
-    direction ``t_new_old`` (x_new = R x_old + t) that the images alone give (None, None when it fails)."""
-    n = len(uv_old)
-    if n < 8:
-        return np.zeros(n, bool), None, None
-    na, nb = features.normalise(uv_old, K_old), features.normalise(uv_new, K_new)
-    f = 0.5 * (K_old[0, 0] + K_new[0, 0])
-    # USAC with local optimisation: a plain RANSAC minimal-sample E is off by degrees at a few pixels of tolerance.
-    E, mask = cv2.findEssentialMat(na, nb, np.eye(3), method=cv2.USAC_ACCURATE, prob=0.999, threshold=thresh_px / f)
-    if E is None or mask is None or E.shape != (3, 3):
-        return np.zeros(n, bool), None, None
-    inl = mask.reshape(-1).astype(bool)
-    if inl.sum() < 8:
-        return inl, None, None
-    _, R, t, _ = cv2.recoverPose(E, na[inl], nb[inl], np.eye(3))
-    return inl, np.asarray(R, np.float64), np.asarray(t, np.float64).reshape(3)
-
-
 def measure(query: features.Features, K: F64, old: LoopKeyframe, cfg: PoseGraphConfig) -> Measurement:
     """PnP of the new keyframe's features ``query`` (intrinsics ``K``) against an old keyframe's lifted ones,
     on the matches the epipolar geometry keeps, and checked against it: the old keyframe's depth may be wrong
@@ -405,7 +381,10 @@ def measure(query: features.Features, K: F64, old: LoopKeyframe, cfg: PoseGraphC
     if len(m) < cfg.loop_min_inliers:
         return Measurement(None, 0, "loops_refused_few_matches")
     uv_new, uv_old = query.uv[m[:, 0]], old.uv[m[:, 1]].astype(np.float64)
-    inl_e, R_e, t_e = epipolar(uv_old, uv_new, old.K, K, cfg.loop_reproj_px)
+    # The images' own geometry; USAC with local optimisation: a plain RANSAC minimal-sample E is off by degrees
+    # at a few pixels of tolerance.
+    inl_e, R_e, t_e = features.essential_pose(uv_old, uv_new, old.K, K, cfg.loop_reproj_px,
+                                              method=cv2.USAC_ACCURATE, min_inliers=8)
     if R_e is None or t_e is None or inl_e.sum() < cfg.loop_min_inliers:
         return Measurement(None, int(inl_e.sum()), "loops_refused_few_inliers")
     X_world = old.points_cam[m[inl_e, 1]].astype(np.float64) @ old.T_world_cam[:3, :3].T + old.T_world_cam[:3, 3]
@@ -414,7 +393,7 @@ def measure(query: features.Features, K: F64, old: LoopKeyframe, cfg: PoseGraphC
         return Measurement(None, inl, "loops_refused_few_inliers")
     T_new_old = np.linalg.inv(T) @ old.T_world_cam  # old camera coordinates into the new camera's
     R_pnp, t_pnp = T_new_old[:3, :3], T_new_old[:3, 3]
-    rot_deg = math.degrees(math.acos(np.clip((np.trace(R_pnp.T @ R_e) - 1.0) / 2.0, -1.0, 1.0)))
+    rot_deg = rotation_angle_deg(R_pnp, R_e)
     baseline = float(np.linalg.norm(t_pnp))
     dir_deg = math.degrees(math.acos(np.clip(t_pnp @ t_e / max(baseline, 1e-12), -1.0, 1.0)))
     if rot_deg > cfg.loop_max_rotation_disagreement_deg or (
@@ -475,7 +454,7 @@ class LoopCloser:
         moved = {}
         for k, e, b in zip(g.keys[:-1], g.est[:-1], before[:-1], strict=True):
             # A turn counts by what it does 1 m in front of the camera.
-            if float(np.hypot(*(e[:2] - b[:2, 2]))) + abs(wrap(float(e[2] - from_se2(b)[2]))) > cfg.min_move_m:
+            if float(np.hypot(*(e[:2] - b[:2, 2]))) + abs(wrap_angle(float(e[2] - from_se2(b)[2]))) > cfg.min_move_m:
                 moved[k] = lift(se2(e) @ np.linalg.inv(b))
         return moved
 
@@ -489,8 +468,8 @@ class LoopCloser:
         # The true heading is the odometry's minus the offset, modulo 90 deg: take the one nearest the estimate.
         th = planar(T_odom)[2] - got[0]
         est = float(g.est[-1][2])
-        th = est + wrap(4.0 * (th - est)) / 4.0
-        if abs(math.degrees(wrap(th - est))) > cfg.manhattan_max_correction_deg:
+        th = est + wrap_angle(4.0 * (th - est)) / 4.0
+        if abs(math.degrees(wrap_angle(th - est))) > cfg.manhattan_max_correction_deg:
             self._count("headings_refused_too_far")
             return False
         g.headings[key] = th
@@ -541,7 +520,7 @@ class LoopCloser:
             d = lp.correction @ p - other.correction @ p
             dth = math.atan2(lp.correction[1, 0], lp.correction[0, 0]) - math.atan2(other.correction[1, 0],
                                                                                     other.correction[0, 0])
-            if float(np.hypot(d[0], d[1])) <= cfg.confirm_m and abs(math.degrees(wrap(dth))) <= cfg.confirm_deg:
+            if float(np.hypot(d[0], d[1])) <= cfg.confirm_m and abs(math.degrees(wrap_angle(dth))) <= cfg.confirm_deg:
                 if not other.confirmed:
                     other.confirmed = True
                     self._count("loops_confirmed")

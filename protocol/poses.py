@@ -182,6 +182,11 @@ def yaw_of(T_world_cam: ArrayLike) -> float:
     return float(np.arctan2(z[1], z[0]))
 
 
+def wrap_angle(a: float) -> float:
+    """An angle (radians) wrapped into [-pi, pi)."""
+    return (a + np.pi) % (2 * np.pi) - np.pi
+
+
 def rotation_angle_deg(R_a: ArrayLike, R_b: ArrayLike) -> float:
     """Angle in degrees of the relative rotation ``R_a^T R_b``."""
     R = np.asarray(R_a, dtype=np.float64)[:3, :3].T @ np.asarray(R_b, dtype=np.float64)[:3, :3]

@@ -14,7 +14,7 @@ from typing import Any
 import numpy as np
 
 from protocol.messages import Intrinsics
-from protocol.poses import camera_pose_from_base
+from protocol.poses import camera_pose_from_base, wrap_angle
 
 
 @dataclass(frozen=True)
@@ -43,9 +43,6 @@ def _xyyaw(M: np.ndarray) -> tuple[float, float, float]:
     return float(M[0, 2]), float(M[1, 2]), float(math.atan2(M[1, 0], M[0, 0]))
 
 
-def _wrap(a: float) -> float:
-    return (a + math.pi) % (2 * math.pi) - math.pi
-
 
 class SimRobot:
     """A differential-drive-like base: turns in place towards each path segment, then drives it."""
@@ -67,7 +64,7 @@ class SimRobot:
         self._rng = np.random.default_rng([int(seed) & 0xFFFFFFFF, 0x0D0])
         self._renderer = renderer
         x, y, yaw = (float(v) for v in start_xy_yaw)
-        self._true = (x, y, _wrap(yaw))
+        self._true = (x, y, wrap_angle(yaw))
         self._drift = np.eye(3)  # T_odom = drift @ T_true
         self.status = "idle"
         self.reason: str | None = None
@@ -96,7 +93,7 @@ class SimRobot:
 
     def teleport(self, x: float, y: float, yaw: float, reset_odometry: bool = True) -> None:
         """Put the robot somewhere (a new episode); odometry restarts from the truth by default."""
-        self._true = (float(x), float(y), _wrap(float(yaw)))
+        self._true = (float(x), float(y), wrap_angle(float(yaw)))
         if reset_odometry:
             self._drift = np.eye(3)
         self._path, self._goal_yaw = None, None
@@ -113,7 +110,7 @@ class SimRobot:
             return False
         self._path = path
         self._wp = 1
-        self._goal_yaw = _wrap(float(yaw))
+        self._goal_yaw = wrap_angle(float(yaw))
         self.status, self.reason = "moving", None
         return True
 
@@ -132,11 +129,11 @@ class SimRobot:
                     self._wp += 1
                     continue
                 want = math.atan2(dy, dx)
-                dyaw = _wrap(want - yaw)
+                dyaw = wrap_angle(want - yaw)
                 if abs(dyaw) > 1e-6:
                     turn = math.copysign(min(abs(dyaw), self.turn_rate_rad_s * budget), dyaw)
                     budget -= abs(turn) / self.turn_rate_rad_s
-                    self._move(x, y, _wrap(yaw + turn) if abs(turn) < abs(dyaw) else want)
+                    self._move(x, y, wrap_angle(yaw + turn) if abs(turn) < abs(dyaw) else want)
                     continue
                 d = min(dist, self.speed_mps * budget)
                 budget -= d / self.speed_mps
@@ -147,7 +144,7 @@ class SimRobot:
                     self._move(x + dx / dist * d, y + dy / dist * d, want)
             else:
                 assert self._goal_yaw is not None
-                dyaw = _wrap(self._goal_yaw - yaw)
+                dyaw = wrap_angle(self._goal_yaw - yaw)
                 if abs(dyaw) <= 1e-9:
                     self._move(x, y, self._goal_yaw)
                     self.status = "arrived"
@@ -155,7 +152,7 @@ class SimRobot:
                     break
                 turn = math.copysign(min(abs(dyaw), self.turn_rate_rad_s * budget), dyaw)
                 budget -= abs(turn) / self.turn_rate_rad_s
-                self._move(x, y, self._goal_yaw if abs(turn) >= abs(dyaw) else _wrap(yaw + turn))
+                self._move(x, y, self._goal_yaw if abs(turn) >= abs(dyaw) else wrap_angle(yaw + turn))
         return self.status
 
     def run_to_arrival(self, dt_s: float = 0.1, max_s: float = 600.0) -> str:
@@ -168,9 +165,9 @@ class SimRobot:
 
     def _move(self, x: float, y: float, yaw: float) -> None:
         x0, y0, yaw0 = self._true
-        self._true = (x, y, _wrap(yaw))
+        self._true = (x, y, wrap_angle(yaw))
         ds = math.hypot(x - x0, y - y0)
-        dth = abs(_wrap(yaw - yaw0))
+        dth = abs(wrap_angle(yaw - yaw0))
         self.distance_m += ds
         if self.noise.is_zero or (ds == 0 and dth == 0):
             return

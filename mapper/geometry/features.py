@@ -89,19 +89,30 @@ def essential_geometry(
 
     The rotation is well determined by the images even where the translation direction is not (small
     baselines), which makes it a check on a pose prior's relative rotation."""
+    inl, R, _ = essential_pose(uv_a, uv_b, K_a, K_b, thresh_px)
+    return inl, R
+
+
+def essential_pose(
+    uv_a: F64, uv_b: F64, K_a: F64, K_b: F64, thresh_px: float = 2.0, method: int = cv2.RANSAC,
+    min_inliers: int = 15,
+) -> tuple[NDArray[np.bool_], F64 | None, F64 | None]:
+    """Essential-matrix estimation (``method``: ``cv2.RANSAC``, ``cv2.USAC_ACCURATE``, ...) between two
+    calibrated views: inlier mask, relative rotation ``R_b_a`` and unit translation direction ``t_b_a``
+    (x_b = R x_a + t); both None when it fails or keeps fewer than ``min_inliers`` inliers."""
     n = uv_a.shape[0]
     if n < 8:
-        return np.zeros(n, bool), None
+        return np.zeros(n, bool), None, None
     f = 0.5 * (K_a[0, 0] + K_b[0, 0])
     na, nb = normalise(uv_a, K_a), normalise(uv_b, K_b)
-    E, mask = cv2.findEssentialMat(na, nb, np.eye(3), method=cv2.RANSAC, prob=0.999, threshold=thresh_px / f)
+    E, mask = cv2.findEssentialMat(na, nb, np.eye(3), method=method, prob=0.999, threshold=thresh_px / f)
     if E is None or mask is None or E.shape != (3, 3):
-        return np.zeros(n, bool), None
+        return np.zeros(n, bool), None, None
     inl = mask.reshape(-1).astype(bool)
-    if inl.sum() < 15:
-        return inl, None
-    _, R, _, _ = cv2.recoverPose(E, na[inl], nb[inl], np.eye(3))
-    return inl, np.asarray(R, np.float64)
+    if inl.sum() < min_inliers:
+        return inl, None, None
+    _, R, t, _ = cv2.recoverPose(E, na[inl], nb[inl], np.eye(3))
+    return inl, np.asarray(R, np.float64), np.asarray(t, np.float64).reshape(3)
 
 
 class LruCache:

@@ -16,7 +16,7 @@ import numpy as np
 from pydantic import Field, field_validator
 
 from protocol.messages import Intrinsics, Viewpoint
-from protocol.poses import camera_pose_from_base
+from protocol.poses import camera_pose_from_base, wrap_angle
 from robot_agent.bodies.base import BodyConfig, BodyConfigError, BodyStatus, Capture
 
 Rect = tuple[float, float, float, float]
@@ -54,9 +54,6 @@ class Config(BodyConfig):
                 raise ValueError(f"rectangle {r} needs xmin < xmax and ymin < ymax")
         return v
 
-
-def _wrap(a: float) -> float:
-    return (a + math.pi) % (2 * math.pi) - math.pi
 
 
 class KinematicBody:
@@ -104,7 +101,7 @@ class KinematicBody:
                 if not self.is_free(float(x), float(y)):
                     continue
                 for k in range(c.n_headings):
-                    yaw = _wrap(2 * math.pi * k / c.n_headings)
+                    yaw = wrap_angle(2 * math.pi * k / c.n_headings)
                     out.append(Viewpoint(vp_id=len(out), x=float(x), y=float(y), yaw_rad=yaw, room="room"))
         return out
 
@@ -147,7 +144,7 @@ class KinematicBody:
         plan: list[tuple[str, float, float]] = []
         if math.hypot(x - x0, y - y0) > 1e-6:
             plan += [("turn", math.atan2(y - y0, x - x0), 0.0), ("go", x, y)]
-        plan.append(("turn", _wrap(yaw_rad), 0.0))
+        plan.append(("turn", wrap_angle(yaw_rad), 0.0))
         self._plan = plan
         self._status = "moving"
         return None
@@ -161,7 +158,7 @@ class KinematicBody:
         ds = math.hypot(dx, dy)
         self._true[0] += dx
         self._true[1] += dy
-        self._true[2] = _wrap(self._true[2] + dyaw)
+        self._true[2] = wrap_angle(self._true[2] + dyaw)
         self._distance += ds
         # Odometry integrates the same motion in its own (drifting) heading, with noise per sqrt(ds).
         c = self.config
@@ -171,7 +168,7 @@ class KinematicBody:
         self._odom[0] += ce * dx - se * dy + nx
         self._odom[1] += se * dx + ce * dy + ny
         nyaw = self._rng.normal(0.0, c.odom_yaw_sigma * math.sqrt(ds)) if ds > 0 else 0.0
-        self._odom[2] = _wrap(self._odom[2] + dyaw + nyaw)
+        self._odom[2] = wrap_angle(self._odom[2] + dyaw + nyaw)
         self._var_xy += c.odom_trans_sigma**2 * ds
         self._var_yaw += c.odom_yaw_sigma**2 * ds
 
@@ -184,7 +181,7 @@ class KinematicBody:
         while self._plan and budget > 0:
             kind, a, b = self._plan[0]
             if kind == "turn":
-                d = _wrap(a - self._true[2])
+                d = wrap_angle(a - self._true[2])
                 max_turn = math.radians(c.turn_rate_dps) * budget
                 turn = max(-max_turn, min(max_turn, d))
                 self._advance(0.0, 0.0, turn)

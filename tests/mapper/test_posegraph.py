@@ -22,8 +22,8 @@ from mapper.posegraph import (
     planar,
     se2,
     tilt_deg,
-    wrap,
 )
+from protocol.poses import wrap_angle
 
 W, H = 320, 240
 K = np.array([[200.0, 0.0, (W - 1) / 2], [0.0, 200.0, (H - 1) / 2], [0.0, 0.0, 1.0]])
@@ -228,7 +228,7 @@ def test_robot_loop_is_closed_within_centimetres() -> None:
     assert err_odom > 0.4
     assert err < 0.05, lc.counters
     assert lc.counters.get("loops_confirmed", 0) >= 2
-    assert abs(math.degrees(wrap(planar(est[-1])[2] - truth[-1][2]))) < 0.5
+    assert abs(math.degrees(wrap_angle(planar(est[-1])[2] - truth[-1][2]))) < 0.5
 
 
 def test_robot_loops_against_broken_depth_are_refused_or_harmless() -> None:
@@ -295,8 +295,8 @@ def test_manhattan_headings_hold_the_heading_between_loops() -> None:
         T_true, T_odom = lift(se2(t)) @ tilt, lift(se2(o)) @ tilt
         lc.keyframe(("robot", i), T_odom, empty, K, grid_image(T_true))
         est = lc.correction("robot") @ T_odom
-        errs.append(abs(math.degrees(wrap(planar(est)[2] - t[2]))))
-    assert abs(math.degrees(wrap(odom[-1][2] - truth[-1][2]))) > 10.0
+        errs.append(abs(math.degrees(wrap_angle(planar(est)[2] - t[2]))))
+    assert abs(math.degrees(wrap_angle(odom[-1][2] - truth[-1][2]))) > 10.0
     # 0.3 deg of drift at every step, always the same way: the estimate lags the lines a little, never more.
     assert max(errs) < 2.0
     assert lc.counters["headings_measured"] >= 30
