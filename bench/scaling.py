@@ -37,6 +37,31 @@ def stat_cpu_s(path: Path) -> float:
     return (int(fields[11]) + int(fields[12])) / _CLK_TCK
 
 
+def child_pids(pid: int) -> list[int]:
+    """The running child processes of ``pid`` in pid order (``/proc/<pid>/task/*/children``; zombies left out),
+    e.g. the mapper's local workers (``[workers] local``). Empty when ``pid`` is gone."""
+    out: list[int] = []
+    try:
+        tasks = list(Path(f"/proc/{pid}/task").iterdir())
+    except OSError:
+        return []
+    for task in tasks:
+        try:
+            out += [int(c) for c in (task / "children").read_text().split()]
+        except OSError:  # the thread ended meanwhile
+            continue
+    return sorted(c for c in set(out) if process_running(c))
+
+
+def process_running(pid: int) -> bool:
+    """Whether ``pid`` is a process that has not exited (a zombie has)."""
+    try:
+        text = Path(f"/proc/{pid}/stat").read_text()
+    except OSError:
+        return False
+    return text[text.rindex(")") + 2 :].split()[0] not in ("Z", "X")
+
+
 def thread_cpu_s(pid: int) -> dict[str, float]:
     """User + system CPU seconds of a process split into its main thread (``main``) and all its other threads
     (``threads``), from ``/proc/<pid>/task``; threads that ended are in neither (read both ends of a phase)."""

@@ -36,6 +36,7 @@ from typing import Any
 import numpy as np
 
 from bench.report import markdown_table, write_report
+from bench.scaling import child_pids
 from bench.system import CameraPlayer, GraphWatch, _pct, proc_mem_mb, render_cameras, stop_load, worker_procs
 from protocol.keys import Keys
 
@@ -167,6 +168,13 @@ def _sample(t_s: float, stack: Any, players: list[CameraPlayer], watch: GraphWat
     all_latencies += lat
     rss = {c.spec.name: proc_mem_mb(c.pid)["rss_mb"] for c in stack.children
            if c.pid is not None and c.poll() is None}
+    for c in stack.children:  # the mapper's local workers
+        if c.pid is not None:
+            for i, pid in enumerate(child_pids(c.pid)):
+                try:
+                    rss[f"{c.spec.name}.child{i}"] = proc_mem_mb(pid)["rss_mb"]
+                except OSError:  # it exited meanwhile
+                    continue
     return {
         "t_s": t_s, "rss_mb": rss, "deltas": n_deltas,
         "latency_p50_ms": _pct(lat, 50), "latency_p99_ms": _pct(lat, 99),

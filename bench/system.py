@@ -442,12 +442,14 @@ def _keyframes_done(diff: Any) -> float:
 
 
 def role_clock(stack: Any, mapper_pid: int) -> Any:
-    """CPU clocks of the stack's roles (:class:`bench.scaling.RoleClock`): mapper, router, each worker, this process."""
-    from bench.scaling import RoleClock
+    """CPU clocks of the stack's roles (:class:`bench.scaling.RoleClock`): mapper, router, each worker (the mapper's
+    local workers too, as ``mapper-local<i>``), this process."""
+    from bench.scaling import RoleClock, child_pids
 
     router = next((c.pid for c in stack.children if c.spec.command == "router"), None)
     workers = {(c.spec.node_id or c.spec.name): c.pid for c in stack.children
                if c.spec.command == "worker" and c.pid is not None}
+    workers.update({f"mapper-local{i}": pid for i, pid in enumerate(child_pids(mapper_pid))})
     return RoleClock(mapper_pid, router, workers)
 
 
@@ -596,8 +598,9 @@ def main(argv: list[str] | None = None) -> int:
                    help="mapper segmenter: classical, or sim (ORACLE: the cameras then also publish ground truth)")
     p.add_argument("--workers", default=None,
                    help="scaling curve: comma-separated counts of argus worker processes, one fresh stack each "
-                   "(e.g. 0,1,2), with CPU-seconds per keyframe per role and the model's predictions; default: no "
-                   "worker column")
+                   "(e.g. 0,1,2), with CPU-seconds per keyframe per role and the model's predictions; the mapper "
+                   "then starts no local worker (workers.local=0 unless --mapper-set says otherwise). Default: no "
+                   "worker column, the mapper as deployed (its local worker included)")
     p.add_argument("--torch-threads", type=int, default=None,
                    help="torch threads of the mapper and of each worker (1: one core each, for scaling curves)")
     p.add_argument("--quick", action="store_true", help="short run (1 camera, 10 s phases)")
@@ -627,6 +630,8 @@ def main(argv: list[str] | None = None) -> int:
             print(f"argus bench system: --mapper-set {item!r}: {e}", file=sys.stderr)
             return 2
     workers = None if a.workers is None else [int(w) for w in a.workers.split(",") if w.strip()]
+    if workers is not None:  # the curve counts argus worker processes: the mapper starts none of its own
+        mapper_settings.setdefault("workers", {}).setdefault("local", 0)
     try:
         run(a.cameras, a.fps, a.phase_s, a.warmup_s, a.width, a.height, a.frames_per_camera, consumers,
             mapper_settings, a.out, consumer_rate_hz=a.consumer_rate, workers=workers, frames_cache=a.frames_cache)

@@ -29,6 +29,7 @@ from mapper.keeper import StateKeeper
 from mapper.outbox import GraphOutbox
 from mapper.queries import GraphQueries
 from mapper.work.compute import compute_keyframe, runs_perception
+from mapper.work.local import LocalWorkers, local_worker_config
 from mapper.work.offload import Finished, Offloader
 from protocol.keys import Keys
 from protocol.messages import GraphDelta, OracleFrame
@@ -67,8 +68,11 @@ class MapperNode(Process):
         self._release_heap = HeapReleaser(config.release_heap_period_s)
         self.node = Node(config.zenoh, self.keys, ROLE, config.id, counters=self.counters,
                          status_period_s=config.status_period_s, logger=log)
-        if config.workers.enabled and not self.intake.needs_oracle:  # jobs carry no ORACLE samples
-            self.offloader = Offloader(config.workers, config, self.keys, self.counters, runs_perception(config))
+        self.local_workers: LocalWorkers | None = None
+        if config.workers.enabled and config.geometry.backend != "oracle":  # jobs carry no ORACLE samples:
+            # ORACLE 2D perception (the simulator's semantic camera) then stays in the mapper, after the job.
+            perception = runs_perception(config) and not self.intake.needs_oracle
+            self.offloader = Offloader(config.workers, config, self.keys, self.counters, perception)
             self.core.offload = self.offloader.offload
 
     # -- persistence -----------------------------------------------------------------------------
@@ -94,6 +98,8 @@ class MapperNode(Process):
         out["pointmap_voxels"] = len(self.core.voxels)  # bounded: point_map.max_voxels
         if self.offloader is not None:
             out.update(self.offloader.extra_counters())
+        if self.local_workers is not None:
+            out["local_workers_alive"] = float(self.local_workers.alive())
         times = self.core.update_times_s
         if times:
             out["update_s_mean"] = float(np.mean(times))
@@ -113,6 +119,7 @@ class MapperNode(Process):
         if self.offloader is not None:
             self.offloader.open(node.session)
             node.on_exit(self.offloader.close)
+            self.local_workers = self._start_local_workers()
         node.on_exit(lambda: self.keeper.close(self.core))
         self._reporter = node.status(extra=self._extra_counters)
         log.info(
@@ -125,6 +132,25 @@ class MapperNode(Process):
             # Results of workers arrive in between frames: poll them often while jobs are out.
             busy = self.offloader is not None and self.offloader.busy()
             self._step(timeout_s=0.02 if busy else 0.2)
+
+    def _start_local_workers(self) -> LocalWorkers | None:
+        """The worker processes of ``[workers] local`` (stopped with the mapper); None when there are none."""
+        cfg = self.config
+        n = cfg.workers.local
+        threads = cfg.workers.local_torch_threads or cfg.torch_threads
+        configs = [local_worker_config(cfg.id, cfg.site, cfg.key_prefix, cfg.zenoh, i, threads, cfg.log_level)
+                   for i in range(n)]
+        if not n:
+            return None
+        if any(c is None for c in configs):
+            self.counters.add("local_workers_unreachable")
+            log.warning("no local worker: the mapper has no fixed Zenoh endpoint for it to join (a peer listening "
+                        "on a random port); keyframes are computed in the mapper's thread")
+            return None
+        pool = LocalWorkers([c for c in configs if c is not None], self.counters)
+        pool.start()
+        self.node.on_exit(pool.close)
+        return pool
 
     def _stopped(self) -> None:
         self.outbox.close()
@@ -148,6 +174,8 @@ class MapperNode(Process):
                 self.outbox.delta(delta)
         if self.offloader is not None:
             self._finish_jobs(self.offloader)
+        if self.local_workers is not None:
+            self.local_workers.check()
         self.outbox.periodic()
         self.intake.bad_input.flush()
         self.save()

@@ -21,6 +21,10 @@ import zenoh
 from tests.support.procs import Proc, endpoint, free_port, wait_port
 from tests.support.robot import RobotClient
 
+# Mappers started by tests (in-process or as processes, which inherit this) start no local worker process
+# (``[workers] local``, default 1): tests of the offloader start their workers themselves, and
+# tests/mapper/work/test_work_local.py sets ``local`` explicitly.
+os.environ["ARGUS_LOCAL_WORKERS"] = "0"
 INTEGRATION_DIR = Path(__file__).parent / "integration"
 PROCESS_FIXTURES = {"router", "procs", "client_factory"}
 

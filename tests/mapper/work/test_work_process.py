@@ -6,6 +6,7 @@ RGB-only geometry (mvs) and classical perception on 160x120 simulator frames: jo
 
 from __future__ import annotations
 
+import os
 import signal
 import threading
 import time
@@ -14,6 +15,7 @@ from typing import Any
 import numpy as np
 import pytest
 
+from bench.scaling import child_pids, process_running
 from bench.system import render_cameras
 from protocol.codec import DecodeError, decode
 from protocol.keys import Keys
@@ -85,7 +87,8 @@ class Peer:
 
 def test_worker_does_keyframes_and_its_death_loses_none(router: str, procs: list[Proc]) -> None:
     common = ["--connect", router, "--site", SITE, "--set", "status_period_s=0.2", "--set", "torch_threads=1"]
-    mapper = Proc(["mapper", *common, "--set", "publish.snapshot_period_s=0"])
+    # No job deadline: frames are sent one at a time, a deferred keyframe's retry may come > 1.5 s after it
+    mapper = Proc(["mapper", *common, "--set", "publish.snapshot_period_s=0", "--set", "workers.max_frame_age_s=0"])
     worker = Proc(["worker", *common, "--id", "w1"])
     procs += [mapper, worker]
     peer = Peer(router)
@@ -125,5 +128,34 @@ def test_worker_does_keyframes_and_its_death_loses_none(router: str, procs: list
         assert versions == sorted(versions) and len(set(versions)) == len(versions)
         assert mapper.alive(), mapper.output
         assert np.isfinite(peer.counter("mapper", "update_s_mean"))
+    finally:
+        peer.close()
+
+
+def test_local_worker_does_keyframes_restarts_and_dies_with_its_mapper(router: str, procs: list[Proc]) -> None:
+    common = ["--connect", router, "--site", SITE, "--set", "status_period_s=0.2", "--set", "torch_threads=1"]
+    mapper = Proc(["mapper", *common, "--set", "publish.snapshot_period_s=0", "--set", "workers.local=1"])
+    procs.append(mapper)
+    peer = Peer(router)
+    try:
+        wait_for(lambda: peer.counter("mapper", "workers_alive") == 1, 90,
+                 what=f"the mapper seeing its local worker\n{mapper.output}")
+        assert peer.counter("mapper", "local_workers_alive") == 1
+        for k in range(5):
+            peer.send_and_settle(k)
+        offloaded = peer.counter("mapper", "keyframes_offloaded")
+        accepted = peer.counter("mapper", "work_results_accepted")
+        # a deferred keyframe retried once its frame is over the job deadline is dropped as stale: by design
+        assert accepted >= 2 and accepted + peer.counter("mapper", "keyframes_dropped") == offloaded, peer.status
+        assert peer.counter("mapper", "worker_jobs_done.mapper-local0") == accepted
+        assert peer.counter("mapper", "nodes") >= 1, "keyframes done by the local worker reached the graph"
+        (child,) = child_pids(mapper.popen.pid)
+        os.kill(child, signal.SIGKILL)
+        wait_for(lambda: peer.counter("mapper", "local_worker_restarts") >= 1, 30, what="the child started again")
+        wait_for(lambda: peer.counter("mapper", "workers_alive") == 1, 90, what=f"its token again\n{mapper.output}")
+        (again,) = child_pids(mapper.popen.pid)
+        assert again != child and peer.counter("mapper", "local_worker_exits") == 1
+        os.kill(mapper.popen.pid, signal.SIGKILL)  # the mapper alone, not its process group
+        wait_for(lambda: not process_running(again), 20, what="the local worker stopping with its mapper")
     finally:
         peer.close()
