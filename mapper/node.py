@@ -142,6 +142,13 @@ class MapperNode(Process):
                    for i in range(n)]
         if not n:
             return None
+        if cfg.zenoh.config_file is not None:
+            # e.g. `argus up --secure`: a child would log in with the mapper's credentials, and the site's access
+            # rules (deploy/acl.py) have no worker keys yet.
+            self.counters.add("local_workers_skipped_config_file")
+            log.warning("no local worker: the mapper joins Zenoh with a config file (credentials, access rules) "
+                        "that gives no worker keys; keyframes are computed in the mapper's thread")
+            return None
         if any(c is None for c in configs):
             self.counters.add("local_workers_unreachable")
             log.warning("no local worker: the mapper has no fixed Zenoh endpoint for it to join (a peer listening "

@@ -161,3 +161,36 @@ def test_a_real_child_joins_the_router_and_stops_when_its_stdin_closes(router: s
         pool.close()
         sub.undeclare()
         session.close()
+
+
+def test_no_local_worker_where_it_could_not_join_or_would_log_in_as_the_mapper(tmp_path: Any) -> None:
+    from mapper.config import MapperConfig
+    from mapper.node import MapperNode
+
+    secure = tmp_path / "zenoh.json5"
+    secure.write_text("{}")
+    cases = {
+        "local_workers_skipped_config_file": {"zenoh": {"config_file": str(secure)}},
+        "local_workers_unreachable": {"zenoh": {"mode": "peer", "connect": [], "listen": ["tcp/127.0.0.1:0"]}},
+    }
+    for counter, settings in cases.items():
+        node = MapperNode(MapperConfig.model_validate({"site": "t", "workers": {"local": 1}, **settings}))
+        assert node._start_local_workers() is None
+        assert node.counters.get(counter) == 1
+    node = MapperNode(MapperConfig(site="t", workers={"local": 0}))  # type: ignore[arg-type]
+    assert node._start_local_workers() is None and not node.counters.snapshot()
+
+
+def test_oracle_perception_offloads_geometry_only() -> None:
+    """The semantic camera's masks come with the frame's ORACLE sample, which jobs do not carry: the worker
+    computes the geometry, the mapper the masks. True geometry (ORACLE depth) is not offloaded at all."""
+    from mapper.config import MapperConfig
+    from mapper.node import MapperNode
+
+    sim = {"segmenter": "sim", "embedder": "sim"}
+    node = MapperNode(MapperConfig.model_validate({"site": "t", "geometry": {"backend": "mvs"}, "perception": sim}))
+    assert node.offloader is not None and node.offloader.perception is False
+    node = MapperNode(MapperConfig.model_validate({"site": "t", "geometry": {"backend": "mvs"}}))
+    assert node.offloader is not None and node.offloader.perception is True
+    node = MapperNode(MapperConfig.model_validate({"site": "t", "geometry": {"backend": "oracle"}}))
+    assert node.offloader is None
