@@ -2,8 +2,8 @@
 
 The demo stack (router, mapper, planner, one simulated robot exploring with no step budget, one
 simulated overhead camera) runs as real processes through :class:`deploy.up.Stack`, with ``--workers``
-``argus worker`` processes beside it (then the RGB-only demo, ``demo-rgb-only.toml``: jobs carry no ORACLE
-samples, so a mapper with ORACLE inputs does every keyframe itself), and this process adds ``--cameras``
+``argus worker`` processes beside it (the mapper's own local worker, ``[workers] local``, runs in every case and
+is sampled as ``mapper.child0``), and this process adds ``--cameras``
 simulated cameras at ``--fps`` each (pre-rendered frames replayed in a loop, every frame re-stamped), enough to
 saturate the mapper. Every ``--sample-s`` seconds it records, per process, resident memory (``VmRSS``); from
 the processes' Status: the mapper's counters (frames in / processed / dropped, keyframes) and the sizes of what
@@ -42,7 +42,6 @@ from protocol.keys import Keys
 
 REPO = Path(__file__).resolve().parents[1]
 DEMO = REPO / "deploy" / "launch" / "demo.toml"
-DEMO_RGB = REPO / "deploy" / "launch" / "demo-rgb-only.toml"  # with workers: no ORACLE input to keep local
 DROP_COUNTERS = ("frames_dropped", "sources_refused", "decode_errors", "header_errors", "pose_errors",
                  "keyframes_dropped", "jobs_dropped_full")
 MAPPER_SIZES = ("nodes", "edges", "keyframes_stored", "pointmap_voxels", "keyframe_store_jpegs",
@@ -57,11 +56,11 @@ REST_PERCENTILE = 10.0
 
 def soak_launch(endpoint: str, max_steps: int = 100_000, workers: int = 0) -> Any:
     """The demo launch file on ``endpoint`` with the robot's step budget lifted (it explores all run) and
-    ``workers`` ``argus worker`` processes (then the RGB-only demo: the mapper offloads only without ORACLE inputs)."""
+    ``workers`` ``argus worker`` processes beside it (they compute geometry; ORACLE masks stay in the mapper)."""
     from deploy.demo import DemoConfig, prepare_launch
     from deploy.up import ProcessSpec, with_endpoint
 
-    launch = with_endpoint(prepare_launch(DemoConfig(launch=DEMO_RGB if workers else DEMO, steps=max_steps,
+    launch = with_endpoint(prepare_launch(DemoConfig(launch=DEMO, steps=max_steps,
                                                      free_port=False)), endpoint)
     if not workers:
         return launch
@@ -214,7 +213,7 @@ def run(minutes: float, warmup_min: float, cameras: int, fps: float, sample_s: f
     keys = Keys(launch.site)
     world = launch.world
     assert world is not None
-    cams = render_cameras(cameras, 24, width, height, world.family, world.seed, oracle=not workers)
+    cams = render_cameras(cameras, 24, width, height, world.family, world.seed, oracle=True)  # the demo: ORACLE masks
     lines: list[str] = []
     stack = Stack(launch, DEMO.parent, emit=lines.append)
     samples: list[dict[str, Any]] = []

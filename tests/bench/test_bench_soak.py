@@ -63,11 +63,13 @@ def test_soak_launch_is_the_demo_with_an_unbounded_robot_on_the_given_endpoint()
     assert not [p for p in launch.process if p.command == "worker"]
 
 
-def test_soak_launch_with_workers_adds_them_and_keeps_oracle_inputs_out_of_the_mapper() -> None:
+def test_soak_launch_with_workers_adds_them_to_the_demo() -> None:
     launch = soak_launch("tcp/127.0.0.1:7999", max_steps=10, workers=2)
     workers = [p for p in launch.process if p.command == "worker"]
     assert [p.node_id for p in workers] == ["w0", "w1"]
     assert all(p.settings is not None and p.settings["zenoh"] == {"mode": "client", "connect": ["tcp/127.0.0.1:7999"]}
                and p.settings["site"] == launch.site for p in workers)
     mapper = next(p for p in launch.process if p.command == "mapper")
-    assert mapper.settings is not None and mapper.settings["perception"]["segmenter"] != "sim"
+    # the demo itself: the workers take its geometry, the ORACLE masks stay in the mapper
+    assert mapper.settings is not None and mapper.settings["perception"]["segmenter"] == "sim"
+    assert mapper.settings["geometry"]["backend"] == "mvs"
