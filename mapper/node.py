@@ -137,9 +137,6 @@ class MapperNode(Process):
         """The worker processes of ``[workers] local`` (stopped with the mapper); None when there are none."""
         cfg = self.config
         n = cfg.workers.local
-        threads = cfg.workers.local_torch_threads or cfg.torch_threads
-        configs = [local_worker_config(cfg.id, cfg.site, cfg.key_prefix, cfg.zenoh, i, threads, cfg.log_level)
-                   for i in range(n)]
         if not n:
             return None
         if cfg.zenoh.config_file is not None:
@@ -149,6 +146,9 @@ class MapperNode(Process):
             log.warning("no local worker: the mapper joins Zenoh with a config file (credentials, access rules) "
                         "that gives no worker keys; keyframes are computed in the mapper's thread")
             return None
+        threads = cfg.workers.local_torch_threads or cfg.torch_threads
+        configs = [local_worker_config(cfg.id, cfg.site, cfg.key_prefix, cfg.zenoh, i, threads, cfg.log_level)
+                   for i in range(n)]
         if any(c is None for c in configs):
             self.counters.add("local_workers_unreachable")
             log.warning("no local worker: the mapper has no fixed Zenoh endpoint for it to join (a peer listening "
