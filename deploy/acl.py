@@ -7,7 +7,11 @@ of a Zenoh 1.x router config (``default_permission: "deny"``). What each role ma
     robot-agent R   put robot/R/{frame,oracle,state,viewpoints}, status/robot-agent/R; token alive/..;
                     receive robot/R/goal; answer queries on robot/R/viewpoints
     mapper          put/delete graph/**, map/**, its status; token; receive every cam/robot frame
-                    and oracle; answer queries on graph/**
+                    and oracle; answer queries on graph/**; keyframe jobs: put work/job/*, receive
+                    work/{ack,result}/*, answer work/keyframe/*/*, watch alive/worker/*; and the worker's
+                    part below for each of its local workers (<mapper id>-local<i>: they log in as it)
+    worker W        receive work/job/W; put work/{ack,result}/W, status/worker/W; token alive/worker/W;
+                    query work/keyframe/*/* (source keyframes from the mapper's store)
     planner         put robot/*/goal, its status; token; receive graph/{snapshot,delta}, map/points,
                     robot/*/{state,viewpoints}; query graph/snapshot, robot/*/viewpoints; watch alive/**
     consumer        receive and query graph/** (read only)
@@ -29,19 +33,21 @@ from typing import Any, Literal
 
 from protocol.keys import Keys, validate_id
 
-Role = Literal["edge-camera", "robot-agent", "mapper", "planner", "consumer", "monitor"]
-ROLES: tuple[Role, ...] = ("edge-camera", "robot-agent", "mapper", "planner", "consumer", "monitor")
+Role = Literal["edge-camera", "robot-agent", "mapper", "planner", "worker", "consumer", "monitor"]
+ROLES: tuple[Role, ...] = ("edge-camera", "robot-agent", "mapper", "planner", "worker", "consumer", "monitor")
 
 Flow = Literal["ingress", "egress"]
 
 
 @dataclass(frozen=True)
 class Principal:
-    """One login: ``user`` (user name, also the certificate common name), its role and node id."""
+    """One login: ``user`` (user name, also the certificate common name), its role and node id; a mapper's
+    ``local_workers`` (``[workers] local``) log in as it and get the worker's part for their ids."""
 
     user: str
     role: Role
     node_id: str
+    local_workers: int = 0
 
     def __post_init__(self) -> None:
         validate_id(self.user, "user name")
@@ -86,11 +92,19 @@ def grants(p: Principal, keys: Keys) -> list[Grant]:
         ]
     if p.role == "mapper":
         frames = [f"{r}/{kind}/*/{topic}" for kind in ("cam", "robot") for topic in ("frame", "oracle")]
+        answers = (keys.all_work_acks, keys.all_work_results)
+        local = [g for n in range(p.local_workers) for g in _worker(keys, f"{i}-local{n}")]
         return [
             _in("put delete", keys.graph_all, f"{r}/map/**"), *presence,
             _in("declare_subscriber", keys.all_frames, keys.all_oracle), _out("put", *frames),
             _in("declare_queryable reply", keys.graph_all), _out("query", keys.graph_all),
+            _in("put", f"{r}/work/job/*"), _in("declare_subscriber", *answers), _out("put", *answers),
+            _in("declare_queryable reply", keys.all_work_keyframes), _out("query", keys.all_work_keyframes),
+            _in("declare_liveliness_subscriber liveliness_query", keys.all_alive_of("worker")),
+            _out("liveliness_token", keys.all_alive_of("worker")), *local,
         ]
+    if p.role == "worker":
+        return [*_worker(keys, i), learn_subs]
     if p.role == "planner":
         reads = (keys.graph_snapshot, keys.graph_delta, keys.map_points, keys.all_robot_states,
                  keys.all_robot_viewpoints)
@@ -109,6 +123,18 @@ def grants(p: Principal, keys: Keys) -> list[Grant]:
         _in("declare_liveliness_subscriber liveliness_query", keys.all_alive),
         _out("liveliness_token", keys.all_alive),
         _in("declare_subscriber", keys.all_status), _out("put", keys.all_status),
+    ]
+
+
+def _worker(keys: Keys, worker_id: str) -> list[Grant]:
+    """What a keyframe worker does: its status and token, its jobs in, acks and results out, source
+    keyframes fetched from the mapper's store (a query on the exact keyframe key)."""
+    job = keys.work_job(worker_id)
+    return [
+        _in("put", keys.status("worker", worker_id), keys.work_ack(worker_id), keys.work_result(worker_id)),
+        _in("liveliness_token", keys.alive("worker", worker_id)),
+        _in("declare_subscriber", job), _out("put", job),
+        _in("query", keys.all_work_keyframes), _out("reply", keys.all_work_keyframes),
     ]
 
 

@@ -42,8 +42,9 @@ if TYPE_CHECKING:
 
 ROLE_OF_COMMAND: dict[str, Role] = {
     "edge-camera": "edge-camera", "robot-agent": "robot-agent", "mapper": "mapper", "planner": "planner",
+    "worker": "worker",
 }
-DEFAULT_IDS = {"mapper": ("id", "mapper"), "planner": ("node_id", "planner"),
+DEFAULT_IDS = {"mapper": ("id", "mapper"), "planner": ("node_id", "planner"), "worker": ("id", "worker"),
                "edge-camera": ("id", None), "robot-agent": ("id", None)}
 ROUTER_DIR, LAUNCHER = "router", "launcher"
 CLIENT_FILE = "zenoh.json5"
@@ -101,10 +102,20 @@ def principal_of(spec: ProcessSpec, launch_dir: Path) -> Principal:
     node_id = spec.node_id
     if node_id is None and "--id" in spec.args[:-1]:
         node_id = spec.args[spec.args.index("--id") + 1]
-    node_id = node_id or _settings_of(spec, launch_dir).get(field) or default
+    settings = _settings_of(spec, launch_dir)
+    node_id = node_id or settings.get(field) or default
     if not node_id or "{" in str(node_id):
         raise ValueError(f"process {spec.name!r}: a secure stack needs its id (settings {field} or --id)")
-    return Principal(user=spec.name, role=role, node_id=str(node_id))
+    local = 0
+    if role == "mapper":  # its local worker processes log in with its credentials
+        from mapper.work.config import OffloadConfig
+
+        workers = settings.get("workers", {})
+        try:
+            local = OffloadConfig.model_validate(workers if isinstance(workers, dict) else {}).local
+        except ValueError as e:
+            raise ValueError(f"process {spec.name!r}: its [workers] settings: {e}") from None
+    return Principal(user=spec.name, role=role, node_id=str(node_id), local_workers=local)
 
 
 def principals(launch: LaunchFile, launch_dir: Path, sec: SecuritySpec) -> list[Principal]:

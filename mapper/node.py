@@ -134,17 +134,12 @@ class MapperNode(Process):
             self._step(timeout_s=0.02 if busy else 0.2)
 
     def _start_local_workers(self) -> LocalWorkers | None:
-        """The worker processes of ``[workers] local`` (stopped with the mapper); None when there are none."""
+        """The worker processes of ``[workers] local`` (stopped with the mapper); None when there are none. They
+        join with the mapper's Zenoh settings, credentials included (``argus up --secure`` gives the mapper's
+        login their keys: deploy/acl.py)."""
         cfg = self.config
         n = cfg.workers.local
         if not n:
-            return None
-        if cfg.zenoh.config_file is not None:
-            # e.g. `argus up --secure`: a child would log in with the mapper's credentials, and the site's access
-            # rules (deploy/acl.py) have no worker keys yet.
-            self.counters.add("local_workers_skipped_config_file")
-            log.warning("no local worker: the mapper joins Zenoh with a config file (credentials, access rules) "
-                        "that gives no worker keys; keyframes are computed in the mapper's thread")
             return None
         threads = cfg.workers.local_torch_threads or cfg.torch_threads
         configs = [local_worker_config(cfg.id, cfg.site, cfg.key_prefix, cfg.zenoh, i, threads, cfg.log_level)

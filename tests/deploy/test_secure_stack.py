@@ -92,6 +92,21 @@ def test_secure_needs_a_tls_endpoint_and_known_ids(tmp_path: Path) -> None:
         prepare(no_id, tmp_path, SecuritySpec(), ["r"], tmp_path / "s")
 
 
+def test_workers_get_their_own_login_and_the_mapper_its_local_workers_keys(tmp_path: Path) -> None:
+    launch = LaunchFile.model_validate({"endpoint": "tls/127.0.0.1:7447", "process": [
+        {"name": "r", "command": "router"},
+        {"name": "mapper", "command": "mapper", "settings": {"workers": {"local": 2}}},
+        {"name": "gpu", "command": "worker", "settings": {"id": "gpu0"}},
+        {"name": "w", "command": "worker"}]})
+    got = {p.user: p for p in principals(launch, tmp_path, SecuritySpec(consumers=[]))}
+    assert got["mapper"] == Principal("mapper", "mapper", "mapper", local_workers=2)
+    assert got["gpu"] == Principal("gpu", "worker", "gpu0") and got["w"] == Principal("w", "worker", "worker")
+    bad = launch.model_copy(update={"process": [launch.process[0], launch.process[1].model_copy(
+        update={"settings": {"workers": {"local": -1}}})]})
+    with pytest.raises(ValueError, match="workers"):
+        principals(bad, tmp_path, SecuritySpec(consumers=[]))
+
+
 def test_material_is_kept_and_only_made_on_the_router_machine(tmp_path: Path) -> None:
     """A second start keeps every certificate and password; a camera machine without them is told
     to copy its folder; deleting one folder rotates that login only."""

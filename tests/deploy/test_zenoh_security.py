@@ -16,7 +16,7 @@ import pytest
 import zenoh
 
 from deploy.acl import Principal, access_control
-from protocol.codec import DecodeError, decode
+from protocol.codec import DecodeError, decode, encode
 from protocol.keys import Keys
 from protocol.messages import Status
 from protocol.session import ZenohSettings, ZenohUnavailable, open_session
@@ -79,7 +79,8 @@ def test_shipped_acl_is_generated_by_deploy_acl() -> None:
     conf = zenoh.Config.from_file(str(ZENOH_DIR / "router-acl.json5"))
     shipped = json.loads(conf.get_json("access_control"))
     principals = [Principal("cam-01", "edge-camera", "cam-01"), Principal("robot-01", "robot-agent", "robot-01"),
-                  Principal("mapper", "mapper", "mapper"), Principal("planner", "planner", "planner"),
+                  Principal("mapper", "mapper", "mapper", local_workers=1), Principal("planner", "planner", "planner"),
+                  Principal("worker-01", "worker", "worker-01"),
                   Principal("viewer", "consumer", "viewer"), Principal("monitor", "monitor", "monitor")]
     want = access_control(principals)
     for section in ("rules", "subjects", "policies"):
@@ -238,3 +239,82 @@ def test_mutual_tls(tmp_path: Path, procs: list[Proc]) -> None:
     no_cert.update({"connect/timeout_ms": 2000, "connect/exit_on_failure": True})
     with pytest.raises(ZenohUnavailable):
         open_session(ZenohSettings(mode="client", connect=[ep], overrides=no_cert))
+
+
+def test_keyframe_jobs_through_the_shipped_acl(tmp_path: Path, procs: list[Proc]) -> None:
+    """A real ``argus worker`` logged in as worker-01 does a keyframe job for the mapper's login: its token
+    reaches the mapper, the job reaches it, it fetches the source keyframes from the mapper's store and its
+    result comes back. The mapper's login also carries its local worker (mapper-local0). Denied: another
+    worker's jobs and results, the graph, frames."""
+    from mapper.config import MapperCoreConfig
+    from mapper.geometry.contract import View
+    from mapper.work.jobs import make_job
+    from protocol.jpeg import decode_jpeg
+    from protocol.messages import WorkResult
+    from tests.mapper.work.test_work_offload import frames
+
+    ep = _acl_router(tmp_path, procs)
+    shutil.copy(ZENOH_DIR / "client-acl-example.json5", tmp_path)
+    conf = tmp_path / "worker.json5"
+    conf.write_text((tmp_path / "client-acl-example.json5").read_text().replace('"cam-01"', '"worker-01"')
+                    .replace('"cam-01-secret"', '"worker-01-secret"'))
+    keys = Keys()
+    jpegs, poses, intr = frames()
+    views = [View(image=decode_jpeg(j), source_id="r1", intrinsics=intr, T_world_cam=T, seq=i, stamp_ns=1000 + i)
+             for i, (j, T) in enumerate(zip(jpegs[:3], poses[:3], strict=True))]
+    job = make_job(views, 2, jpegs[2], 1, False, MapperCoreConfig())
+    results, alive, acks, graph, jobs_seen = _Inbox(), _Inbox(), _Inbox(), _Inbox(), _Inbox()
+    fetched: list[str] = []
+
+    def store(query: zenoh.Query) -> None:
+        seq = int(str(query.key_expr).rsplit("/", 1)[1])
+        fetched.append(str(query.key_expr))
+        query.reply(str(query.key_expr), jpegs[seq])
+
+    with (
+        open_session(_user(ep, "mapper")) as mapper,
+        open_session(_user(ep, "mapper")) as local,  # the mapper's local worker logs in as the mapper
+        open_session(_user(ep, "worker-01")) as rogue,  # the same login as the real worker, misbehaving
+        open_session(_user(ep, "viewer")) as viewer,
+    ):
+        decls = [mapper.declare_subscriber(keys.all_work_results, results),
+                 mapper.declare_subscriber(keys.all_work_acks, acks),
+                 mapper.declare_queryable(keys.all_work_keyframes, store),
+                 mapper.liveliness().declare_subscriber(keys.all_alive_of("worker"), alive, history=True),
+                 viewer.declare_subscriber(keys.graph_all, graph),
+                 rogue.declare_subscriber(keys.work_job("worker-02"), jobs_seen),
+                 rogue.declare_subscriber(keys.all_frames, jobs_seen)]
+        worker = Proc(["worker", "--id", "worker-01", "--connect", ep, "--set", "torch_threads=1",
+                       "--set", f"zenoh.config_file={conf}"])
+        procs.append(worker)
+        wait_for(lambda: keys.alive("worker", "worker-01") in alive.keys, 60,
+                 what=f"the worker's token at the mapper; its output:\n{worker.output}")
+        job_pub = mapper.declare_publisher(keys.work_job("worker-01"))
+        _told_of_subscriber(job_pub, "mapper -> worker")
+        job_pub.put(encode(job))
+        wait_for(lambda: len(results.payloads) >= 1, 60, what=f"the worker's result; its output:\n{worker.output}")
+        res = decode(results.payloads[0], WorkResult)
+        assert res.ok and res.job_id == job.job_id, res.error
+        assert acks.keys == [keys.work_ack("worker-01")]
+        assert sorted(fetched) == [keys.work_keyframe("r1", 0), keys.work_keyframe("r1", 1)]
+        # The local worker's part under the mapper's login: token, its jobs, its results.
+        token = local.liveliness().declare_token(keys.alive("worker", "mapper-local0"))
+        local_jobs = _Inbox()
+        sub = local.declare_subscriber(keys.work_job("mapper-local0"), local_jobs)
+        wait_for(lambda: keys.alive("worker", "mapper-local0") in alive.keys, 10, what="the local worker's token")
+        _n_of_n(mapper.declare_publisher(keys.work_job("mapper-local0")), local_jobs, b"local job", "mapper -> local")
+        _n_of_n(local.declare_publisher(keys.work_result("mapper-local0")), results, b"local result", "local -> mapper")
+        # Denied for a worker: another worker's token and results, the graph; it receives no frames or other jobs.
+        forged = rogue.liveliness().declare_token(keys.alive("worker", "worker-02"))
+        for _ in range(N_PUTS):
+            rogue.put(keys.work_result("worker-02"), b"forged result")
+            rogue.put(keys.graph_delta, b"worker delta")
+            mapper.put(keys.work_job("worker-02"), b"job for worker-02")
+        rogue.put(keys.work_result("worker-01"), b"worker sentinel")
+        wait_for(lambda: results.count(b"worker sentinel") == 1, 10, what="the worker's sentinel")
+        assert results.count(b"forged result") == 0, "a worker put another worker's result"
+        assert graph.count(b"worker delta") == 0, "a worker wrote into the graph"
+        assert jobs_seen.keys == [], "a worker read another worker's jobs or camera frames"
+        assert keys.alive("worker", "worker-02") not in alive.keys, "a worker posed as another worker"
+        for d in [*decls, token, sub, forged]:
+            d.undeclare()

@@ -34,12 +34,15 @@ def test_a_listening_mapper_s_workers_join_it_on_loopback() -> None:
 def test_local_worker_settings() -> None:
     z = ZenohSettings(mode="peer", listen=["tcp/127.0.0.1:7450"], connect=["tcp/127.0.0.1:7447"],
                       overrides={"transport/link/tx/lease": 5000})
+    z = z.model_copy(update={"config_file": "/etc/argus/mapper/zenoh.json5"})
     cfg = local_worker_config("m1", "lab", "argus", z, 1, 3, "WARNING")
     assert cfg is not None
     assert (cfg.id, cfg.site, cfg.key_prefix, cfg.torch_threads, cfg.log_level) == ("m1-local1", "lab", "argus", 3,
                                                                                       "WARNING")
     assert (cfg.zenoh.mode, cfg.zenoh.connect, cfg.zenoh.listen) == ("client", ["tcp/127.0.0.1:7450"], [])
-    assert cfg.zenoh.overrides == {"transport/link/tx/lease": 5000}  # the rest of the mapper's Zenoh settings
+    # the rest of the mapper's Zenoh settings, its login (config file) included: the ACL gives it their keys
+    assert cfg.zenoh.overrides == {"transport/link/tx/lease": 5000}
+    assert str(cfg.zenoh.config_file) == "/etc/argus/mapper/zenoh.json5"
     assert local_worker_config("m1", "lab", "argus", ZenohSettings(mode="peer", connect=[]), 0, 1, "INFO") is None
 
 
@@ -163,20 +166,14 @@ def test_a_real_child_joins_the_router_and_stops_when_its_stdin_closes(router: s
         session.close()
 
 
-def test_no_local_worker_where_it_could_not_join_or_would_log_in_as_the_mapper(tmp_path: Any) -> None:
+def test_no_local_worker_where_it_could_not_join() -> None:
     from mapper.config import MapperConfig
     from mapper.node import MapperNode
 
-    secure = tmp_path / "zenoh.json5"
-    secure.write_text("{}")
-    cases = {
-        "local_workers_skipped_config_file": {"zenoh": {"config_file": str(secure)}},
-        "local_workers_unreachable": {"zenoh": {"mode": "peer", "connect": [], "listen": ["tcp/127.0.0.1:0"]}},
-    }
-    for counter, settings in cases.items():
-        node = MapperNode(MapperConfig.model_validate({"site": "t", "workers": {"local": 1}, **settings}))
-        assert node._start_local_workers() is None
-        assert node.counters.get(counter) == 1
+    peer = {"mode": "peer", "connect": [], "listen": ["tcp/127.0.0.1:0"]}
+    node = MapperNode(MapperConfig.model_validate({"site": "t", "workers": {"local": 1}, "zenoh": peer}))
+    assert node._start_local_workers() is None
+    assert node.counters.get("local_workers_unreachable") == 1
     node = MapperNode(MapperConfig(site="t", workers={"local": 0}))  # type: ignore[arg-type]
     assert node._start_local_workers() is None and not node.counters.snapshot()
 
