@@ -98,6 +98,8 @@ def factored_gain(
     Lu = used.size
     # counts[c, l, s] = number of visible hypotheses of label l in sample s: one sparse product.
     onehot = csr_matrix((np.ones(H, np.float32), (lab_c * S + smp, np.arange(H))), shape=(Lu * S, H))
-    counts = np.asarray(onehot @ V.T).T.reshape(C, Lu, S)
-    mi = mutual_information(counts.reshape(C * Lu, S), n_completions, n_jitter).reshape(C, Lu)
-    return mi.sum(axis=1)
+    counts = np.asarray(onehot @ V.T).T.reshape(C * Lu, S)
+    mi = np.zeros(C * Lu)
+    varies = np.flatnonzero(counts.max(axis=1) != counts.min(axis=1))  # a constant row carries no information
+    mi[varies] = mutual_information(counts[varies], n_completions, n_jitter)
+    return mi.reshape(C, Lu).sum(axis=1)

@@ -213,6 +213,24 @@ class Panoramas:
         out[hole] = nmin[hole]
         return out.reshape(zb.shape)
 
+    def unoccluded_pairs(self, targets_world: np.ndarray, pos_rows: np.ndarray) -> np.ndarray:
+        """(n,) bool: whether target ``i`` is not hidden behind the map from position ``pos_rows[i]``
+        (:meth:`unoccluded` for a list of pairs instead of every position with every target)."""
+        X = np.asarray(targets_world, dtype=np.float64).reshape(-1, 3)
+        rows = np.asarray(pos_rows, dtype=np.int64).reshape(-1)
+        if X.shape[0] == 0:
+            return np.zeros(0, bool)
+        uniq = np.flatnonzero(np.bincount(rows, minlength=self.positions.shape[0]))
+        missing = sorted(set(uniq.tolist()) - self._rows.keys())
+        if missing:
+            self._build(missing)
+        local = np.zeros(self.positions.shape[0], np.int64)
+        local[uniq] = np.arange(uniq.shape[0])
+        Z = np.stack([self._rows[int(i)] for i in uniq])
+        b, r = self._bins(X - self.positions[rows])
+        zb = Z[local[rows], b]
+        return r <= zb + self.cfg.occlusion_tol_m + self.cfg.occlusion_tol_rel * r
+
     def unoccluded(self, targets_world: np.ndarray, pos_rows: np.ndarray | None = None) -> np.ndarray:
         """(P', T) bool: whether each target is not hidden behind the map from each position."""
         X = np.asarray(targets_world, dtype=np.float64).reshape(-1, 3)
@@ -231,6 +249,82 @@ class Panoramas:
         return r <= zb + self.cfg.occlusion_tol_m + self.cfg.occlusion_tol_rel * r
 
 
+def image_cone_cos(K: np.ndarray, width: int, height: int, margin_frac: float = 0.0) -> float:
+    """Cosine of the half-angle of the narrowest cone about the optical axis that holds the whole image (shrunk
+    by ``margin_frac`` on every side): a camera-frame point ``p`` that projects inside has ``p_z >= cos * |p|``."""
+    mu, mv = margin_frac * width, margin_frac * height
+    tx = max(abs(-0.5 + mu - K[0, 2]), abs(width - 0.5 - mu - K[0, 2])) / K[0, 0]
+    ty = max(abs(-0.5 + mv - K[1, 2]), abs(height - 0.5 - mv - K[1, 2])) / K[1, 1]
+    return float(1.0 / np.sqrt(1.0 + tx * tx + ty * ty))
+
+
+def in_view_pairs(
+    T_world_cam: np.ndarray,
+    K: np.ndarray,
+    width: int,
+    height: int,
+    targets_world: np.ndarray,
+    near_m: float,
+    far_m: float,
+    margin_frac: float = 0.0,
+    sizes_m: np.ndarray | None = None,
+    min_pixels: float = 0.0,
+) -> tuple[np.ndarray, np.ndarray]:
+    """The (camera ``cams[i]``, target ``tgts[i]``) pairs in view: :func:`project_many`'s test (and, with
+    ``sizes_m``, at least ``min_pixels`` big), listed instead of a dense (C, T) matrix.
+
+    Cameras that share a centre (the headings of one viewpoint) are tested together, on the targets within
+    ``far_m`` of that centre only: one small matrix product gives every heading's camera coordinates."""
+    C = T_world_cam.shape[0]
+    X = np.asarray(targets_world, dtype=np.float64).reshape(-1, 3)
+    if C == 0 or X.shape[0] == 0:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    centres, group = np.unique(T_world_cam[:, :3, 3], axis=0, return_inverse=True)
+    group = group.reshape(-1)
+    order = np.argsort(group, kind="stable")
+    bounds = np.searchsorted(group[order], np.arange(centres.shape[0] + 1))
+    # squared range centre -> target, |X|^2 - 2 X.c + |c|^2 (one product); a slack keeps the cut conservative
+    d2 = (X @ centres.T).T
+    d2 *= -2.0
+    d2 += np.einsum("tk,tk->t", X, X)[None, :]
+    d2 += np.einsum("ck,ck->c", centres, centres)[:, None]
+    near_enough = d2 <= (far_m + RANGE_SLACK_M) ** 2
+    mu, mv = margin_frac * width, margin_frac * height
+    cone = image_cone_cos(K, width, height, margin_frac) - RANGE_SLACK_M
+    size = None if sizes_m is None or min_pixels <= 0 else np.asarray(sizes_m, dtype=np.float64).reshape(-1)
+    cams, tgts = [], []
+    for g in range(centres.shape[0]):
+        idx = np.flatnonzero(near_enough[g])
+        if idx.shape[0] == 0:
+            continue
+        cg = order[bounds[g] : bounds[g + 1]]
+        D = X[idx] - centres[g]
+        rng = np.sqrt(np.einsum("tk,tk->t", D, D))
+        # columns [0, H), [H, 2H), [2H, 3H): every heading's camera-frame x, y, z of each target
+        H = cg.shape[0]
+        p = D @ T_world_cam[cg, :3, :3].transpose(1, 2, 0).reshape(3, 3 * H)
+        z = p[:, 2 * H :]
+        # conservative cut (in front, in range, inside the image's cone), then the exact test on what is left
+        t, h = np.nonzero((z >= near_m) & (z >= cone * rng[:, None] - RANGE_SLACK_M) & (rng <= far_m)[:, None])
+        x, y, z = p[t, h], p[t, H + h], z[t, h]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            u = K[0, 0] * x / z + K[0, 2]
+            v = K[1, 1] * y / z + K[1, 2]
+        ok = (u >= -0.5 + mu) & (u <= width - 0.5 - mu) & (v >= -0.5 + mv) & (v <= height - 0.5 - mv)
+        if size is not None:
+            with np.errstate(divide="ignore", invalid="ignore"):
+                ok &= K[0, 0] * size[idx[t]] / np.maximum(z, 1e-6) >= min_pixels
+        cams.append(cg[h[ok]])
+        tgts.append(idx[t[ok]])
+    if not cams:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    return np.concatenate(cams), np.concatenate(tgts)
+
+
+RANGE_SLACK_M = 1e-6
+"""Slack of the range pre-cut (metres): far above rounding, so no target in range is dropped."""
+
+
 def detect_matrix(
     T_world_cam: np.ndarray,
     pos_index: np.ndarray,
@@ -247,18 +341,15 @@ def detect_matrix(
 ) -> np.ndarray:
     """(C,T) bool: target in the frustum, within range, unoccluded and (if sizes given) big enough.
 
-    ``pos_index`` (C,) maps each camera to its row in ``panoramas``.
+    ``pos_index`` (C,) maps each camera to its row in ``panoramas``. The frustum, range and size tests run
+    per camera centre on the targets in range (:func:`in_view_pairs`); only the pairs in view are tested
+    for occlusion (:meth:`Panoramas.unoccluded_pairs`).
     """
     margin = cfg.image_margin_frac if margin_frac is None else margin_frac
-    ok, z = project_many(T_world_cam, K, width, height, targets_world, cfg.near_m, far_m, margin)
-    if sizes_m is not None and min_pixels > 0:
-        with np.errstate(divide="ignore", invalid="ignore"):
-            px = K[0, 0] * np.asarray(sizes_m, dtype=np.float64)[None, :] / np.maximum(z, 1e-6)
-        ok &= px >= min_pixels
-    if not ok.any():
-        return ok
-    cols = np.flatnonzero(ok.any(axis=0))
-    uniq, inv = np.unique(pos_index, return_inverse=True)
-    vis = panoramas.unoccluded(np.asarray(targets_world).reshape(-1, 3)[cols], uniq)
-    ok[:, cols] &= vis[inv.reshape(-1)]
-    return ok
+    X = np.asarray(targets_world, dtype=np.float64).reshape(-1, 3)
+    out = np.zeros((T_world_cam.shape[0], X.shape[0]), bool)
+    cams, tgts = in_view_pairs(T_world_cam, K, width, height, X, cfg.near_m, far_m, margin, sizes_m, min_pixels)
+    if cams.shape[0]:
+        vis = panoramas.unoccluded_pairs(X[tgts], np.asarray(pos_index, dtype=np.int64).reshape(-1)[cams])
+        out[cams[vis], tgts[vis]] = True
+    return out
