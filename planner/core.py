@@ -546,8 +546,7 @@ class Planner:
             acfg.min_pixels,
         )
         sub = np.flatnonzero(valid)
-        V = np.zeros((c.size, hyps.size), bool)
-        V[sub] = detect_matrix(
+        V = detect_matrix(
             c.T_world_cam[sub],
             rows[sub],
             pano,
@@ -562,16 +561,15 @@ class Planner:
         )
         V &= keep[None, :]
         if not acfg.cross_room_visibility:
-            cand_room = np.array([r or "" for r in c.rooms], dtype=object)
-            hyp_room = np.array([r or "" for r in hyps.room], dtype=object)
-            gate = (
-                (cand_room[:, None] == hyp_room[None, :])
-                | (cand_room[:, None] == "")
-                | (hyp_room[None, :] == "")
+            codes = {name: k for k, name in enumerate(sorted({r for r in (*c.rooms, *hyps.room) if r}), start=1)}
+            cand_room = np.array([codes.get(r or "", 0) for r in c.rooms], dtype=np.int64)[sub]
+            hyp_room = np.array([codes.get(r or "", 0) for r in hyps.room], dtype=np.int64)
+            V &= (
+                (cand_room[:, None] == hyp_room[None, :]) | (cand_room[:, None] == 0) | (hyp_room[None, :] == 0)
             )
-            V &= gate
         fn = joint_gain if acfg.observation == "joint" else factored_gain
-        gain = fn(V, hyps.label_idx, hyps.sample_idx, len(hyps.labels), hyps.n_completions, hyps.n_jitter)
+        gain = np.zeros(c.size)  # candidates that are not valid see nothing: no gain (rows are independent)
+        gain[sub] = fn(V, hyps.label_idx, hyps.sample_idx, len(hyps.labels), hyps.n_completions, hyps.n_jitter)
         self.last_scores[c.robot_id] = gain
         best = float(gain[valid].max())
         if best < acfg.min_gain_bits:
@@ -579,7 +577,8 @@ class Planner:
         penalty = acfg.travel_weight_per_m * best * np.nan_to_num(travel, posinf=1e6)
         util = np.where(valid, gain - penalty, -np.inf)
         i = int(np.argmax(util))
-        seen_labels = sorted({hyps.labels[hyps.label_idx[j]] for j in np.flatnonzero(V[i])})[:4]
+        row = V[int(np.searchsorted(sub, i))]
+        seen_labels = sorted({hyps.labels[hyps.label_idx[j]] for j in np.flatnonzero(row)})[:4]
         return (
             i,
             float(gain[i]),

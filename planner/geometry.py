@@ -121,11 +121,30 @@ def project_many(
 _OTHER_AXES = np.array([[1, 2], [0, 2], [0, 1]])
 
 
+def _norm(d: np.ndarray) -> np.ndarray:
+    """Euclidean length of the vectors ``d`` (..., 3)."""
+    return np.sqrt(np.einsum("...k,...k->...", d, d))
+
+
+_KEY_HALF = 1 << 20
+
+
+def _voxel_keys(ijk: np.ndarray) -> np.ndarray:
+    """One int64 per voxel index (N, 3) with every |index| < 2**20 (21 bits per axis)."""
+    a = ijk + _KEY_HALF
+    return (a[:, 0] << 42) | (a[:, 1] << 21) | a[:, 2]
+
+
 def downsample_occluders(points: np.ndarray, voxel_m: float, max_points: int) -> np.ndarray:
-    """One point per ``voxel_m`` voxel (the first), capped at ``max_points`` by an even stride."""
+    """One point per ``voxel_m`` voxel (the first in ``points``' order), capped at ``max_points`` by an even
+    stride."""
     P = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     if P.shape[0] and voxel_m > 0:
-        _, first = np.unique(np.floor(P / voxel_m).astype(np.int64), axis=0, return_index=True)
+        ijk = np.floor(P / voxel_m).astype(np.int64)
+        if np.abs(ijk).max() < _KEY_HALF:  # one int64 key per voxel: a 1-D unique, much faster than rows
+            _, first = np.unique(_voxel_keys(ijk), return_index=True)
+        else:
+            _, first = np.unique(ijk, axis=0, return_index=True)
         P = P[np.sort(first)]
     if P.shape[0] > max_points:
         P = P[:: int(np.ceil(P.shape[0] / max_points))]
@@ -152,7 +171,11 @@ class Panoramas:
         self._rows: dict[int, np.ndarray] = {}
 
     def _bins(self, d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Cube-map bin (...) and range (...) of direction vectors ``d`` (..., 3).
+        """Cube-map bin (...) and range (...) of direction vectors ``d`` (..., 3)."""
+        return self._bin_index(d), _norm(d)
+
+    def _bin_index(self, d: np.ndarray) -> np.ndarray:
+        """Cube-map bin (...) of direction vectors ``d`` (..., 3).
 
         The major axis is the first of the largest absolute components (as ``argmax``); everything is
         elementwise (no gathers), the hot loop of the planner's visibility.
@@ -169,7 +192,7 @@ class Panoramas:
         iu = np.clip(((np.where(mx, dy, dx) / m + 1.0) * half).astype(np.int64), 0, R - 1)
         iv = np.clip(((np.where(mz, dy, dz) / m + 1.0) * half).astype(np.int64), 0, R - 1)
         face = (np.where(mx, 0, np.where(my, 1, 2)) * 2 + (along < 0)).astype(np.int64)
-        return (face * R + iu) * R + iv, np.sqrt(np.einsum("...k,...k->...", d, d))
+        return (face * R + iu) * R + iv
 
     def _build(self, rows: list[int]) -> None:
         pts = self.occluders
@@ -179,10 +202,10 @@ class Panoramas:
             zb = np.full((len(rr), self.n_bins), np.inf, dtype=np.float32)
             if pts.shape[0]:
                 d = pts[None, :, :] - self.positions[rr][:, None, :]
-                b, r = self._bins(d)
-                ok = r <= self.far_m + 0.5
-                flat = (np.arange(len(rr))[:, None] * self.n_bins + b)[ok]
-                np.minimum.at(zb.reshape(-1), flat, r[ok].astype(np.float32))
+                r = _norm(d)
+                j, k = np.nonzero(r <= self.far_m + 0.5)  # only occluders in range are binned
+                flat = j * self.n_bins + self._bin_index(d[j, k])
+                np.minimum.at(zb.reshape(-1), flat, r[j, k].astype(np.float32))
                 zb = self._fill_holes(zb)
             for j, i in enumerate(rr):
                 self._rows[i] = zb[j]
