@@ -62,6 +62,7 @@ class PlanInfo:
     """Diagnostics of the last ``plan`` call."""
 
     decision_s: float = 0.0
+    decision_cpu_s: float = 0.0  # CPU seconds of the process (all its threads) during the call
     n_candidates: int = 0
     n_frontier: int = 0
     n_hypotheses: int = 0
@@ -274,7 +275,7 @@ class Planner:
         panoramas every visibility test shares; for ``asp``, sample completions of the scene and realise
         them as hypotheses; then per robot (in id order, each goal claimed before the next robot is
         planned) pick a viewpoint and issue its goal."""
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         self.info = PlanInfo(sampler=getattr(self.sampler, "name", ""))
         cands = self._begin(robots)
         ctx = self._context(point_map, cands)
@@ -286,6 +287,7 @@ class Planner:
             if goal is not None:
                 goals.append(goal)
         self.info.decision_s = time.perf_counter() - t0
+        self.info.decision_cpu_s = time.process_time() - c0
         return goals
 
     def _begin(self, robots: dict[str, tuple[RobotState, ViewpointSet]]) -> dict[str, Candidates]:
