@@ -66,6 +66,7 @@ class PlanInfo:
     n_candidates: int = 0
     n_frontier: int = 0
     n_hypotheses: int = 0
+    panoramas_reused: int = 0  # z-buffers taken over from the previous decision (no map change in their range)
     sampler: str = ""
     sampler_fallback: bool = False
     per_robot: dict[str, dict[str, Any]] = field(default_factory=dict)
@@ -138,6 +139,7 @@ class Planner:
         self.info = PlanInfo()
         self._cand_cache: dict[str, tuple[int, Candidates]] = {}
         self._frontier_cache: tuple[tuple[int, int, int], np.ndarray] | None = None
+        self._last_pano: Panoramas | None = None  # the last decision's z-buffers, reused where the map did not change
         self._n_goals = 0
         self.last_scores: dict[str, np.ndarray] = {}
         """Per robot, the score of every candidate in the last plan (frontier points or bits)."""
@@ -319,6 +321,8 @@ class Planner:
         claim_rows = {rid: rows.row(T[:3, 3]) for rid, (_, T) in self.goals.items()}
         far = max([c.max_range_m for c in cands.values()] + [v.far_m for v in self.history] + [0.1])
         pano = Panoramas(rows.array(), occ, vis, far_m=far)
+        self.info.panoramas_reused = pano.reuse(self._last_pano)
+        self._last_pano = pano
         return _PlanContext(point_map, pts, pano, cand_rows, hist_rows, claim_rows, _floor_cells(pts))
 
     def _hypotheses(

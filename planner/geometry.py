@@ -151,6 +151,18 @@ def downsample_occluders(points: np.ndarray, voxel_m: float, max_points: int) ->
     return P
 
 
+REUSE_SLACK_M = 1e-3
+"""A changed occluder this much beyond the build's range cut still forces a rebuild (rounding of distances)."""
+
+
+def changed_points(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """The rows of ``a`` (N,3) not in ``b`` (M,3) and of ``b`` not in ``a``, compared bit for bit."""
+    A = np.ascontiguousarray(np.asarray(a, dtype=np.float64).reshape(-1, 3))
+    B = np.ascontiguousarray(np.asarray(b, dtype=np.float64).reshape(-1, 3))
+    va, vb = A.view(np.dtype((np.void, 24))).ravel(), B.view(np.dtype((np.void, 24))).ravel()
+    return np.concatenate([A[~np.isin(va, vb)], B[~np.isin(vb, va)]])
+
+
 class Panoramas:
     """Panoramic z-buffers (nearest map-point range per direction bin) for camera positions.
 
@@ -209,6 +221,31 @@ class Panoramas:
                 zb = self._fill_holes(zb)
             for j, i in enumerate(rr):
                 self._rows[i] = zb[j]
+
+    def reuse(self, prev: Panoramas | None) -> int:
+        """Take over ``prev``'s z-buffers (the previous decision's) for the positions both have whose occluders in
+        range are the same: no occluder within ``far_m + 0.5`` (the build's cut) of the position was added or
+        removed. Such a z-buffer is the one :meth:`_build` would compute; returns how many were taken over."""
+        if prev is None or not prev._rows or prev.res != self.res or prev.far_m != self.far_m:
+            return 0
+        at = {prev.positions[i].tobytes(): i for i in prev._rows}
+        keys = (p.tobytes() for p in self.positions)
+        pairs = [(i, at[k]) for i, k in enumerate(keys) if k in at and i not in self._rows]
+        if not pairs:
+            return 0
+        mine = np.array([i for i, _ in pairs])
+        changed = changed_points(prev.occluders, self.occluders)
+        same = np.ones(mine.shape[0], bool)
+        if changed.shape[0]:
+            from scipy.spatial import cKDTree
+
+            reach = self.far_m + 0.5 + REUSE_SLACK_M
+            dist, _ = cKDTree(changed).query(self.positions[mine], k=1, distance_upper_bound=reach)
+            same = ~np.isfinite(dist)  # inf: no changed occluder within reach
+        for (i, j), ok in zip(pairs, same, strict=True):
+            if ok:
+                self._rows[i] = prev._rows[j]
+        return int(same.sum())
 
     def row(self, i: int) -> np.ndarray:
         """The z-buffer of position ``i`` (6 * R * R,), built on first use."""
