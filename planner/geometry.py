@@ -4,6 +4,10 @@ Occlusion is tested against a coarse **panoramic** z-buffer per camera position 
 elevation bins holding the nearest map point's range). Candidates that share a position (the
 headings of one viewpoint) share one panorama, so occlusion costs O(positions x map points) and the
 per-candidate work is only a frustum projection of the targets.
+
+The frustum test runs per camera centre on the targets within range of it (one small matrix product for
+all the headings there), and only the (camera, target) pairs in view are looked up in the panoramas.
+Panoramas whose occluders in range did not change are taken over from the previous decision.
 """
 
 from __future__ import annotations
