@@ -22,6 +22,7 @@ import argparse
 import json
 import sys
 import time
+from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -31,7 +32,20 @@ if TYPE_CHECKING:
     from planner.config import Strategy
 
 BAR_S = 2.0
-CLOSED_LOOP = {"candidates": 900, "history": 30, "observed": "all", "bar_s": 1.0}
+
+
+@dataclass(frozen=True)
+class Case:
+    """The size of the benchmarked decision (see :func:`scenario`) and its bar."""
+
+    candidates: int
+    history: int
+    observed: str
+    bar_s: float
+
+
+DEFAULT_CASE = Case(candidates=300, history=0, observed="living", bar_s=BAR_S)
+CLOSED_LOOP = Case(candidates=900, history=30, observed="all", bar_s=1.0)
 """``--closed-loop``: the size of a late decision of ``argus explore`` on an apartment (896 candidates there)."""
 
 
@@ -177,16 +191,16 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--quick", action="store_true", help="3 repeats")
     p.add_argument("--out", type=Path, default=None, help="directory for planner.json and planner.md")
     a = p.parse_args(argv)
-    loop = CLOSED_LOOP if a.closed_loop else {"candidates": 300, "history": 0, "observed": "living", "bar_s": BAR_S}
+    case = CLOSED_LOOP if a.closed_loop else DEFAULT_CASE
     res = run_bench(
-        int(a.candidates if a.candidates is not None else loop["candidates"]),
+        case.candidates if a.candidates is None else a.candidates,
         a.completions,
         3 if a.quick else a.repeats,
         tuple(a.strategy),
         a.threads,
-        history=int(a.history if a.history is not None else loop["history"]),
-        observed=str(loop["observed"]),
-        bar_s=float(loop["bar_s"]),
+        history=case.history if a.history is None else a.history,
+        observed=case.observed,
+        bar_s=case.bar_s,
     )
     md = markdown(res)
     print(md)

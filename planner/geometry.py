@@ -219,9 +219,9 @@ class Panoramas:
             if pts.shape[0]:
                 d = pts[None, :, :] - self.positions[rr][:, None, :]
                 r = _norm(d)
-                j, k = np.nonzero(r <= self.far_m + 0.5)  # only occluders in range are binned
-                flat = j * self.n_bins + self._bin_index(d[j, k])
-                np.minimum.at(zb.reshape(-1), flat, r[j, k].astype(np.float32))
+                at, occ = np.nonzero(r <= self.far_m + 0.5)  # only occluders in range are binned
+                flat = at * self.n_bins + self._bin_index(d[at, occ])
+                np.minimum.at(zb.reshape(-1), flat, r[at, occ].astype(np.float32))
                 zb = self._fill_holes(zb)
             for j, i in enumerate(rr):
                 self._rows[i] = zb[j]
