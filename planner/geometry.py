@@ -163,8 +163,32 @@ def changed_points(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     """The rows of ``a`` (N,3) not in ``b`` (M,3) and of ``b`` not in ``a``, compared bit for bit."""
     A = np.ascontiguousarray(np.asarray(a, dtype=np.float64).reshape(-1, 3))
     B = np.ascontiguousarray(np.asarray(b, dtype=np.float64).reshape(-1, 3))
-    va, vb = A.view(np.dtype((np.void, 24))).ravel(), B.view(np.dtype((np.void, 24))).ravel()
-    return np.concatenate([A[~np.isin(va, vb)], B[~np.isin(vb, va)]])
+    return np.concatenate([A[~_rows_in(A, B)], B[~_rows_in(B, A)]])
+
+
+def _mix64(z: np.ndarray) -> np.ndarray:
+    """The splitmix64 finaliser (every input bit reaches every output bit), modulo 2**64."""
+    z = (z ^ (z >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)
+    z = (z ^ (z >> np.uint64(27))) * np.uint64(0x94D049BB133111EB)
+    return z ^ (z >> np.uint64(31))
+
+
+def _row_hash(u: np.ndarray) -> np.ndarray:
+    """A 64-bit hash of each row of ``u`` (N, 3) uint64."""
+    return _mix64(_mix64(_mix64(u[:, 0]) ^ u[:, 1]) ^ u[:, 2])
+
+
+def _rows_in(A: np.ndarray, B: np.ndarray) -> np.ndarray:
+    """(N,) bool: row ``i`` of ``A`` is bit for bit a row of ``B``. Rows are matched on a 64-bit hash and the
+    match is then checked on all 192 bits (a hash collision reads as not found: never a false match)."""
+    if A.shape[0] == 0 or B.shape[0] == 0:
+        return np.zeros(A.shape[0], bool)
+    ua, ub = A.view(np.uint64), B.view(np.uint64)
+    ha, hb = _row_hash(ua), _row_hash(ub)
+    order = np.argsort(hb, kind="stable")
+    at = np.minimum(np.searchsorted(hb[order], ha), B.shape[0] - 1)
+    j = order[at]
+    return (hb[j] == ha) & np.all(ub[j] == ua, axis=1)
 
 
 class Panoramas:

@@ -102,6 +102,13 @@ def test_changed_points_bit_for_bit() -> None:
     got = {tuple(p) for p in changed_points(a, b).tolist()}
     assert got == {(0.0, 0.0, 0.0), (1.0, 2.0, 3.0), (1.0, 2.0, 3.0 + 1e-12), (7.0, 8.0, 9.0)}
     assert changed_points(a, a[::-1]).shape == (0, 3)  # order does not matter
+    assert changed_points(a, np.concatenate([a, a])).shape == (0, 3)  # nor duplicates
+    assert changed_points(np.array([[0.0, 0.0, 0.0]]), np.array([[-0.0, 0.0, 0.0]])).shape == (2, 3)  # bits differ
+    assert changed_points(a, np.zeros((0, 3))).shape == (3, 3)
+    rng = np.random.default_rng(8)
+    big = rng.normal(size=(20000, 3))
+    moved = np.concatenate([big[500:], rng.normal(size=(300, 3))])
+    assert changed_points(big, moved).shape == (800, 3)
 
 
 def test_reused_panoramas_are_the_ones_a_build_gives() -> None:
@@ -112,14 +119,16 @@ def test_reused_panoramas_are_the_ones_a_build_gives() -> None:
     prev = Panoramas(c.positions, occ, cfg, far_m=3.0)
     for i in range(c.positions.shape[0]):
         prev.row(i)
-    # the map changes in one corner only: a new wall patch near (9.5, 8.5), and a few old points there removed
-    far_corner = np.linalg.norm(occ[:, :2] - [9.5, 8.5], axis=1) < 0.5
-    new_occ = np.concatenate([occ[~far_corner], [[9.6, 8.6, z] for z in np.linspace(0.1, 2.5, 25)]])
+    # the map changes in one corner only: a new patch near (9.5, 4.5), and the old points there removed
+    corner = np.linalg.norm(occ[:, :2] - [9.5, 4.5], axis=1) < 0.5
+    assert corner.any()
+    new_occ = np.concatenate([occ[~corner], [[9.6, 4.6, z] for z in np.linspace(0.1, 2.5, 25)]])
     cur = Panoramas(c.positions, new_occ, cfg, far_m=3.0)
     n = cur.reuse(prev)
     reused = sorted(cur._rows)
     assert 0 < n == len(reused) < c.positions.shape[0]
     changed = changed_points(occ, new_occ)
+    assert changed.shape[0] == int(corner.sum()) + 25
     dist = np.linalg.norm(c.positions[:, None, :] - changed[None, :, :], axis=2).min(axis=1)
     assert np.all(dist[reused] > 3.0 + 0.5)  # no changed occluder within the build's range of a reused row
     assert np.all(np.isin(np.flatnonzero(dist > 3.0 + 0.5 + 1e-3), reused))  # and every such row is reused
