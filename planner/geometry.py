@@ -15,6 +15,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from planner.config import VisibilityConfig
 from protocol.messages import ViewpointSet
@@ -265,8 +266,6 @@ class Panoramas:
         changed = changed_points(prev.occluders, self.occluders)
         same = np.ones(mine.shape[0], bool)
         if changed.shape[0]:
-            from scipy.spatial import cKDTree
-
             reach = self.far_m + 0.5 + REUSE_SLACK_M
             dist, _ = cKDTree(changed).query(self.positions[mine], k=1, distance_upper_bound=reach)
             same = ~np.isfinite(dist)  # inf: no changed occluder within reach
