@@ -18,6 +18,9 @@ def test_scenario_sizes() -> None:
     assert all((round(T[0, 3], 9), round(T[1, 3], 9)) in {(round(x, 9), round(y, 9)) for x, y in xy}
                for T in whole["history"])
     assert CLOSED_LOOP.candidates >= 896 and CLOSED_LOOP.bar_s == 1.0
+    stereo = scenario(40, observed="stereo")
+    assert 0 < stereo["point_map"].points.shape[0] < whole["point_map"].points.shape[0]
+    assert stereo["point_map"].points[:, 1].max() < 5.0
 
 
 def test_run_bench_reports_wall_and_cpu() -> None:

@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 
 from bench.explore import (
-    decision_stats,
     Episode,
+    decision_stats,
     main,
     markdown,
     reach,
