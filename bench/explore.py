@@ -340,20 +340,21 @@ class _Run:
             travel_cost_m=travel_costs(self.world.nav, bot.robot.pose_true()[:2], self.world.vp_xy),
         )
 
-    def assign(self, step: int) -> tuple[dict[str, Any], float]:
+    def assign(self, step: int) -> tuple[dict[str, Any], float, float]:
         """One round's goals: every robot planned in one decision; a robot whose goal it cannot drive to
         gets that viewpoint blacklisted and is planned again alone (the others' goals stay claimed).
-        Each robot given a goal starts driving; returns the goals by robot and the planner's seconds."""
+        Each robot given a goal starts driving; returns the goals by robot and the planner's wall and CPU seconds."""
         by_id = {b.rid: b for b in self.bots}
         pending = list(by_id)
         chosen: dict[str, Any] = {}
-        decision_s = 0.0
+        decision_s = decision_cpu_s = 0.0
         for _attempt in range(5):
             if not pending:
                 break
             plan = {rid: (self.state_of(by_id[rid], step), by_id[rid].vps) for rid in pending}
             goals = {g.robot_id: g for g in self.planner.plan(self.mapper.snapshot(), self.mapper.point_map(), plan)}
             decision_s += self.planner.info.decision_s
+            decision_cpu_s += self.planner.info.decision_cpu_s
             retry = []
             for rid in pending:
                 g = goals.get(rid)
@@ -366,29 +367,29 @@ class _Run:
                     self.planner.mark_failed(rid, g.vp_id)
                     retry.append(rid)
             pending = retry
-        return chosen, decision_s
+        return chosen, decision_s, decision_cpu_s
 
     # -- the loop -----------------------------------------------------------------------------
     def start(self) -> None:
         """Step 0: each robot's view at its start pose, then the first record."""
         for b in self.bots:
             self.arrive(b)
-        self.record(0, {}, 0.0)
+        self.record(0, {}, 0.0, 0.0)
 
     def step(self, step: int) -> float:
         """One wall step: goals for the team, each robot drives (mapping on the way and at the goal), record;
         returns the planner's seconds."""
-        chosen, decision_s = self.assign(step)
+        chosen, decision_s, decision_cpu_s = self.assign(step)
         for b in self.bots:
             if b.rid in chosen:
                 self.drive(b)
                 if self.ep.goal_capture_m > 0:
                     self.capture(b)
             self.arrive(b)
-        self.record(step, chosen, decision_s)
+        self.record(step, chosen, decision_s, decision_cpu_s)
         return decision_s
 
-    def record(self, step: int, chosen: dict[str, Any], decision_s: float) -> None:
+    def record(self, step: int, chosen: dict[str, Any], decision_s: float, decision_cpu_s: float) -> None:
         """The step's record: graph size, recall / precision (scored every ``score_every`` steps and at the
         last), the team's metres and each robot's goal, gain, reason, metres, frames and goals."""
         from sim.scoring import score_nodes
@@ -417,6 +418,7 @@ class _Run:
             "precision": self.last_score["precision"],
             "distance_m": round(sum(b.distance_m for b in self.bots), 3),
             "decision_s": round(decision_s, 4),
+            "decision_cpu_s": round(decision_cpu_s, 4),
             "gain": first["gain"],
             "goal": first["goal"],
             "reason": first["reason"],
@@ -462,7 +464,8 @@ def run_episode(
         r = run.records[-1]
         say(
             f"  step {step:2d}: nodes {r['n_nodes']:3d} recall {r['recall']:.3f} dist {r['distance_m']:.1f} m "
-            f"decide {decision_s:.2f} s | " + " | ".join(f"{rid}: {p['reason']}" for rid, p in r["robots"].items())
+            f"decide {decision_s:.2f} s (CPU {r['decision_cpu_s']:.2f}) | "
+            + " | ".join(f"{rid}: {p['reason']}" for rid, p in r["robots"].items())
         )
     return {
         "family": ep.family,
@@ -557,11 +560,36 @@ def summarize(
             row["robot_frames"] = {rid: float(np.mean([p[rid]["frames"] for p in per])) for rid in rids}
         elif n_robots == 1:  # records written before per-robot counts: the one robot drove the team's metres
             row["robot_distance_m"] = {ROBOT_ID: float(np.mean([e["steps"][-1]["distance_m"] for e in eps]))}
-        dec = [r["decision_s"] for e in eps for r in e["steps"][1:]]
-        row["decision_s_mean"] = float(np.mean(dec)) if dec else 0.0
-        row["decision_s_max"] = float(np.max(dec)) if dec else 0.0
+        row.update(decision_stats(eps))
         rows.append(row)
     return rows
+
+
+def decision_stats(eps: list[dict[str, Any]]) -> dict[str, float | None]:
+    """The planner's seconds per wall step (its decisions of the round, goal retries included) over the episodes'
+    steps after the first: wall mean / p50 / p95 / max and CPU mean / p95 (None in records without CPU)."""
+    recs = [r for e in eps for r in e["steps"][1:]]
+    dec = np.array([r["decision_s"] for r in recs], float)
+    cpu = np.array([r["decision_cpu_s"] for r in recs if "decision_cpu_s" in r], float)
+    out: dict[str, float | None] = {
+        "decision_s_mean": float(dec.mean()) if dec.size else 0.0,
+        "decision_s_p50": float(np.percentile(dec, 50)) if dec.size else 0.0,
+        "decision_s_p95": float(np.percentile(dec, 95)) if dec.size else 0.0,
+        "decision_s_max": float(dec.max()) if dec.size else 0.0,
+    }
+    full = cpu.size == dec.size and cpu.size > 0
+    out["decision_cpu_s_mean"] = float(cpu.mean()) if full else None
+    out["decision_cpu_s_p95"] = float(np.percentile(cpu, 95)) if full else None
+    return out
+
+
+def _decide_text(r: dict[str, Any]) -> str:
+    """The decide column: wall mean (p95, max) and, where recorded, CPU mean (p95)."""
+    p95 = r.get("decision_s_p95", r["decision_s_max"])  # rows summarised before p95 was kept: the max
+    text = f"{r['decision_s_mean']:.2f} (p95 {p95:.2f}, max {r['decision_s_max']:.2f})"
+    if r.get("decision_cpu_s_mean") is not None:
+        text += f"; CPU {r['decision_cpu_s_mean']:.2f} (p95 {r['decision_cpu_s_p95']:.2f})"
+    return text
 
 
 def _reach_text(row: dict[str, Any], tag: str, key: str) -> str:
@@ -583,7 +611,7 @@ def markdown(rows: list[dict[str, Any]], at_steps: tuple[int, ...] = REPORT_STEP
         + " | ".join(f"nodes@{k}" for k in at_steps)
         + " | "
         + " | ".join(f"recall@{k}" for k in at_steps)
-        + f" | dist@{at_steps[-1]} m | decide s |"
+        + f" | dist@{at_steps[-1]} m | decide s: mean (p95, max); CPU s |"
     )
     out = [head, "|" + "---|" * (2 + 2 * len(at_steps) + 1)]
     for r in rows:
@@ -592,7 +620,7 @@ def markdown(rows: list[dict[str, Any]], at_steps: tuple[int, ...] = REPORT_STEP
         dist = "{:.1f} ± {:.1f}".format(*r[f"distance_m@{at_steps[-1]}"])
         out.append(
             f"| {_method(r)} (n={r['episodes']}, GT {r['n_true_mean']:.0f}) | {nodes} | {rec} | {dist} | "
-            f"{r['decision_s_mean']:.2f} (max {r['decision_s_max']:.2f}) |"
+            f"{_decide_text(r)} |"
         )
     team_k = [k for k in at_steps if k > 0]
     out += [

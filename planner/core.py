@@ -62,9 +62,11 @@ class PlanInfo:
     """Diagnostics of the last ``plan`` call."""
 
     decision_s: float = 0.0
+    decision_cpu_s: float = 0.0  # CPU seconds of the process (all its threads) during the call
     n_candidates: int = 0
     n_frontier: int = 0
     n_hypotheses: int = 0
+    panoramas_reused: int = 0  # z-buffers taken over from the previous decision (no map change in their range)
     sampler: str = ""
     sampler_fallback: bool = False
     per_robot: dict[str, dict[str, Any]] = field(default_factory=dict)
@@ -137,6 +139,7 @@ class Planner:
         self.info = PlanInfo()
         self._cand_cache: dict[str, tuple[int, Candidates]] = {}
         self._frontier_cache: tuple[tuple[int, int, int], np.ndarray] | None = None
+        self._last_pano: Panoramas | None = None  # the last decision's z-buffers, reused where the map did not change
         self._n_goals = 0
         self.last_scores: dict[str, np.ndarray] = {}
         """Per robot, the score of every candidate in the last plan (frontier points or bits)."""
@@ -274,7 +277,7 @@ class Planner:
         panoramas every visibility test shares; for ``asp``, sample completions of the scene and realise
         them as hypotheses; then per robot (in id order, each goal claimed before the next robot is
         planned) pick a viewpoint and issue its goal."""
-        t0 = time.perf_counter()
+        t0, c0 = time.perf_counter(), time.process_time()
         self.info = PlanInfo(sampler=getattr(self.sampler, "name", ""))
         cands = self._begin(robots)
         ctx = self._context(point_map, cands)
@@ -286,6 +289,7 @@ class Planner:
             if goal is not None:
                 goals.append(goal)
         self.info.decision_s = time.perf_counter() - t0
+        self.info.decision_cpu_s = time.process_time() - c0
         return goals
 
     def _begin(self, robots: dict[str, tuple[RobotState, ViewpointSet]]) -> dict[str, Candidates]:
@@ -317,6 +321,8 @@ class Planner:
         claim_rows = {rid: rows.row(T[:3, 3]) for rid, (_, T) in self.goals.items()}
         far = max([c.max_range_m for c in cands.values()] + [v.far_m for v in self.history] + [0.1])
         pano = Panoramas(rows.array(), occ, vis, far_m=far)
+        self.info.panoramas_reused = pano.reuse(self._last_pano)
+        self._last_pano = pano
         return _PlanContext(point_map, pts, pano, cand_rows, hist_rows, claim_rows, _floor_cells(pts))
 
     def _hypotheses(
@@ -546,8 +552,7 @@ class Planner:
             acfg.min_pixels,
         )
         sub = np.flatnonzero(valid)
-        V = np.zeros((c.size, hyps.size), bool)
-        V[sub] = detect_matrix(
+        V = detect_matrix(
             c.T_world_cam[sub],
             rows[sub],
             pano,
@@ -562,16 +567,15 @@ class Planner:
         )
         V &= keep[None, :]
         if not acfg.cross_room_visibility:
-            cand_room = np.array([r or "" for r in c.rooms], dtype=object)
-            hyp_room = np.array([r or "" for r in hyps.room], dtype=object)
-            gate = (
-                (cand_room[:, None] == hyp_room[None, :])
-                | (cand_room[:, None] == "")
-                | (hyp_room[None, :] == "")
+            codes = {name: k for k, name in enumerate(sorted({r for r in (*c.rooms, *hyps.room) if r}), start=1)}
+            cand_room = np.array([codes.get(r or "", 0) for r in c.rooms], dtype=np.int64)[sub]
+            hyp_room = np.array([codes.get(r or "", 0) for r in hyps.room], dtype=np.int64)
+            V &= (
+                (cand_room[:, None] == hyp_room[None, :]) | (cand_room[:, None] == 0) | (hyp_room[None, :] == 0)
             )
-            V &= gate
         fn = joint_gain if acfg.observation == "joint" else factored_gain
-        gain = fn(V, hyps.label_idx, hyps.sample_idx, len(hyps.labels), hyps.n_completions, hyps.n_jitter)
+        gain = np.zeros(c.size)  # candidates that are not valid see nothing: no gain (rows are independent)
+        gain[sub] = fn(V, hyps.label_idx, hyps.sample_idx, len(hyps.labels), hyps.n_completions, hyps.n_jitter)
         self.last_scores[c.robot_id] = gain
         best = float(gain[valid].max())
         if best < acfg.min_gain_bits:
@@ -579,7 +583,8 @@ class Planner:
         penalty = acfg.travel_weight_per_m * best * np.nan_to_num(travel, posinf=1e6)
         util = np.where(valid, gain - penalty, -np.inf)
         i = int(np.argmax(util))
-        seen_labels = sorted({hyps.labels[hyps.label_idx[j]] for j in np.flatnonzero(V[i])})[:4]
+        row = V[int(np.searchsorted(sub, i))]
+        seen_labels = sorted({hyps.labels[hyps.label_idx[j]] for j in np.flatnonzero(row)})[:4]
         return (
             i,
             float(gain[i]),

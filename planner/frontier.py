@@ -39,15 +39,19 @@ def neighbour_stats(
     uk, start = np.unique(skeys, return_index=True)
     ucount = np.add.reduceat(c[order], start)
     n_occ = np.zeros(N, np.int64)
-    dens = c.copy()
+    dens = c[order]
     for off in _OFFSETS:
-        nk = _encode(ijk + off)
+        # A neighbour's key is the key plus a constant (the fields do not carry for voxel indices within
+        # +-2**20): the queries stay sorted, which keeps the binary searches cache friendly.
+        nk = skeys + (int(off[0]) << 42) + (int(off[1]) << 21) + int(off[2])
         pos = np.searchsorted(uk, nk)
         pos = np.minimum(pos, uk.shape[0] - 1)
         hit = uk[pos] == nk
         n_occ += hit
         dens += np.where(hit, ucount[pos], 0.0)
-    return n_occ, dens
+    out_occ, out_dens = np.empty_like(n_occ), np.empty_like(dens)
+    out_occ[order], out_dens[order] = n_occ, dens
+    return out_occ, out_dens
 
 
 def classify_frontier(

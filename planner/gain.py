@@ -83,8 +83,8 @@ def factored_gain(
     n_jitter: int,
 ) -> np.ndarray:
     """Sum over labels of I(count of label in view; G | x) (C,)."""
-    V = np.asarray(visible, dtype=np.float32)
-    C, H = V.shape
+    vis = np.asarray(visible, dtype=bool)
+    C, H = vis.shape
     S = n_completions * n_jitter
     L = max(n_labels, 1)
     if H == 0:
@@ -96,8 +96,11 @@ def factored_gain(
     remap[used] = np.arange(used.size)
     lab_c = remap[lab]
     Lu = used.size
-    # counts[c, l, s] = number of visible hypotheses of label l in sample s: one sparse product.
-    onehot = csr_matrix((np.ones(H, np.float32), (lab_c * S + smp, np.arange(H))), shape=(Lu * S, H))
-    counts = np.asarray(onehot @ V.T).T.reshape(C, Lu, S)
-    mi = mutual_information(counts.reshape(C * Lu, S), n_completions, n_jitter).reshape(C, Lu)
-    return mi.sum(axis=1)
+    # counts[c, l, s] = number of visible hypotheses of label l in sample s: one sparse product (the
+    # visibility matrix is mostly empty; the counts are small integers, exact in float32).
+    onehot = csr_matrix((np.ones(H, np.float32), (np.arange(H), lab_c * S + smp)), shape=(H, Lu * S))
+    counts = (csr_matrix(vis, dtype=np.float32) @ onehot).toarray().reshape(C * Lu, S)
+    mi = np.zeros(C * Lu)
+    varies = np.flatnonzero(counts.max(axis=1) != counts.min(axis=1))  # a constant row carries no information
+    mi[varies] = mutual_information(counts[varies], n_completions, n_jitter)
+    return mi.reshape(C, Lu).sum(axis=1)

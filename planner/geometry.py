@@ -4,6 +4,10 @@ Occlusion is tested against a coarse **panoramic** z-buffer per camera position 
 elevation bins holding the nearest map point's range). Candidates that share a position (the
 headings of one viewpoint) share one panorama, so occlusion costs O(positions x map points) and the
 per-candidate work is only a frustum projection of the targets.
+
+The frustum test runs per camera centre on the targets within range of it (one small matrix product for
+all the headings there), and only the (camera, target) pairs in view are looked up in the panoramas.
+Panoramas whose occluders in range did not change are taken over from the previous decision.
 """
 
 from __future__ import annotations
@@ -11,6 +15,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.spatial import cKDTree
 
 from planner.config import VisibilityConfig
 from protocol.messages import ViewpointSet
@@ -121,15 +126,70 @@ def project_many(
 _OTHER_AXES = np.array([[1, 2], [0, 2], [0, 1]])
 
 
+def _norm(d: np.ndarray) -> np.ndarray:
+    """Euclidean length of the vectors ``d`` (..., 3)."""
+    return np.sqrt(np.einsum("...k,...k->...", d, d))
+
+
+_KEY_HALF = 1 << 20
+
+
+def _voxel_keys(ijk: np.ndarray) -> np.ndarray:
+    """One int64 per voxel index (N, 3) with every |index| < 2**20 (21 bits per axis)."""
+    a = ijk + _KEY_HALF
+    return (a[:, 0] << 42) | (a[:, 1] << 21) | a[:, 2]
+
+
 def downsample_occluders(points: np.ndarray, voxel_m: float, max_points: int) -> np.ndarray:
-    """One point per ``voxel_m`` voxel (the first), capped at ``max_points`` by an even stride."""
+    """One point per ``voxel_m`` voxel (the first in ``points``' order), capped at ``max_points`` by an even
+    stride."""
     P = np.asarray(points, dtype=np.float64).reshape(-1, 3)
     if P.shape[0] and voxel_m > 0:
-        _, first = np.unique(np.floor(P / voxel_m).astype(np.int64), axis=0, return_index=True)
+        ijk = np.floor(P / voxel_m).astype(np.int64)
+        if np.abs(ijk).max() < _KEY_HALF:  # one int64 key per voxel: a 1-D unique, much faster than rows
+            _, first = np.unique(_voxel_keys(ijk), return_index=True)
+        else:
+            _, first = np.unique(ijk, axis=0, return_index=True)
         P = P[np.sort(first)]
     if P.shape[0] > max_points:
         P = P[:: int(np.ceil(P.shape[0] / max_points))]
     return P
+
+
+REUSE_SLACK_M = 1e-3
+"""A changed occluder this much beyond the build's range cut still forces a rebuild (rounding of distances)."""
+
+
+def changed_points(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """The rows of ``a`` (N,3) not in ``b`` (M,3) and of ``b`` not in ``a``, compared bit for bit."""
+    A = np.ascontiguousarray(np.asarray(a, dtype=np.float64).reshape(-1, 3))
+    B = np.ascontiguousarray(np.asarray(b, dtype=np.float64).reshape(-1, 3))
+    return np.concatenate([A[~_rows_in(A, B)], B[~_rows_in(B, A)]])
+
+
+def _mix64(z: np.ndarray) -> np.ndarray:
+    """The splitmix64 finaliser (every input bit reaches every output bit), modulo 2**64."""
+    z = (z ^ (z >> np.uint64(30))) * np.uint64(0xBF58476D1CE4E5B9)
+    z = (z ^ (z >> np.uint64(27))) * np.uint64(0x94D049BB133111EB)
+    return z ^ (z >> np.uint64(31))
+
+
+def _row_hash(u: np.ndarray) -> np.ndarray:
+    """A 64-bit hash of each row of ``u`` (N, 3) uint64."""
+    return _mix64(_mix64(_mix64(u[:, 0]) ^ u[:, 1]) ^ u[:, 2])
+
+
+def _rows_in(A: np.ndarray, B: np.ndarray) -> np.ndarray:
+    """(N,) bool: row ``i`` of ``A`` is bit for bit a row of ``B``. Rows are matched on a 64-bit hash and the
+    match is then checked on all 192 bits (a hash collision reads as not found: never a false match)."""
+    if A.shape[0] == 0 or B.shape[0] == 0:
+        return np.zeros(A.shape[0], bool)
+    ua, ub = A.view(np.uint64), B.view(np.uint64)
+    ha, hb = _row_hash(ua), _row_hash(ub)
+    order = np.argsort(hb, kind="stable")
+    at = np.minimum(np.searchsorted(hb[order], ha), B.shape[0] - 1)
+    j = order[at]
+    return (hb[j] == ha) & np.all(ub[j] == ua, axis=1)
 
 
 class Panoramas:
@@ -152,7 +212,11 @@ class Panoramas:
         self._rows: dict[int, np.ndarray] = {}
 
     def _bins(self, d: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Cube-map bin (...) and range (...) of direction vectors ``d`` (..., 3).
+        """Cube-map bin (...) and range (...) of direction vectors ``d`` (..., 3)."""
+        return self._bin_index(d), _norm(d)
+
+    def _bin_index(self, d: np.ndarray) -> np.ndarray:
+        """Cube-map bin (...) of direction vectors ``d`` (..., 3).
 
         The major axis is the first of the largest absolute components (as ``argmax``); everything is
         elementwise (no gathers), the hot loop of the planner's visibility.
@@ -169,7 +233,7 @@ class Panoramas:
         iu = np.clip(((np.where(mx, dy, dx) / m + 1.0) * half).astype(np.int64), 0, R - 1)
         iv = np.clip(((np.where(mz, dy, dz) / m + 1.0) * half).astype(np.int64), 0, R - 1)
         face = (np.where(mx, 0, np.where(my, 1, 2)) * 2 + (along < 0)).astype(np.int64)
-        return (face * R + iu) * R + iv, np.sqrt(np.einsum("...k,...k->...", d, d))
+        return (face * R + iu) * R + iv
 
     def _build(self, rows: list[int]) -> None:
         pts = self.occluders
@@ -179,13 +243,36 @@ class Panoramas:
             zb = np.full((len(rr), self.n_bins), np.inf, dtype=np.float32)
             if pts.shape[0]:
                 d = pts[None, :, :] - self.positions[rr][:, None, :]
-                b, r = self._bins(d)
-                ok = r <= self.far_m + 0.5
-                flat = (np.arange(len(rr))[:, None] * self.n_bins + b)[ok]
-                np.minimum.at(zb.reshape(-1), flat, r[ok].astype(np.float32))
+                r = _norm(d)
+                at, occ = np.nonzero(r <= self.far_m + 0.5)  # only occluders in range are binned
+                flat = at * self.n_bins + self._bin_index(d[at, occ])
+                np.minimum.at(zb.reshape(-1), flat, r[at, occ].astype(np.float32))
                 zb = self._fill_holes(zb)
             for j, i in enumerate(rr):
                 self._rows[i] = zb[j]
+
+    def reuse(self, prev: Panoramas | None) -> int:
+        """Take over ``prev``'s z-buffers (the previous decision's) for the positions both have whose occluders in
+        range are the same: no occluder within ``far_m + 0.5`` (the build's cut) of the position was added or
+        removed. Such a z-buffer is the one :meth:`_build` would compute; returns how many were taken over."""
+        if prev is None or not prev._rows or prev.res != self.res or prev.far_m != self.far_m:
+            return 0
+        at = {prev.positions[i].tobytes(): i for i in prev._rows}
+        keys = (p.tobytes() for p in self.positions)
+        pairs = [(i, at[k]) for i, k in enumerate(keys) if k in at and i not in self._rows]
+        if not pairs:
+            return 0
+        mine = np.array([i for i, _ in pairs])
+        changed = changed_points(prev.occluders, self.occluders)
+        same = np.ones(mine.shape[0], bool)
+        if changed.shape[0]:
+            reach = self.far_m + 0.5 + REUSE_SLACK_M
+            dist, _ = cKDTree(changed).query(self.positions[mine], k=1, distance_upper_bound=reach)
+            same = ~np.isfinite(dist)  # inf: no changed occluder within reach
+        for (i, j), ok in zip(pairs, same, strict=True):
+            if ok:
+                self._rows[i] = prev._rows[j]
+        return int(same.sum())
 
     def row(self, i: int) -> np.ndarray:
         """The z-buffer of position ``i`` (6 * R * R,), built on first use."""
@@ -213,6 +300,24 @@ class Panoramas:
         out[hole] = nmin[hole]
         return out.reshape(zb.shape)
 
+    def unoccluded_pairs(self, targets_world: np.ndarray, pos_rows: np.ndarray) -> np.ndarray:
+        """(n,) bool: whether target ``i`` is not hidden behind the map from position ``pos_rows[i]``
+        (:meth:`unoccluded` for a list of pairs instead of every position with every target)."""
+        X = np.asarray(targets_world, dtype=np.float64).reshape(-1, 3)
+        rows = np.asarray(pos_rows, dtype=np.int64).reshape(-1)
+        if X.shape[0] == 0:
+            return np.zeros(0, bool)
+        uniq = np.flatnonzero(np.bincount(rows, minlength=self.positions.shape[0]))
+        missing = sorted(set(uniq.tolist()) - self._rows.keys())
+        if missing:
+            self._build(missing)
+        local = np.zeros(self.positions.shape[0], np.int64)
+        local[uniq] = np.arange(uniq.shape[0])
+        Z = np.stack([self._rows[int(i)] for i in uniq])
+        b, r = self._bins(X - self.positions[rows])
+        zb = Z[local[rows], b]
+        return r <= zb + self.cfg.occlusion_tol_m + self.cfg.occlusion_tol_rel * r
+
     def unoccluded(self, targets_world: np.ndarray, pos_rows: np.ndarray | None = None) -> np.ndarray:
         """(P', T) bool: whether each target is not hidden behind the map from each position."""
         X = np.asarray(targets_world, dtype=np.float64).reshape(-1, 3)
@@ -231,6 +336,82 @@ class Panoramas:
         return r <= zb + self.cfg.occlusion_tol_m + self.cfg.occlusion_tol_rel * r
 
 
+def image_cone_cos(K: np.ndarray, width: int, height: int, margin_frac: float = 0.0) -> float:
+    """Cosine of the half-angle of the narrowest cone about the optical axis that holds the whole image (shrunk
+    by ``margin_frac`` on every side): a camera-frame point ``p`` that projects inside has ``p_z >= cos * |p|``."""
+    mu, mv = margin_frac * width, margin_frac * height
+    tx = max(abs(-0.5 + mu - K[0, 2]), abs(width - 0.5 - mu - K[0, 2])) / K[0, 0]
+    ty = max(abs(-0.5 + mv - K[1, 2]), abs(height - 0.5 - mv - K[1, 2])) / K[1, 1]
+    return float(1.0 / np.sqrt(1.0 + tx * tx + ty * ty))
+
+
+def in_view_pairs(
+    T_world_cam: np.ndarray,
+    K: np.ndarray,
+    width: int,
+    height: int,
+    targets_world: np.ndarray,
+    near_m: float,
+    far_m: float,
+    margin_frac: float = 0.0,
+    sizes_m: np.ndarray | None = None,
+    min_pixels: float = 0.0,
+) -> tuple[np.ndarray, np.ndarray]:
+    """The (camera ``cams[i]``, target ``tgts[i]``) pairs in view: :func:`project_many`'s test (and, with
+    ``sizes_m``, at least ``min_pixels`` big), listed instead of a dense (C, T) matrix.
+
+    Cameras that share a centre (the headings of one viewpoint) are tested together, on the targets within
+    ``far_m`` of that centre only: one small matrix product gives every heading's camera coordinates."""
+    C = T_world_cam.shape[0]
+    X = np.asarray(targets_world, dtype=np.float64).reshape(-1, 3)
+    if C == 0 or X.shape[0] == 0:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    centres, group = np.unique(T_world_cam[:, :3, 3], axis=0, return_inverse=True)
+    group = group.reshape(-1)
+    order = np.argsort(group, kind="stable")
+    bounds = np.searchsorted(group[order], np.arange(centres.shape[0] + 1))
+    # squared range centre -> target, |X|^2 - 2 X.c + |c|^2 (one product); a slack keeps the cut conservative
+    d2 = (X @ centres.T).T
+    d2 *= -2.0
+    d2 += np.einsum("tk,tk->t", X, X)[None, :]
+    d2 += np.einsum("ck,ck->c", centres, centres)[:, None]
+    near_enough = d2 <= (far_m + RANGE_SLACK_M) ** 2
+    mu, mv = margin_frac * width, margin_frac * height
+    cone = image_cone_cos(K, width, height, margin_frac) - RANGE_SLACK_M
+    size = None if sizes_m is None or min_pixels <= 0 else np.asarray(sizes_m, dtype=np.float64).reshape(-1)
+    cams, tgts = [], []
+    for g in range(centres.shape[0]):
+        idx = np.flatnonzero(near_enough[g])
+        if idx.shape[0] == 0:
+            continue
+        cg = order[bounds[g] : bounds[g + 1]]
+        D = X[idx] - centres[g]
+        rng = np.sqrt(np.einsum("tk,tk->t", D, D))
+        # columns [0, H), [H, 2H), [2H, 3H): every heading's camera-frame x, y, z of each target
+        H = cg.shape[0]
+        p = D @ T_world_cam[cg, :3, :3].transpose(1, 2, 0).reshape(3, 3 * H)
+        z = p[:, 2 * H :]
+        # conservative cut (in front, in range, inside the image's cone), then the exact test on what is left
+        t, h = np.nonzero((z >= near_m) & (z >= cone * rng[:, None] - RANGE_SLACK_M) & (rng <= far_m)[:, None])
+        x, y, z = p[t, h], p[t, H + h], z[t, h]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            u = K[0, 0] * x / z + K[0, 2]
+            v = K[1, 1] * y / z + K[1, 2]
+        ok = (u >= -0.5 + mu) & (u <= width - 0.5 - mu) & (v >= -0.5 + mv) & (v <= height - 0.5 - mv)
+        if size is not None:
+            with np.errstate(divide="ignore", invalid="ignore"):
+                ok &= K[0, 0] * size[idx[t]] / np.maximum(z, 1e-6) >= min_pixels
+        cams.append(cg[h[ok]])
+        tgts.append(idx[t[ok]])
+    if not cams:
+        return np.zeros(0, np.int64), np.zeros(0, np.int64)
+    return np.concatenate(cams), np.concatenate(tgts)
+
+
+RANGE_SLACK_M = 1e-6
+"""Slack of the range pre-cut (metres): far above rounding, so no target in range is dropped."""
+
+
 def detect_matrix(
     T_world_cam: np.ndarray,
     pos_index: np.ndarray,
@@ -247,18 +428,15 @@ def detect_matrix(
 ) -> np.ndarray:
     """(C,T) bool: target in the frustum, within range, unoccluded and (if sizes given) big enough.
 
-    ``pos_index`` (C,) maps each camera to its row in ``panoramas``.
+    ``pos_index`` (C,) maps each camera to its row in ``panoramas``. The frustum, range and size tests run
+    per camera centre on the targets in range (:func:`in_view_pairs`); only the pairs in view are tested
+    for occlusion (:meth:`Panoramas.unoccluded_pairs`).
     """
     margin = cfg.image_margin_frac if margin_frac is None else margin_frac
-    ok, z = project_many(T_world_cam, K, width, height, targets_world, cfg.near_m, far_m, margin)
-    if sizes_m is not None and min_pixels > 0:
-        with np.errstate(divide="ignore", invalid="ignore"):
-            px = K[0, 0] * np.asarray(sizes_m, dtype=np.float64)[None, :] / np.maximum(z, 1e-6)
-        ok &= px >= min_pixels
-    if not ok.any():
-        return ok
-    cols = np.flatnonzero(ok.any(axis=0))
-    uniq, inv = np.unique(pos_index, return_inverse=True)
-    vis = panoramas.unoccluded(np.asarray(targets_world).reshape(-1, 3)[cols], uniq)
-    ok[:, cols] &= vis[inv.reshape(-1)]
-    return ok
+    X = np.asarray(targets_world, dtype=np.float64).reshape(-1, 3)
+    out = np.zeros((T_world_cam.shape[0], X.shape[0]), bool)
+    cams, tgts = in_view_pairs(T_world_cam, K, width, height, X, cfg.near_m, far_m, margin, sizes_m, min_pixels)
+    if cams.shape[0]:
+        vis = panoramas.unoccluded_pairs(X[tgts], np.asarray(pos_index, dtype=np.int64).reshape(-1)[cams])
+        out[cams[vis], tgts[vis]] = True
+    return out

@@ -90,6 +90,7 @@ class PlannerNode(PlannerInbox, Process):
         info = self.planner.info
         self.counters.add("decisions")
         self.counters.set("decision_ms_last", info.decision_s * 1e3)
+        self.counters.set("decision_cpu_ms_last", info.decision_cpu_s * 1e3)
         self.counters.set("decision_ms_max", max(self.counters.get("decision_ms_max"), info.decision_s * 1e3))
         self.counters.set("graph_version", self.graph.version)
         self.counters.set("frontier_points", info.n_frontier)

@@ -11,6 +11,7 @@ import pytest
 
 from bench.explore import (
     Episode,
+    decision_stats,
     main,
     markdown,
     reach,
@@ -41,7 +42,7 @@ def test_an_episode_is_its_parameters_with_keywords_written_over() -> None:
     for ep in (a, b):
         del ep["seconds"]
         for r in ep["steps"]:
-            del r["decision_s"]
+            del r["decision_s"], r["decision_cpu_s"]
     assert a == b and a["strategy"] == "see" and len(a["steps"]) == 1
     with pytest.raises(TypeError, match="stepz"):
         run_episode(base, stepz=3)
@@ -107,6 +108,23 @@ def test_summarize_mean_and_std() -> None:
     assert asp["episodes"] == 2
     assert asp["recall@1"] == pytest.approx([0.5, 0.1])
     assert asp["n_nodes@0"] == [0.0, 0.0]
+
+
+def test_decision_stats_percentiles_and_cpu() -> None:
+    """Wall mean / p50 / p95 / max over the steps after the first, CPU mean / p95 where every step has it; the
+    decide column shows them (older records without CPU: wall only)."""
+    steps = [{"step": 0, "decision_s": 0.0, "decision_cpu_s": 0.0}] + [
+        {"step": i, "decision_s": float(i), "decision_cpu_s": 0.5 * i} for i in range(1, 21)
+    ]
+    st = decision_stats([{"steps": steps}])
+    assert st["decision_s_mean"] == pytest.approx(10.5)
+    assert st["decision_s_p50"] == pytest.approx(10.5)
+    assert st["decision_s_p95"] == pytest.approx(19.05)
+    assert st["decision_s_max"] == 20.0
+    assert st["decision_cpu_s_mean"] == pytest.approx(5.25)
+    assert st["decision_cpu_s_p95"] == pytest.approx(9.525)
+    old = decision_stats([{"steps": [{k: v for k, v in r.items() if k != "decision_cpu_s"} for r in steps]}])
+    assert old["decision_cpu_s_mean"] is None and old["decision_s_p95"] == pytest.approx(19.05)
 
 
 def test_mapper_overrides_reach_the_mapper() -> None:
