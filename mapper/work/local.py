@@ -27,7 +27,8 @@ from protocol.transport import Counters
 log = logging.getLogger(__name__)
 WILDCARD_HOSTS = {"0.0.0.0": "127.0.0.1", "[::]": "[::1]"}  # noqa: S104 - mapped to loopback, never bound
 RESTART_BACKOFF_S = (2.0, 60.0)
-"""A child that exits is started again after the first figure, doubling per exit up to the second."""
+"""A child that exits is started again after the first figure, doubling per exit up to the second; one that
+ran longer than the second before it exited starts the doubling afresh."""
 
 
 def local_endpoints(z: ZenohSettings) -> list[str]:
@@ -62,8 +63,9 @@ def local_worker_config(mapper_id: str, site: str, key_prefix: str, zenoh: Zenoh
 class _Child:
     config: WorkerConfig
     popen: subprocess.Popen[bytes] | None = None
-    exits: int = 0
+    exits: int = 0  # exits in a row (reset by a long run)
     start_after: float = 0.0  # time.monotonic() before which it is not started again
+    started: float = 0.0  # time.monotonic() of its last start
 
 
 class LocalWorkers:
@@ -81,17 +83,23 @@ class LocalWorkers:
 
     def _spawn(self, child: _Child) -> None:
         argv = [sys.executable, "-m", "mapper.work.local"]
+        popen = None
         try:
             popen = subprocess.Popen(argv, stdin=subprocess.PIPE)
             assert popen.stdin is not None
             popen.stdin.write(child.config.model_dump_json().encode() + b"\n")
             popen.stdin.flush()
         except OSError as e:
+            if popen is not None:  # started but its settings did not get through: not left running
+                _close_stdin(popen)
+                popen.kill()
+                popen.wait()
             self.counters.add("local_worker_start_errors")
             log.warning("local worker %s could not start: %s", child.config.id, e)
-            child.start_after = time.monotonic() + _backoff(child.exits + 1)
+            child.exits += 1
+            child.start_after = time.monotonic() + _backoff(child.exits)
             return
-        child.popen = popen
+        child.popen, child.started = popen, time.monotonic()
         self.counters.add("local_workers_started")
         log.info("local worker %s started (pid %d)", child.config.id, popen.pid)
 
@@ -107,7 +115,7 @@ class LocalWorkers:
                     continue
                 _close_stdin(child.popen)
                 child.popen = None
-                child.exits += 1
+                child.exits = 1 if now - child.started > RESTART_BACKOFF_S[1] else child.exits + 1
                 child.start_after = now + _backoff(child.exits)
                 self.counters.add("local_worker_exits")
                 log.warning("local worker %s exited with status %s; starting it again in %.0f s", child.config.id,

@@ -124,12 +124,19 @@ def test_an_exited_child_is_restarted_after_a_growing_back_off(monkeypatch: pyte
     assert len(FakePopen.started) == 2  # 4 s after the second exit
     pool.check(now=114.0)
     assert len(FakePopen.started) == 3
+    pool.children[0].started = 114.0  # then it runs for 10 minutes: the doubling starts afresh
+    FakePopen.started[2].code = 1
+    pool.check(now=714.0)
+    pool.check(now=715.9)
+    assert len(FakePopen.started) == 3
+    pool.check(now=716.0)
+    assert len(FakePopen.started) == 4
     pool.close()
-    last = FakePopen.started[2]
+    last = FakePopen.started[3]
     assert last.stdin.closed and last.code == 0 and last.signals == []  # stopped by its stdin, no signal needed
     last.code = 3
     pool.check(now=1000.0)
-    assert len(FakePopen.started) == 3 and counters.get("local_worker_exits") == 2  # closed: never restarted
+    assert len(FakePopen.started) == 4 and counters.get("local_worker_exits") == 3  # closed: never restarted
 
 
 @pytest.mark.integration
