@@ -1,0 +1,105 @@
+"""Ghost merging (mapper.fusion.ObjectMap.merge_ghosts): a keyframe whose estimated depth is wrong on an object
+puts a copy of it nearer along its viewing rays. The copy's own keyframe hides the real node behind the wrong
+depth (mask association does not count it) and the other views do not see the copy inside their masks, so
+before ghost merging it stayed a duplicate node."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from mapper.association import KeyframeView
+from mapper.fusion import FusionConfig, Object3D, ObjectMap, voxel_downsample
+from mapper.geometry.singleview import depth_to_world
+from mapper.perception.base import label_descriptor
+from protocol.poses import look_at
+from tests.support.boxes import INTR, raycast
+
+VASE = (np.array([2.4, -0.1, 0.6]), np.array([2.6, 0.1, 0.9]))
+OTHER_VASE = (np.array([1.6, -0.1, 1.0]), np.array([1.8, 0.1, 1.3]))  # nearer on nearly the same ray, higher
+DESC = label_descriptor("vase")
+
+
+def seen(eye: list[float], boxes: list[tuple[np.ndarray, np.ndarray]], depth_scale: float = 1.0,
+         target=(2.5, 0.0, 0.75)) -> tuple[KeyframeView, list[Object3D]]:
+    """A keyframe of ray-cast boxes whose depth is ``depth_scale`` times the truth (the same wrong depth in
+    its view and in its detections' points), with one vase detection per visible box."""
+    T = look_at(eye, list(target))
+    depth, idx = raycast(T, boxes)
+    depth = np.where(np.isfinite(depth), depth * depth_scale, 0.0)
+    pts = depth_to_world(depth.astype(np.float32), INTR.K(), T)
+    objs = []
+    for k in range(len(boxes)):
+        m = idx == k
+        if m.sum() >= 5:
+            objs.append(Object3D(voxel_downsample(pts[m], 0.03).astype(np.float32), "vase", 0.9, DESC, mask=m))
+    return KeyframeView(INTR.K(), T, depth), objs
+
+
+def well_seen_vase(om: ObjectMap) -> str:
+    """The vase seen with true depth from two places: one node, two observations."""
+    for k, eye in enumerate(([1.0, -1.5, 1.4], [1.0, 1.5, 1.4])):
+        kv, objs = seen(eye, [VASE])
+        om.integrate(objs, "robot1", k, kv)
+    assert len(om.nodes) == 1
+    return next(iter(om.nodes))
+
+
+def test_a_copy_misplaced_along_its_rays_merges_into_the_better_seen_node() -> None:
+    om = ObjectMap(FusionConfig(merge_every_updates=100))
+    host = well_seen_vase(om)
+    before = om.nodes[host].points.copy()
+    kv, objs = seen([0.0, 0.3, 1.4], [VASE], depth_scale=0.75)  # depth 25 % short: the copy is ~0.6 m nearer
+    om.integrate(objs, "robot1", 2, kv)
+    assert len(om.nodes) == 2  # neither point overlap nor the (hidden) mask association joined them
+    res = om.maintain()
+    assert res.merged_duplicates == 1 and list(om.nodes) == [host]
+    node = om.nodes[host]
+    assert node.observations == 3 and np.array_equal(node.points, before)  # the ghost's points are dropped
+
+
+def test_ghost_merging_can_be_switched_off() -> None:
+    om = ObjectMap(FusionConfig(merge_every_updates=100, ghost_merge=False))
+    well_seen_vase(om)
+    kv, objs = seen([0.0, 0.3, 1.4], [VASE], depth_scale=0.75)
+    om.integrate(objs, "robot1", 2, kv)
+    om.maintain()
+    assert len(om.nodes) == 2
+
+
+def test_two_objects_one_keyframe_showed_apart_stay_apart() -> None:
+    """A second vase nearer on nearly the same ray, detected beside the first in one keyframe: not a ghost."""
+    om = ObjectMap(FusionConfig(merge_every_updates=100))
+    host = well_seen_vase(om)
+    kv, objs = seen([0.0, 0.0, 1.4], [VASE, OTHER_VASE], target=(2.5, 0.0, 0.9))
+    assert len(objs) == 2
+    om.integrate(objs, "robot1", 2, kv)
+    assert len(om.nodes) == 2
+    near = next(k for k in om.nodes if k != host)
+    assert om.nodes[near].observations == 1
+    om.maintain()
+    assert len(om.nodes) == 2
+
+
+def test_a_neighbour_beside_the_rays_is_not_a_ghost() -> None:
+    """A vase 0.5 m to the side of the well seen one (across the ray, not along it) stays its own node."""
+    om = ObjectMap(FusionConfig(merge_every_updates=100))
+    well_seen_vase(om)
+    beside = (VASE[0] + [0.0, 0.5, 0.0], VASE[1] + [0.0, 0.5, 0.0])
+    kv, objs = seen([0.0, 0.0, 1.4], [beside], target=(2.5, 0.5, 0.75))
+    om.integrate(objs, "robot1", 2, kv)
+    om.maintain()
+    assert len(om.nodes) == 2
+
+
+def test_a_node_seen_often_is_never_a_ghost() -> None:
+    cfg = FusionConfig(merge_every_updates=100, ghost_max_observations=1)
+    om = ObjectMap(cfg)
+    host = well_seen_vase(om)
+    kv, objs = seen([0.0, 0.3, 1.4], [VASE], depth_scale=0.75)
+    om.integrate(objs, "robot1", 2, kv)
+    om.integrate(objs, "robot1", 3, kv)  # the same wrong depth twice: two observations
+    ghost = next(k for k in om.nodes if k != host)
+    assert om.nodes[ghost].observations == 2
+    assert om.ghost_host(om.nodes[ghost], om.nodes[host]) is None
+    om.maintain()
+    assert len(om.nodes) == 2
