@@ -124,19 +124,21 @@ class FusionConfig(BaseModel):
     occlusion_margin_rel: float = Field(default=0.15, ge=0.0, description="... relative part of that margin")
     ghost_merge: bool = Field(
         default=True,
-        description="merge a rarely seen node into a similar, better seen node that lies on its viewing rays: "
-        "estimated depth that is wrong for one keyframe (or a few from one place) puts a copy of the object "
-        "nearer or farther along those rays, out of the other views' masks, where neither point overlap nor "
-        "mask association can join them. The better seen node keeps its points; two nodes that one keyframe "
-        "showed as two detections are never merged",
+        description="merge a ghost into its host: a rarely seen node that lies, along its own viewing rays, nearer "
+        "or farther than a similar node. Estimated depth that is wrong for one keyframe (or a few from one place) "
+        "puts a copy of the object there, out of the other views' masks, where neither point overlap nor mask "
+        "association joins them. The host keeps its points. Two nodes that one keyframe showed as two "
+        "detections are never merged; when each lies on the other's rays (both seen from one side), the better "
+        "seen one is the host",
     )
     ghost_max_observations: int = Field(
         default=3, ge=1, description="ghost merge: only nodes seen at most this often can be ghosts"
     )
     ghost_max_across_m: float = Field(
         default=0.25, ge=0.0,
-        description="ghost merge: the better seen node's centre passes at most this far from each of the ghost's "
-        "viewing rays (camera centre to the observation's mean point) ...",
+        description="ghost merge: the host's centre passes at most this far (or half the host's largest "
+        "horizontal size, if more) from each of the ghost's viewing rays (camera centre to the observation's "
+        "mean point) ...",
     )
     ghost_across_ratio: float = Field(
         default=0.6, ge=0.0,
@@ -151,7 +153,13 @@ class FusionConfig(BaseModel):
     ghost_min_along_m: float = Field(
         default=0.15, ge=0.0, description="ghost merge: the two nodes are at least this far apart along each ray ..."
     )
-    ghost_max_along_m: float = Field(default=1.5, ge=0.0, description="... and at most this far")
+    ghost_max_along_m: float = Field(
+        default=1.5, ge=0.0, description="... and at most this far, or ghost_max_along_rel of the host's distance"
+    )
+    ghost_max_along_rel: float = Field(
+        default=0.5, ge=0.0, le=0.9,
+        description="... (stereo depth errors grow with distance: far objects came back at half their depth)",
+    )
     max_sight_lines: int = Field(
         default=8, ge=1,
         description="viewing rays remembered per node for ghost merging (the latest); a node seen more often "
@@ -814,7 +822,8 @@ class ObjectMap:
         keep.last_seen_ns = max(keep.last_seen_ns, gone.last_seen_ns)
         keep.created_update = min(keep.created_update, gone.created_update)
         keep.rays = keep.rays + gone.rays if (keep.rays and gone.rays) else []
-        keep.sight = (keep.sight + gone.sight)[-self.cfg.max_sight_lines:]
+        if not keep_points:  # a ghost's rays led to where it was misplaced, not to ``keep``
+            keep.sight = (keep.sight + gone.sight)[-self.cfg.max_sight_lines:]
         keep.seen_in = sorted(set(keep.seen_in) | set(gone.seen_in))[-self.cfg.max_keyframes_per_node:]
         keep.touch()
         del self.nodes[gone.node_id]
@@ -906,28 +915,45 @@ class ObjectMap:
         res.changed -= res.removed
         return res
 
-    def ghost_host(self, ghost: NodeState, host: NodeState) -> float | None:
-        """How far (the largest distance across a ray) ``host``'s centre lies from ``ghost``'s viewing rays, when
-        ``ghost`` looks like a copy of ``host`` misplaced along them (see ``FusionConfig.ghost_merge``); None
-        when it does not. Pure: reads the two nodes only."""
+    def _on_rays(self, ghost: NodeState, host: NodeState) -> float | None:
+        """The largest distance of ``host``'s centre across ``ghost``'s viewing rays when it lies on every one of
+        them at a ghost's distance (``FusionConfig.ghost_*``); None when it does not, or ``ghost`` has none."""
         cfg = self.cfg
-        if (not ghost.sight or ghost.rays or host.rays or host is ghost
-                or ghost.observations > cfg.ghost_max_observations
-                or (ghost.observations, len(ghost.points)) >= (host.observations, len(host.points))
-                or set(ghost.seen_in) & set(host.seen_in)
-                or similarity(ghost.descriptor, host.descriptor) < cfg.merge_similarity):
+        if not ghost.sight:
             return None
         cg, ch = np.asarray(ghost.centre, np.float64), np.asarray(host.centre, np.float64)
+        wide = 0.5 * float(max(host.box.extent[0], host.box.extent[1]))
         worst, tan_max = 0.0, math.tan(math.radians(cfg.ghost_max_angle_deg))
         for o, d in ghost.sight:
             tg, th = float((cg - o) @ d), float((ch - o) @ d)
             across = float(np.linalg.norm(ch - o - th * d))
             gap = abs(th - tg)
-            if th <= 0 or not (cfg.ghost_min_along_m <= gap <= cfg.ghost_max_along_m) or across > min(
-                    cfg.ghost_max_across_m, cfg.ghost_across_ratio * gap, tan_max * th):
+            if th <= 0 or not cfg.ghost_min_along_m <= gap <= max(cfg.ghost_max_along_m, cfg.ghost_max_along_rel * th):
+                return None
+            if across > min(max(cfg.ghost_max_across_m, wide), cfg.ghost_across_ratio * gap, tan_max * th):
                 return None
             worst = max(worst, across)
         return worst
+
+    def ghost_host(self, ghost: NodeState, host: NodeState) -> float | None:
+        """How far (the largest distance across a ray) ``host``'s centre lies from ``ghost``'s viewing rays, when
+        ``ghost`` looks like a copy of ``host`` misplaced along them (see ``FusionConfig.ghost_merge``); None
+        when it does not. Pure: reads the two nodes only."""
+        cfg = self.cfg
+        if (ghost.rays or host.rays or host is ghost or ghost.observations > cfg.ghost_max_observations
+                or ghost.observations > host.observations
+                or set(ghost.seen_in) & set(host.seen_in)
+                or similarity(ghost.descriptor, host.descriptor) < cfg.merge_similarity):
+            return None
+        across = self._on_rays(ghost, host)
+        if across is None:
+            return None
+        # The host is seen at least as often; each on the other's rays (seen from one side only): more often,
+        # or as often with more points.
+        if self._on_rays(host, ghost) is not None and (
+                (ghost.observations, len(ghost.points)) >= (host.observations, len(host.points))):
+            return None
+        return across
 
     def merge_ghosts(self, res: UpdateResult | None = None) -> UpdateResult:
         """Merge each ghost (a rarely seen node that is a copy of a better seen one misplaced along its own
@@ -938,12 +964,15 @@ class ObjectMap:
         if len(ids) < 2:
             return res
         centres = np.array([self.nodes[k].centre for k in ids], np.float64)
-        reach = cfg.ghost_max_along_m + cfg.ghost_max_across_m
         pairs: list[tuple[float, str, str]] = []
         for i, g_id in enumerate(ids):
             ghost = self.nodes[g_id]
             if not ghost.sight or ghost.observations > cfg.ghost_max_observations:
                 continue
+            # A host is at most (1 + ghost_across_ratio) times the largest gap along a ray from the ghost.
+            far = max(float((centres[i] - o) @ d) for o, d in ghost.sight)
+            rel = cfg.ghost_max_along_rel
+            reach = (1 + cfg.ghost_across_ratio) * max(cfg.ghost_max_along_m, rel / (1 - rel) * far) + 1e-6
             near = np.flatnonzero(np.linalg.norm(centres - centres[i], axis=1) <= reach)
             for j in near:
                 across = self.ghost_host(ghost, self.nodes[ids[j]])

@@ -103,3 +103,47 @@ def test_a_node_seen_often_is_never_a_ghost() -> None:
     assert om.ghost_host(om.nodes[ghost], om.nodes[host]) is None
     om.maintain()
     assert len(om.nodes) == 2
+
+
+def test_the_host_keeps_its_own_sight_lines() -> None:
+    """The ghost's rays led to where it was misplaced: the host does not take them (a later copy on those rays
+    would otherwise count the host as the ghost)."""
+    om = ObjectMap(FusionConfig(merge_every_updates=100))
+    host = well_seen_vase(om)
+    before = [o.copy() for o, _ in om.nodes[host].sight]
+    kv, objs = seen([0.0, 0.3, 1.4], [VASE], depth_scale=0.75)
+    om.integrate(objs, "robot1", 2, kv)
+    om.maintain()
+    assert [o.tolist() for o, _ in om.nodes[host].sight] == [o.tolist() for o in before]
+    assert len(om.nodes[host].seen_in) == 3  # what the keyframes told apart still counts
+
+
+def test_a_far_object_at_half_its_depth_is_a_ghost_too() -> None:
+    """Stereo depth errors grow with distance: a vase 5 m away came back at 55 % of its depth (2.2 m nearer,
+    beyond ghost_max_along_m) and still merges (ghost_max_along_rel)."""
+    om = ObjectMap(FusionConfig(merge_every_updates=100))
+    host = well_seen_vase(om)
+    kv, objs = seen([-2.5, 0.0, 1.4], [VASE], depth_scale=0.55)
+    om.integrate(objs, "robot1", 2, kv)
+    assert len(om.nodes) == 2
+    om.maintain()
+    assert list(om.nodes) == [host]
+    om2 = ObjectMap(FusionConfig(merge_every_updates=100, ghost_max_along_rel=0.2))
+    well_seen_vase(om2)
+    om2.integrate(objs, "robot1", 2, kv)
+    om2.maintain()
+    assert len(om2.nodes) == 2
+
+
+def test_a_node_is_never_the_ghost_of_a_less_seen_one() -> None:
+    om = ObjectMap(FusionConfig(merge_every_updates=100))
+    kv, objs = seen([1.0, -1.5, 1.4], [VASE])
+    om.integrate(objs, "robot1", 0, kv)
+    host = next(iter(om.nodes))
+    kv, objs = seen([0.0, 0.3, 1.4], [VASE], depth_scale=0.75)
+    om.integrate(objs, "robot1", 1, kv)
+    om.integrate(objs, "robot1", 2, kv)
+    ghost = next(k for k in om.nodes if k != host)
+    assert om.ghost_host(om.nodes[ghost], om.nodes[host]) is None
+    om.maintain()
+    assert len(om.nodes) == 2
