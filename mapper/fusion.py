@@ -129,7 +129,8 @@ class FusionConfig(BaseModel):
         "puts a copy of the object there, out of the other views' masks, where neither point overlap nor mask "
         "association joins them. The host keeps its points. Two nodes that one keyframe showed as two "
         "detections are never merged; when each lies on the other's rays (both seen from one side), the better "
-        "seen one is the host",
+        "seen one is the host. A coarse (single-view) node is the ghost of a measured node on its placement rays "
+        "at any distance (its depth is a guess)",
     )
     ghost_max_observations: int = Field(
         default=3, ge=1, description="ghost merge: only nodes seen at most this often can be ghosts"
@@ -917,18 +918,22 @@ class ObjectMap:
 
     def _on_rays(self, ghost: NodeState, host: NodeState) -> float | None:
         """The largest distance of ``host``'s centre across ``ghost``'s viewing rays when it lies on every one of
-        them at a ghost's distance (``FusionConfig.ghost_*``); None when it does not, or ``ghost`` has none."""
+        them at a ghost's distance (``FusionConfig.ghost_*``); None when it does not, or ``ghost`` has none. A
+        coarse (single-view) ghost's depth is a guess: its rays are those of its placements, at any distance."""
         cfg = self.cfg
-        if not ghost.sight:
+        coarse = bool(ghost.rays)
+        lines = ghost.rays or ghost.sight
+        if not lines:
             return None
         cg, ch = np.asarray(ghost.centre, np.float64), np.asarray(host.centre, np.float64)
         wide = 0.5 * float(max(host.box.extent[0], host.box.extent[1]))
         worst, tan_max = 0.0, math.tan(math.radians(cfg.ghost_max_angle_deg))
-        for o, d in ghost.sight:
+        for o, d in lines:
             tg, th = float((cg - o) @ d), float((ch - o) @ d)
             across = float(np.linalg.norm(ch - o - th * d))
-            gap = abs(th - tg)
-            if th <= 0 or not cfg.ghost_min_along_m <= gap <= max(cfg.ghost_max_along_m, cfg.ghost_max_along_rel * th):
+            gap = math.inf if coarse else abs(th - tg)
+            if th <= 0 or not (coarse or cfg.ghost_min_along_m <= gap <= max(
+                    cfg.ghost_max_along_m, cfg.ghost_max_along_rel * th)):
                 return None
             if across > min(max(cfg.ghost_max_across_m, wide), cfg.ghost_across_ratio * gap, tan_max * th):
                 return None
@@ -940,7 +945,7 @@ class ObjectMap:
         ``ghost`` looks like a copy of ``host`` misplaced along them (see ``FusionConfig.ghost_merge``); None
         when it does not. Pure: reads the two nodes only."""
         cfg = self.cfg
-        if (ghost.rays or host.rays or host is ghost or ghost.observations > cfg.ghost_max_observations
+        if (host.rays or host is ghost or ghost.observations > cfg.ghost_max_observations
                 or ghost.observations > host.observations
                 or set(ghost.seen_in) & set(host.seen_in)
                 or similarity(ghost.descriptor, host.descriptor) < cfg.merge_similarity):
@@ -950,7 +955,7 @@ class ObjectMap:
             return None
         # The host is seen at least as often; each on the other's rays (seen from one side only): more often,
         # or as often with more points.
-        if self._on_rays(host, ghost) is not None and (
+        if not ghost.rays and self._on_rays(host, ghost) is not None and (
                 (ghost.observations, len(ghost.points)) >= (host.observations, len(host.points))):
             return None
         return across
@@ -967,12 +972,13 @@ class ObjectMap:
         pairs: list[tuple[float, str, str]] = []
         for i, g_id in enumerate(ids):
             ghost = self.nodes[g_id]
-            if not ghost.sight or ghost.observations > cfg.ghost_max_observations:
+            if not (ghost.rays or ghost.sight) or ghost.observations > cfg.ghost_max_observations:
                 continue
             # A host is at most (1 + ghost_across_ratio) times the largest gap along a ray from the ghost.
-            far = max(float((centres[i] - o) @ d) for o, d in ghost.sight)
+            far = max(float((centres[i] - o) @ d) for o, d in ghost.sight or [(centres[i], np.zeros(3))])
             rel = cfg.ghost_max_along_rel
-            reach = (1 + cfg.ghost_across_ratio) * max(cfg.ghost_max_along_m, rel / (1 - rel) * far) + 1e-6
+            reach = math.inf if ghost.rays else (
+                (1 + cfg.ghost_across_ratio) * max(cfg.ghost_max_along_m, rel / (1 - rel) * far) + 1e-6)
             near = np.flatnonzero(np.linalg.norm(centres - centres[i], axis=1) <= reach)
             for j in near:
                 across = self.ghost_host(ghost, self.nodes[ids[j]])

@@ -147,3 +147,23 @@ def test_a_node_is_never_the_ghost_of_a_less_seen_one() -> None:
     assert om.ghost_host(om.nodes[ghost], om.nodes[host]) is None
     om.maintain()
     assert len(om.nodes) == 2
+
+
+def test_a_coarse_guess_on_its_rays_through_a_measured_node_joins_it() -> None:
+    """A single-view placement 2.5 m beyond the vase along its camera's ray (the floor contact misread) is the
+    measured vase: it joins it, which keeps its points; one beside the ray stays."""
+    om = ObjectMap(FusionConfig(merge_every_updates=100))
+    host = well_seen_vase(om)
+    before = om.nodes[host].points.copy()
+    eye = np.array([0.0, 0.3, 1.4])
+    _, [obj] = seen(list(eye), [VASE])
+    far = eye + (obj.points - eye) * 2.0  # twice as far along each pixel's ray
+    guess = Object3D(far.astype(np.float32), "vase", 0.9, DESC, ray_origin=eye)
+    om.integrate([guess], "cam1", 2)
+    assert len(om.nodes) == 2
+    om.maintain()
+    assert list(om.nodes) == [host] and np.array_equal(om.nodes[host].points, before)
+    beside = Object3D((far + [0.0, 1.0, 0.0]).astype(np.float32), "vase", 0.9, DESC, ray_origin=eye)
+    om.integrate([beside], "cam1", 3)
+    om.maintain()
+    assert len(om.nodes) == 2
