@@ -1105,6 +1105,8 @@ class ObjectMap:
                     "first_seen_ns": n.first_seen_ns,
                     "last_seen_ns": n.last_seen_ns,
                     "created_update": n.created_update,
+                    "sight": [[float(x) for x in (*o, *d)] for o, d in n.sight],
+                    "seen_in": list(n.seen_in),
                 }
                 for n in (self.nodes[k] for k in sorted(self.nodes))
             ],
@@ -1125,6 +1127,9 @@ class ObjectMap:
                 first_seen_ns=int(d["first_seen_ns"]),
                 last_seen_ns=int(d["last_seen_ns"]),
                 created_update=int(d["created_update"]),
+                # states written before ghost merging have neither: such a node is no ghost until seen again
+                sight=[(np.array(v[:3], np.float64), np.array(v[3:6], np.float64)) for v in d.get("sight", [])],
+                seen_in=[int(u) for u in d.get("seen_in", [])],
                 box_trim=self.cfg.box_trim_fraction,
                 centroid_trim=self.cfg.centroid_trim_fraction,
             )

@@ -167,3 +167,22 @@ def test_a_coarse_guess_on_its_rays_through_a_measured_node_joins_it() -> None:
     om.integrate([beside], "cam1", 3)
     om.maintain()
     assert len(om.nodes) == 2
+
+
+def test_sight_lines_and_keyframes_survive_a_restart() -> None:
+    om = ObjectMap(FusionConfig(merge_every_updates=100))
+    host = well_seen_vase(om)
+    kv, objs = seen([0.0, 0.3, 1.4], [VASE], depth_scale=0.75)
+    om.integrate(objs, "robot1", 2, kv)
+    back = ObjectMap(FusionConfig(merge_every_updates=100))
+    back.load_state(om.state())
+    for k, node in om.nodes.items():
+        assert back.nodes[k].seen_in == node.seen_in
+        assert np.allclose(np.array(back.nodes[k].sight), np.array(node.sight))
+    back.maintain()
+    assert list(back.nodes) == [host]  # the ghost is still known as one after the restart
+    old = om.state()
+    for d in old["nodes"]:
+        del d["sight"], d["seen_in"]
+    back.load_state(old)  # a state written before ghost merging loads
+    assert all(not n.sight and not n.seen_in for n in back.nodes.values())
