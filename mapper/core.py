@@ -221,6 +221,7 @@ class MapperCore:
             R, t = T[:3, :3], T[:3, 3]
             node.points = (node.points @ R.T.astype(np.float32) + t.astype(np.float32)).astype(node.points.dtype)
             node.rays = [(R @ o + t, R @ d) for o, d in node.rays]
+            node.sight = [(R @ o + t, R @ d) for o, d in node.sight]
             node.touch()
             moved.add(node_id)
         return moved

@@ -122,6 +122,54 @@ class FusionConfig(BaseModel):
         "of that depth) is hidden there and does not count",
     )
     occlusion_margin_rel: float = Field(default=0.15, ge=0.0, description="... relative part of that margin")
+    ghost_merge: bool = Field(
+        default=True,
+        description="merge a ghost into its host: a rarely seen node that lies, along its own viewing rays, nearer "
+        "or farther than a similar node. Estimated depth that is wrong for one keyframe (or a few from one place) "
+        "puts a copy of the object there, out of the other views' masks, where neither point overlap nor mask "
+        "association joins them. The host keeps its points. Two nodes that one keyframe showed as two "
+        "detections are never merged; when each lies on the other's rays (both seen from one side), the better "
+        "seen one is the host. A coarse (single-view) node is the ghost of a measured node on its placement rays "
+        "at any distance (its depth is a guess)",
+    )
+    ghost_max_observations: int = Field(
+        default=3, ge=1, description="ghost merge: only nodes seen at most this often can be ghosts"
+    )
+    ghost_max_across_m: float = Field(
+        default=0.25, ge=0.0,
+        description="ghost merge: the host's centre passes at most this far (or half the host's largest "
+        "horizontal size, if more) from each of the ghost's viewing rays (camera centre to the observation's "
+        "mean point) ...",
+    )
+    ghost_across_ratio: float = Field(
+        default=0.6, ge=0.0,
+        description="... and at most this fraction of its distance from the ghost along that ray (a depth error "
+        "moves a copy along the ray; a neighbour of the same class sits beside it)",
+    )
+    ghost_max_angle_deg: float = Field(
+        default=7.0, ge=0.0, le=45.0,
+        description="... and within this angle of the ray seen from its camera (the host projects near where the "
+        "ghost's detection was in that keyframe; a neighbour on a table seen from close by is farther off)",
+    )
+    ghost_min_along_m: float = Field(
+        default=0.15, ge=0.0, description="ghost merge: the two nodes are at least this far apart along each ray ..."
+    )
+    ghost_max_along_m: float = Field(
+        default=1.5, ge=0.0, description="... and at most this far, or ghost_max_along_rel of the host's distance"
+    )
+    ghost_max_along_rel: float = Field(
+        default=0.5, ge=0.0, le=0.9,
+        description="... (stereo depth errors grow with distance: far objects came back at half their depth)",
+    )
+    max_sight_lines: int = Field(
+        default=8, ge=1,
+        description="viewing rays remembered per node for ghost merging (the latest); a node seen more often "
+        "than ghost_max_observations is never a ghost, so more are not needed",
+    )
+    max_keyframes_per_node: int = Field(
+        default=64, ge=1,
+        description="keyframes remembered per node (the latest) to know which nodes one keyframe told apart",
+    )
     min_observations: int = Field(default=1, ge=1, description="nodes seen fewer times are dropped after ...")
     prune_after_updates: int = Field(default=15, ge=1, description="... this many updates since creation")
     weak_node_points: int = Field(
@@ -382,6 +430,12 @@ class NodeState:
     # Coarse (single-view) observations only: one (camera centre, unit direction to the placed object) per
     # observation. Empty once any multi-view observation joins the node.
     rays: list[tuple[np.ndarray, np.ndarray]] = field(default_factory=list)
+    # Measured observations: (camera centre, unit direction to the observation's mean point), the latest
+    # ``max_sight_lines`` (ghost merging asks along which rays the node's depth could be wrong).
+    sight: list[tuple[np.ndarray, np.ndarray]] = field(default_factory=list)
+    # The fusion updates (keyframes) in which a detection joined or made the node, the latest
+    # ``max_keyframes_per_node``: two nodes that share one were told apart by that keyframe.
+    seen_in: list[int] = field(default_factory=list)
     _tree: Any = field(default=None, repr=False)
     _box: OrientedBox | None = field(default=None, repr=False)
     _full_box: OrientedBox | None = field(default=None, repr=False)
@@ -697,12 +751,25 @@ class ObjectMap:
                 targets.append(self._new_node(obj, source_id, stamp_ns).node_id)
                 res.changed.add(targets[-1])
                 res.created += 1
+            self._remember_sight(self.nodes[targets[-1]], obj, view)
         self._merge_fragments(objects, targets, inside, res)
         if self.updates % self.cfg.merge_every_updates == 0:
             self.maintain(res)
         self._enforce_cap(res)
         res.changed -= res.removed
         return res
+
+    def _remember_sight(self, node: NodeState, obj: Object3D, view: KeyframeView | None) -> None:
+        """Note that this update's detection ``obj`` joined ``node`` and, for measured depth seen from ``view``'s
+        camera, along which ray."""
+        node.seen_in = (node.seen_in + [self.updates])[-self.cfg.max_keyframes_per_node:]
+        if view is None or obj.ray_origin is not None or len(obj.points) == 0:
+            return
+        o = np.asarray(view.T_world_cam[:3, 3], np.float64)
+        d = obj.points.mean(0).astype(np.float64) - o
+        n = float(np.linalg.norm(d))
+        if n > 1e-9:
+            node.sight = (node.sight + [(o, d / n)])[-self.cfg.max_sight_lines:]
 
     def _merge_fragments(self, objects: Sequence[Object3D], targets: Sequence[str],
                          inside: Sequence[dict[str, float]], res: UpdateResult) -> None:
@@ -737,10 +804,13 @@ class ObjectMap:
                 res.changed.add(target)
 
     # -- maintenance ---------------------------------------------------------------------------
-    def merge_nodes(self, keep: NodeState, gone: NodeState) -> None:
-        """Fold ``gone`` into ``keep`` (clouds, descriptors weighted by observations, votes, sources)."""
+    def merge_nodes(self, keep: NodeState, gone: NodeState, keep_points: bool = False) -> None:
+        """Fold ``gone`` into ``keep`` (clouds, descriptors weighted by observations, votes, sources);
+        ``keep_points``: ``gone``'s points are dropped (they are misplaced)."""
         a, b = keep.observations, gone.observations
-        if bool(keep.rays) != bool(gone.rays):
+        if keep_points:
+            pass
+        elif bool(keep.rays) != bool(gone.rays):
             keep.points = (gone if keep.rays else keep).points  # measured depth replaces a coarse guess
         else:
             keep.points = self._cap(voxel_downsample(np.concatenate([keep.points, gone.points]), self.cfg.voxel_m))
@@ -753,6 +823,9 @@ class ObjectMap:
         keep.last_seen_ns = max(keep.last_seen_ns, gone.last_seen_ns)
         keep.created_update = min(keep.created_update, gone.created_update)
         keep.rays = keep.rays + gone.rays if (keep.rays and gone.rays) else []
+        if not keep_points:  # a ghost's rays led to where it was misplaced, not to ``keep``
+            keep.sight = (keep.sight + gone.sight)[-self.cfg.max_sight_lines:]
+        keep.seen_in = sorted(set(keep.seen_in) | set(gone.seen_in))[-self.cfg.max_keyframes_per_node:]
         keep.touch()
         del self.nodes[gone.node_id]
 
@@ -828,6 +901,8 @@ class ObjectMap:
             res.merged_duplicates += 1
             res.removed.add(gone.node_id)
             res.changed.add(keep.node_id)
+        if cfg.ghost_merge:
+            self.merge_ghosts(res)
         for node_id in sorted(self.nodes):
             node = self.nodes[node_id]
             aged = self.updates - node.created_update >= cfg.prune_after_updates
@@ -838,6 +913,84 @@ class ObjectMap:
                 del self.nodes[node_id]
                 res.pruned += 1
                 res.removed.add(node_id)
+        res.changed -= res.removed
+        return res
+
+    def _on_rays(self, ghost: NodeState, host: NodeState) -> float | None:
+        """The largest distance of ``host``'s centre across ``ghost``'s viewing rays when it lies on every one of
+        them at a ghost's distance (``FusionConfig.ghost_*``); None when it does not, or ``ghost`` has none. A
+        coarse (single-view) ghost's depth is a guess: its rays are those of its placements, at any distance."""
+        cfg = self.cfg
+        coarse = bool(ghost.rays)
+        lines = ghost.rays or ghost.sight
+        if not lines:
+            return None
+        cg, ch = np.asarray(ghost.centre, np.float64), np.asarray(host.centre, np.float64)
+        wide = 0.5 * float(max(host.box.extent[0], host.box.extent[1]))
+        worst, tan_max = 0.0, math.tan(math.radians(cfg.ghost_max_angle_deg))
+        for o, d in lines:
+            tg, th = float((cg - o) @ d), float((ch - o) @ d)
+            across = float(np.linalg.norm(ch - o - th * d))
+            gap = math.inf if coarse else abs(th - tg)
+            if th <= 0 or not (coarse or cfg.ghost_min_along_m <= gap <= max(
+                    cfg.ghost_max_along_m, cfg.ghost_max_along_rel * th)):
+                return None
+            if across > min(max(cfg.ghost_max_across_m, wide), cfg.ghost_across_ratio * gap, tan_max * th):
+                return None
+            worst = max(worst, across)
+        return worst
+
+    def ghost_host(self, ghost: NodeState, host: NodeState) -> float | None:
+        """How far (the largest distance across a ray) ``host``'s centre lies from ``ghost``'s viewing rays, when
+        ``ghost`` looks like a copy of ``host`` misplaced along them (see ``FusionConfig.ghost_merge``); None
+        when it does not. Pure: reads the two nodes only."""
+        cfg = self.cfg
+        if (host.rays or host is ghost or ghost.observations > cfg.ghost_max_observations
+                or ghost.observations > host.observations
+                or set(ghost.seen_in) & set(host.seen_in)
+                or similarity(ghost.descriptor, host.descriptor) < cfg.merge_similarity):
+            return None
+        across = self._on_rays(ghost, host)
+        if across is None:
+            return None
+        # The host is seen at least as often; each on the other's rays (seen from one side only): more often,
+        # or as often with more points.
+        if not ghost.rays and self._on_rays(host, ghost) is not None and (
+                (ghost.observations, len(ghost.points)) >= (host.observations, len(host.points))):
+            return None
+        return across
+
+    def merge_ghosts(self, res: UpdateResult | None = None) -> UpdateResult:
+        """Merge each ghost (a rarely seen node that is a copy of a better seen one misplaced along its own
+        viewing rays, ``ghost_host``) into its host; the host keeps its points. Closest pairs first."""
+        res = res if res is not None else UpdateResult()
+        cfg = self.cfg
+        ids = sorted(self.nodes)
+        if len(ids) < 2:
+            return res
+        centres = np.array([self.nodes[k].centre for k in ids], np.float64)
+        pairs: list[tuple[float, str, str]] = []
+        for i, g_id in enumerate(ids):
+            ghost = self.nodes[g_id]
+            if not (ghost.rays or ghost.sight) or ghost.observations > cfg.ghost_max_observations:
+                continue
+            # A host is at most (1 + ghost_across_ratio) times the largest gap along a ray from the ghost.
+            far = max(float((centres[i] - o) @ d) for o, d in ghost.sight or [(centres[i], np.zeros(3))])
+            rel = cfg.ghost_max_along_rel
+            reach = math.inf if ghost.rays else (
+                (1 + cfg.ghost_across_ratio) * max(cfg.ghost_max_along_m, rel / (1 - rel) * far) + 1e-6)
+            near = np.flatnonzero(np.linalg.norm(centres - centres[i], axis=1) <= reach)
+            for j in near:
+                across = self.ghost_host(ghost, self.nodes[ids[j]])
+                if across is not None:
+                    pairs.append((across, g_id, ids[j]))
+        for _, g_id, h_id in sorted(pairs):
+            if g_id not in self.nodes or h_id not in self.nodes:
+                continue
+            self.merge_nodes(self.nodes[h_id], self.nodes[g_id], keep_points=True)
+            res.merged_duplicates += 1
+            res.removed.add(g_id)
+            res.changed.add(h_id)
         res.changed -= res.removed
         return res
 
@@ -952,6 +1105,8 @@ class ObjectMap:
                     "first_seen_ns": n.first_seen_ns,
                     "last_seen_ns": n.last_seen_ns,
                     "created_update": n.created_update,
+                    "sight": [[float(x) for x in (*o, *d)] for o, d in n.sight],
+                    "seen_in": list(n.seen_in),
                 }
                 for n in (self.nodes[k] for k in sorted(self.nodes))
             ],
@@ -972,6 +1127,9 @@ class ObjectMap:
                 first_seen_ns=int(d["first_seen_ns"]),
                 last_seen_ns=int(d["last_seen_ns"]),
                 created_update=int(d["created_update"]),
+                # states written before ghost merging have neither: such a node is no ghost until seen again
+                sight=[(np.array(v[:3], np.float64), np.array(v[3:6], np.float64)) for v in d.get("sight", [])],
+                seen_in=[int(u) for u in d.get("seen_in", [])],
                 box_trim=self.cfg.box_trim_fraction,
                 centroid_trim=self.cfg.centroid_trim_fraction,
             )
