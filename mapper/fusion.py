@@ -974,11 +974,12 @@ class ObjectMap:
             ghost = self.nodes[g_id]
             if not (ghost.rays or ghost.sight) or ghost.observations > cfg.ghost_max_observations:
                 continue
-            # A host is at most (1 + ghost_across_ratio) times the largest gap along a ray from the ghost.
-            far = max(float((centres[i] - o) @ d) for o, d in ghost.sight or [(centres[i], np.zeros(3))])
-            rel = cfg.ghost_max_along_rel
-            reach = math.inf if ghost.rays else (
-                (1 + cfg.ghost_across_ratio) * max(cfg.ghost_max_along_m, rel / (1 - rel) * far) + 1e-6)
+            if ghost.rays:  # a coarse ghost's depth is a guess: a host at any distance
+                reach = math.inf
+            else:  # at most (1 + ghost_across_ratio) times the largest gap along a ray from the ghost
+                far = max(float((centres[i] - o) @ d) for o, d in ghost.sight)
+                rel = cfg.ghost_max_along_rel
+                reach = (1 + cfg.ghost_across_ratio) * max(cfg.ghost_max_along_m, rel / (1 - rel) * far) + 1e-6
             near = np.flatnonzero(np.linalg.norm(centres - centres[i], axis=1) <= reach)
             for j in near:
                 across = self.ghost_host(ghost, self.nodes[ids[j]])
