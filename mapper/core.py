@@ -445,7 +445,8 @@ class MapperCore:
             dets = self.embedder.embed(view, masks)
             times["perception"] = time.perf_counter() - t
         t = time.perf_counter()
-        objs, lift = lift_detections(dets, vg.points_world, vg.confidence, vg.depth_m, self.config.fusion)
+        focal = intrinsics_of(view).K()[0, 0] * vg.depth_m.shape[1] / view.image.shape[1]
+        objs, lift = lift_detections(dets, vg.points_world, vg.confidence, vg.depth_m, self.config.fusion, focal)
         self._count("detections", len(dets))
         self._count("detections_dropped_no_depth", lift.dropped_no_depth)
         self._count("detections_dropped_small", lift.dropped_small_mask)

@@ -70,6 +70,13 @@ class FusionConfig(BaseModel):
         "was kept and each view made a fragment",
     )
     dbscan_min_samples: int = Field(default=4, ge=1, description="DBSCAN core point neighbour count")
+    depth_window_rel: float = Field(
+        default=0.0, ge=0.0,
+        description="a detection keeps only the pixels in its densest depth interval of width max(depth_window_min_m, "
+        "this x the mask's size at its median depth); estimated depth smears across object edges and through "
+        "thin objects to the background, and an object is seldom much deeper than it is wide. 0 disables",
+    )
+    depth_window_min_m: float = Field(default=0.3, gt=0.0, description="... the narrowest depth interval, metres")
     overlap_radius_m: float | None = Field(
         default=0.06,
         description="neighbour radius of the overlap measure (None: voxel_m). Two keyframes' estimated depth of "
@@ -97,6 +104,11 @@ class FusionConfig(BaseModel):
         default=0.5, ge=0.0, le=1.0,
         description="duplicates: box intersection / smaller box volume that also merges similar nodes "
         "(estimated depth scatters one object's views too far apart for the point overlap)",
+    )
+    one_node_per_view: bool = Field(
+        default=True,
+        description="a node takes at most one detection of a keyframe (the assignment of highest total score); "
+        "the others make their own nodes",
     )
     mask_association: bool = Field(
         default=True,
@@ -185,6 +197,15 @@ class FusionConfig(BaseModel):
         description="a node's centroid is the centre of its points' extent after ignoring this fraction at each "
         "end of each axis: estimated depth leaves tails along the viewing rays that would drag it off the object",
     )
+    growth_factor: float = Field(
+        default=1.5, ge=0.0,
+        description="a node may not grow (by a detection joining it or a node merging into it) to a horizontal "
+        "size (footprint diagonal) over this times the largest that one of its single observations showed, plus "
+        "growth_slack_m: one view shows most of an object, so a node that keeps growing past it is swallowing "
+        "its neighbours (chairs round two tables as one 6 m chair) or estimated depth smeared along the rays. "
+        "Measured depth only; 0 disables",
+    )
+    growth_slack_m: float = Field(default=0.3, ge=0.0, description="... plus this, metres")
     max_label_alternatives: int = Field(default=3, ge=0, description="label alternatives kept per node")
     seed: int = Field(default=0, description="seed of point subsampling")
 
@@ -359,15 +380,39 @@ def outside_fraction(points_world: np.ndarray, confidence: np.ndarray, depth_m: 
     return float(np.count_nonzero((z < cfg.min_z_m) | (z > cfg.max_z_m)) / n)
 
 
+def densest_interval(values: np.ndarray, width: float) -> tuple[float, float]:
+    """The closed interval ``[lo, lo + width]`` holding the most of ``values`` (the nearest such one on ties)."""
+    v = np.sort(values)
+    counts = np.searchsorted(v, v + width, side="right") - np.arange(len(v))
+    lo = float(v[int(np.argmax(counts))])
+    return lo, lo + width
+
+
+def depth_window(m: np.ndarray, full: np.ndarray, depth_m: np.ndarray, focal_px: float,
+                 cfg: FusionConfig) -> np.ndarray:
+    """``m`` (a mask's pixels with valid depth) less those outside its densest depth interval; the interval is
+    ``depth_window_rel`` times the mask ``full``'s larger side in metres at the median depth (at least
+    ``depth_window_min_m``). Unchanged when the interval keeps fewer than ``min_points`` pixels."""
+    rows, cols = np.nonzero(full)
+    side_px = max(int(rows.max() - rows.min()), int(cols.max() - cols.min())) + 1
+    d = depth_m[m]
+    width = max(cfg.depth_window_min_m, cfg.depth_window_rel * side_px * float(np.median(d)) / focal_px)
+    lo, hi = densest_interval(d, width)
+    kept = m & (depth_m >= lo) & (depth_m <= hi)
+    return kept if int(kept.sum()) >= cfg.min_points else m
+
+
 def lift_detections(
     detections: Sequence[Detection],
     points_world: np.ndarray,
     confidence: np.ndarray,
     depth_m: np.ndarray,
     cfg: FusionConfig,
+    focal_px: float | None = None,
 ) -> tuple[list[Object3D], LiftStats]:
     """Back-project each mask with a view's reconstruction (``points_world`` (h, w, 3), ``confidence``
-    and ``depth_m`` (h, w)); masks at another resolution are resized (nearest)."""
+    and ``depth_m`` (h, w)); masks at another resolution are resized (nearest). ``focal_px`` (the focal length
+    at the depth's resolution) enables ``depth_window_rel``."""
     h, w = depth_m.shape
     stats = LiftStats()
     valid = (
@@ -397,6 +442,8 @@ def lift_detections(
             stats.dropped_no_depth += 1
             stats.no_depth.append(i)
             continue
+        if focal_px is not None and cfg.depth_window_rel > 0:
+            m = depth_window(m, full, depth_m, focal_px, cfg)
         pts = voxel_downsample(points_world[m], cfg.voxel_m)
         pts = main_cluster(pts, cfg.dbscan_eps_m, cfg.dbscan_min_samples)
         if len(pts) < cfg.min_object_points:
@@ -436,6 +483,8 @@ class NodeState:
     # The fusion updates (keyframes) in which a detection joined or made the node, the latest
     # ``max_keyframes_per_node``: two nodes that share one were told apart by that keyframe.
     seen_in: list[int] = field(default_factory=list)
+    # The largest horizontal size (footprint diagonal, metres) one measured observation showed (growth_factor).
+    view_size_m: float = 0.0
     _tree: Any = field(default=None, repr=False)
     _box: OrientedBox | None = field(default=None, repr=False)
     _full_box: OrientedBox | None = field(default=None, repr=False)
@@ -512,6 +561,11 @@ class NodeState:
         )
 
 
+def footprint_diagonal(lo: np.ndarray, hi: np.ndarray) -> float:
+    """Horizontal diagonal (metres) of the axis-aligned box ``lo``..``hi`` (x, y, z)."""
+    return float(np.hypot(hi[0] - lo[0], hi[1] - lo[1]))
+
+
 def overlap_fraction(points: np.ndarray, node: NodeState, radius_m: float) -> float:
     """Fraction of ``points`` with a point of ``node`` within ``radius_m``."""
     if len(points) == 0 or len(node.points) == 0:
@@ -530,6 +584,13 @@ def box_overlap(a: OrientedBox, b: OrientedBox) -> float:
         return 0.0
     inter = footprint_intersection_area(footprint(a, 1e-3), footprint(b, 1e-3)) * dz
     return float(inter / min(float(np.prod(ea)), float(np.prod(eb))))
+
+
+def _view_size(obj: Object3D) -> float:
+    """Horizontal size (footprint diagonal, metres) of one measured observation; 0 for a single-view guess."""
+    if obj.ray_origin is not None or len(obj.points) == 0:
+        return 0.0
+    return footprint_diagonal(obj.points.min(0), obj.points.max(0))
 
 
 def _rays_of(obj: Object3D) -> list[tuple[np.ndarray, np.ndarray]]:
@@ -619,15 +680,15 @@ class ObjectMap:
                 out.append(node)
         return out
 
-    def match(self, obj: Object3D, contained: dict[str, float] | None = None) -> tuple[NodeState | None, float]:
-        """The best node for ``obj`` and its score (None when no node reaches the threshold). ``contained``:
-        per node id, the fraction of its visible points inside ``obj``'s mask (mask association); a fraction of
-        at least ``min_containment`` counts as overlap."""
+    def scores(self, obj: Object3D, contained: dict[str, float] | None = None) -> dict[str, float]:
+        """Per node that ``obj`` may join, its match score (only nodes reaching ``match_threshold``).
+        ``contained``: per node id, the fraction of its visible points inside ``obj``'s mask (mask
+        association); a fraction of at least ``min_containment`` counts as overlap."""
         cfg = self.cfg
         inside = {k: v for k, v in (contained or {}).items() if v >= cfg.min_containment and k in self.nodes}
         cands = {n.node_id: n for n in self._candidates(obj.points)}
         cands.update((k, self.nodes[k]) for k in inside)
-        best, best_score = None, -math.inf
+        out: dict[str, float] = {}
         for node in cands.values():
             sim = similarity(obj.descriptor, node.descriptor)
             # Being in front of a node proves nothing about a different object: the image only vouches for
@@ -637,14 +698,57 @@ class ObjectMap:
             # their guessed boxes touch: they are judged at the voxel, measured depth at its noise.
             radius = cfg.voxel_m if (node.rays and obj.ray_origin is not None) else cfg.radius_m
             ov = max(overlap_fraction(obj.points, node, radius), held)
-            if ov < cfg.min_overlap:
+            if ov < cfg.min_overlap or self._overgrown(node, obj.points, _view_size(obj)):
                 continue
             score = cfg.geo_weight * ov + cfg.sem_weight * sim
-            if score > best_score or (score == best_score and best is not None and node.node_id < best.node_id):
-                best, best_score = node, score
-        if best is None or best_score < cfg.match_threshold:
-            return None, best_score
-        return best, best_score
+            if score >= cfg.match_threshold:
+                out[node.node_id] = score
+        return out
+
+    def match(self, obj: Object3D, contained: dict[str, float] | None = None) -> tuple[NodeState | None, float]:
+        """The best node for ``obj`` and its score (None when no node reaches the threshold); ties go to the
+        older node id. ``contained`` as for :meth:`scores`."""
+        scored = self.scores(obj, contained)
+        if not scored:
+            return None, -math.inf
+        best = min(scored, key=lambda k: (-scored[k], k))
+        return self.nodes[best], scored[best]
+
+    def assign(self, objects: Sequence[Object3D], inside: Sequence[dict[str, float]]) -> list[NodeState | None]:
+        """The node each of one view's detections joins (None: a new node). With ``one_node_per_view`` a node
+        takes at most one detection of the view (the assignment of highest total score): two detections of one
+        view are two objects, and letting both join one node makes it swallow its neighbours (books on a shelf,
+        chairs round a table). Otherwise each detection takes its best node."""
+        table = [self.scores(obj, held) for obj, held in zip(objects, inside, strict=True)]
+        if not self.cfg.one_node_per_view:
+            return [self.nodes[min(t, key=lambda k: (-t[k], k))] if t else None for t in table]
+        ids = sorted({k for t in table for k in t})
+        out: list[NodeState | None] = [None] * len(objects)
+        if not ids:
+            return out
+        from scipy.optimize import linear_sum_assignment
+
+        col = {k: j for j, k in enumerate(ids)}
+        gain = np.full((len(objects), len(ids)), -1e9)  # pairs below the threshold: never chosen
+        for i, t in enumerate(table):
+            for k, v in t.items():
+                gain[i, col[k]] = v
+        rows, cols = linear_sum_assignment(gain, maximize=True)
+        for i, j in zip(rows, cols, strict=True):
+            if ids[int(j)] in table[int(i)]:
+                out[int(i)] = self.nodes[ids[int(j)]]
+        return out
+
+    def _overgrown(self, node: NodeState, points: np.ndarray, size_m: float) -> bool:
+        """Whether ``node`` joined by ``points`` (from observations of horizontal size ``size_m``) would be larger
+        than ``growth_factor`` times the largest single observation of either, plus ``growth_slack_m``. A
+        single-view (coarse) side is never judged: its size is a guess."""
+        cfg = self.cfg
+        if cfg.growth_factor <= 0 or node.rays or node.view_size_m <= 0 or size_m <= 0 or len(points) == 0:
+            return False
+        lo, hi = node.aabb
+        union = footprint_diagonal(np.minimum(lo, points.min(0)), np.maximum(hi, points.max(0)))
+        return union > cfg.growth_factor * max(node.view_size_m, size_m) + cfg.growth_slack_m
 
     def _near_similar(self, obj: Object3D) -> NodeState | None:
         """The nearest node within ``coarse_max_shift_m`` of ``obj``'s centre with a similar descriptor."""
@@ -700,6 +804,7 @@ class ObjectMap:
             box_trim=self.cfg.box_trim_fraction,
             centroid_trim=self.cfg.centroid_trim_fraction,
             rays=_rays_of(obj),
+            view_size_m=_view_size(obj),
         )
         self.nodes[node_id] = node
         return node
@@ -721,6 +826,7 @@ class ObjectMap:
         node.first_seen_ns = min(node.first_seen_ns, stamp_ns)
         node.last_seen_ns = max(node.last_seen_ns, stamp_ns)
         node.rays = node.rays + _rays_of(obj) if (node.rays and obj.ray_origin is not None) else []
+        node.view_size_m = max(node.view_size_m, _view_size(obj))
         node.touch()
 
     def integrate(self, objects: Sequence[Object3D], source_id: str, stamp_ns: int,
@@ -734,7 +840,7 @@ class ObjectMap:
                   else [{} for _ in objects])
         # Match everything against the map as it was before this view: detections of one view are
         # distinct instances and must not absorb each other.
-        matches = [self.match(obj, held)[0] for obj, held in zip(objects, inside, strict=True)]
+        matches = self.assign(objects, inside)
         if view is not None:
             # A coarse guess in a measured keyframe (an object stereo gave no depth) is poor along its ray: a
             # similar node near it is that object, not a new one.
@@ -794,6 +900,8 @@ class ObjectMap:
                     continue
                 if similarity(node.descriptor, obj.descriptor) < cfg.merge_similarity:
                     continue
+                if self._overgrown(keep, node.points, node.view_size_m):
+                    continue
                 # The longer-lived node keeps its id (consumers already know it).
                 keep, gone = (keep, node) if (keep.observations, node.node_id) >= (node.observations, target) \
                     else (node, keep)
@@ -826,6 +934,7 @@ class ObjectMap:
         if not keep_points:  # a ghost's rays led to where it was misplaced, not to ``keep``
             keep.sight = (keep.sight + gone.sight)[-self.cfg.max_sight_lines:]
         keep.seen_in = sorted(set(keep.seen_in) | set(gone.seen_in))[-self.cfg.max_keyframes_per_node:]
+        keep.view_size_m = max(keep.view_size_m, gone.view_size_m)
         keep.touch()
         del self.nodes[gone.node_id]
 
@@ -896,6 +1005,8 @@ class ObjectMap:
             if a_id not in self.nodes or b_id not in self.nodes:
                 continue
             a, b = self.nodes[a_id], self.nodes[b_id]
+            if self._overgrown(a, b.points, b.view_size_m):
+                continue
             keep, gone = (a, b) if (a.observations, b.node_id) >= (b.observations, a.node_id) else (b, a)
             self.merge_nodes(keep, gone)
             res.merged_duplicates += 1
@@ -1108,6 +1219,7 @@ class ObjectMap:
                     "created_update": n.created_update,
                     "sight": [[float(x) for x in (*o, *d)] for o, d in n.sight],
                     "seen_in": list(n.seen_in),
+                    "view_size_m": float(n.view_size_m),
                 }
                 for n in (self.nodes[k] for k in sorted(self.nodes))
             ],
@@ -1131,6 +1243,8 @@ class ObjectMap:
                 # states written before ghost merging have neither: such a node is no ghost until seen again
                 sight=[(np.array(v[:3], np.float64), np.array(v[3:6], np.float64)) for v in d.get("sight", [])],
                 seen_in=[int(u) for u in d.get("seen_in", [])],
+                # states written before the growth limit: such a node is not limited until seen again
+                view_size_m=float(d.get("view_size_m", 0.0)),
                 box_trim=self.cfg.box_trim_fraction,
                 centroid_trim=self.cfg.centroid_trim_fraction,
             )

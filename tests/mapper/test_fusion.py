@@ -10,6 +10,7 @@ from mapper.fusion import (
     Object3D,
     ObjectMap,
     dbscan_labels,
+    densest_interval,
     fit_box,
     lift_detections,
     main_cluster,
@@ -134,6 +135,31 @@ class TestHelpers:
             omap.integrate([Object3D(pts, "dresser", 0.9, label_descriptor("dresser"))], "robot0", k + 1)
         assert len(omap.nodes) == 1
 
+    def test_densest_interval(self) -> None:
+        vals = np.array([1.0, 2.0, 2.1, 2.2, 2.25, 4.0, 4.1])
+        assert densest_interval(vals, 0.3) == pytest.approx((2.0, 2.3))
+        assert densest_interval(np.array([3.0, 1.0]), 0.5) == pytest.approx((1.0, 1.5))  # a tie: the nearest
+
+    def test_depth_smeared_through_a_thin_object_is_cut_at_its_size(self) -> None:
+        # A 10 cm pole 2 m away; a third of its pixels got depth smeared from the pole to the wall 3 m behind it.
+        h, w, f = 60, 8, 100.0  # the mask is 60 px tall: 1.2 m at 2 m
+        depth = np.full((h, w), 2.0, np.float32)
+        depth[40:, :] = np.linspace(2.0, 5.0, 20)[:, None]
+        v, u = np.mgrid[0:h, 0:w].astype(np.float32)
+        pw = np.stack([(u - w / 2) / f * depth, depth, (h / 2 - v) / f * depth + 1.0], -1)
+        det = Detection(mask=np.ones((h, w), bool), label="floor lamp", confidence=0.9,
+                        descriptor=label_descriptor("floor lamp"))
+        cfg = FusionConfig(min_object_points=3, dbscan_min_samples=1, voxel_m=0.01)
+        (smeared,), _ = lift_detections([det], pw, np.ones((h, w), np.float32), depth, cfg)
+        assert smeared.points[:, 1].max() > 4.0
+        cut = cfg.model_copy(update={"depth_window_rel": 0.5, "depth_window_min_m": 0.3})
+        (obj,), _ = lift_detections([det], pw, np.ones((h, w), np.float32), depth, cut, focal_px=f)
+        assert obj.points[:, 1].min() >= 2.0 - 1e-6 and obj.points[:, 1].max() <= 2.0 + 0.6 + 1e-6
+        assert len(obj.points) >= 40 * w * 0.5  # the pole itself is kept
+        # Without the focal length (size unknown) nothing is cut.
+        (same,), _ = lift_detections([det], pw, np.ones((h, w), np.float32), depth, cut)
+        assert same.points[:, 1].max() > 4.0
+
     def test_outside_fraction_flags_depth_under_the_floor(self) -> None:
         cfg = FusionConfig()
         T = look_at([0.0, -2.0, 1.0], [0.0, 0.0, 0.3])
@@ -168,6 +194,63 @@ class TestFusion:
         assert len(omap.nodes) == 2
         centres = sorted(m.box.center[0] for m in omap.messages())
         assert centres == pytest.approx([0.25, 0.81], abs=0.06)
+
+    @pytest.mark.parametrize("one_node_per_view", [True, False])
+    def test_two_detections_of_one_view_never_join_one_node(self, one_node_per_view: bool) -> None:
+        # A node smeared over two books on a shelf (an earlier view's wrong depth); a view then shows the two
+        # books side by side: both overlap the node, but one view's two detections are two objects.
+        rng = np.random.default_rng(1)
+
+        def book(x0: float) -> np.ndarray:
+            return np.column_stack([rng.uniform(x0, x0 + 0.04, 300), rng.uniform(2.0, 2.2, 300),
+                                    rng.uniform(1.0, 1.25, 300)]).astype(np.float32)
+
+        omap = ObjectMap(FusionConfig(one_node_per_view=one_node_per_view))
+        d = label_descriptor("book")
+        omap.integrate([Object3D(np.concatenate([book(0.0), book(0.05), book(0.1)]), "book", 0.9, d)], "r", 1)
+        res = omap.integrate([Object3D(book(0.0), "book", 0.9, d), Object3D(book(0.1), "book", 0.9, d)], "r", 2)
+        if one_node_per_view:
+            assert res.associated == 1 and res.created == 1 and len(omap.nodes) == 2
+        else:  # the old behaviour: the node swallows both
+            assert res.associated == 2 and len(omap.nodes) == 1
+
+    @staticmethod
+    def _slab(rng: np.random.Generator, x0: float, x1: float, y1: float) -> np.ndarray:
+        return np.column_stack([rng.uniform(x0, x1, 600), rng.uniform(0.0, y1, 600),
+                                rng.uniform(0.0, 0.9, 600)]).astype(np.float32)
+
+    @pytest.mark.parametrize("growth_factor", [1.5, 0.0])
+    def test_a_chain_of_overlapping_neighbours_is_not_one_node(self, growth_factor: float) -> None:
+        # Dining chairs in a row, 0.35 m apart; each view's chair (its depth a little smeared) overlaps the node
+        # of the chair before it. Without the growth limit the first node swallows the whole row.
+        rng = np.random.default_rng(2)
+        cfg = FusionConfig(growth_factor=growth_factor, merge_every_updates=1000)
+        omap = ObjectMap(cfg)
+        d = label_descriptor("dining chair")
+        for k in range(4):
+            omap.integrate([Object3D(self._slab(rng, 0.35 * k, 0.35 * k + 0.45, 0.45), "dining chair", 0.9, d)],
+                           "r", k + 1)
+        if growth_factor == 0.0:  # the old behaviour
+            assert len(omap.nodes) == 1
+            return
+        assert len(omap.nodes) == 2
+        one_view = float(np.hypot(0.45, 0.45))
+        for node in omap.nodes.values():
+            assert node.view_size_m == pytest.approx(one_view, abs=0.01)
+            lo, hi = node.aabb
+            assert np.hypot(*(hi - lo)[:2]) <= growth_factor * node.view_size_m + cfg.growth_slack_m
+        # The refused chair started its own node where it is.
+        assert sorted(round(float(n.points[:, 0].max()), 1) for n in omap.nodes.values()) == [1.1, 1.5]
+
+    def test_an_object_seen_in_overlapping_parts_stays_one_node(self) -> None:
+        # A 2.2 m sofa, each view showing 1.2 m of it: the node grows to the whole sofa, within the limit.
+        rng = np.random.default_rng(3)
+        omap = ObjectMap(FusionConfig(merge_every_updates=1000))
+        d = label_descriptor("sofa")
+        for k, x0 in enumerate((0.0, 0.6, 1.0)):
+            omap.integrate([Object3D(self._slab(rng, x0, x0 + 1.2, 0.9), "sofa", 0.9, d)], "r", k + 1)
+        (node,) = omap.nodes.values()
+        assert node.observations == 3 and node.points[:, 0].max() == pytest.approx(2.2, abs=0.02)
 
     def test_no_valid_depth_is_dropped_and_counted(self) -> None:
         cfg = FusionConfig()
@@ -210,3 +293,5 @@ class TestFusion:
         other = ObjectMap(cfg)
         other.load_state(omap.state())
         assert other.messages() == omap.messages() and other.next_id == omap.next_id
+        assert [n.view_size_m for n in other.nodes.values()] == [n.view_size_m for n in omap.nodes.values()]
+        assert all(n.view_size_m > 0 for n in other.nodes.values())
