@@ -596,7 +596,7 @@ def main(argv: list[str] | None = None) -> int:
         epilog="examples: argus eval --quick --out eval_out | argus eval static --scenes 5 --out eval_out",
     )
     p.add_argument("experiments", nargs="*", help=f"which of {', '.join(EXPERIMENTS)} (default: all three)")
-    p.add_argument("--out", type=Path, default=Path("eval_out"), help="output folder")
+    p.add_argument("--out", type=Path, default=None, help="output folder (default: the config's out, else eval_out)")
     p.add_argument("--quick", action="store_true", help="small subset for CI (< 5 min on 2 cores)")
     p.add_argument("--config", type=Path, default=None, help="TOML file with an EvalConfig (overrides defaults)")
     p.add_argument("--scenes", type=int, default=None, help="scenes per setting (static and external)")
@@ -616,9 +616,13 @@ def main(argv: list[str] | None = None) -> int:
         if a.config is not None:
             import tomllib
 
-            cfg = EvalConfig.model_validate({**tomllib.loads(a.config.read_text()), "out": str(a.out)})
+            data = tomllib.loads(a.config.read_text())
+            if a.out is not None:
+                data["out"] = str(a.out)
+            cfg = EvalConfig.model_validate(data)
         else:
-            cfg = quick_config(a.out) if a.quick else EvalConfig(out=a.out)
+            out = a.out if a.out is not None else Path("eval_out")
+            cfg = quick_config(out) if a.quick else EvalConfig(out=out)
         upd: dict[str, Any] = {"torch_threads": a.threads}
         if a.experiments:
             upd["experiments"] = list(dict.fromkeys(a.experiments))

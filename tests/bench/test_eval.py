@@ -57,6 +57,17 @@ def test_cli_rejects_unknown_experiment(tmp_path: Path) -> None:
     assert main(["nonsense", "--out", str(tmp_path)]) == 2
 
 
+def test_cli_writes_where_the_config_says_unless_told(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    seen: list[EvalConfig] = []
+    monkeypatch.setattr("bench.eval.run", lambda cfg: seen.append(cfg))
+    conf = tmp_path / "static.toml"
+    conf.write_text(f'out = "{tmp_path / "from_config"}"\nexperiments = ["static"]\n')
+    assert main(["--config", str(conf)]) == 0
+    assert main(["--config", str(conf), "--out", str(tmp_path / "from_cli")]) == 0
+    assert [c.out for c in seen] == [tmp_path / "from_config", tmp_path / "from_cli"]
+    assert seen[0].experiments == ["static"]
+
+
 def test_quick_config_is_small() -> None:
     cfg = quick_config(Path("x"))
     assert cfg.experiments == ["static", "external", "active"]
