@@ -1243,8 +1243,9 @@ class ObjectMap:
                 # states written before ghost merging have neither: such a node is no ghost until seen again
                 sight=[(np.array(v[:3], np.float64), np.array(v[3:6], np.float64)) for v in d.get("sight", [])],
                 seen_in=[int(u) for u in d.get("seen_in", [])],
-                # states written before the growth limit: such a node is not limited until seen again
-                view_size_m=float(d.get("view_size_m", 0.0)),
+                # states written before the growth limit: the node's own size counts as one observation's
+                view_size_m=float(d["view_size_m"]) if "view_size_m" in d else (
+                    footprint_diagonal(pts.min(0), pts.max(0)) if len(pts) else 0.0),
                 box_trim=self.cfg.box_trim_fraction,
                 centroid_trim=self.cfg.centroid_trim_fraction,
             )

@@ -295,3 +295,11 @@ class TestFusion:
         assert other.messages() == omap.messages() and other.next_id == omap.next_id
         assert [n.view_size_m for n in other.nodes.values()] == [n.view_size_m for n in omap.nodes.values()]
         assert all(n.view_size_m > 0 for n in other.nodes.values())
+        # A state written before the growth limit: each node's own size stands for its largest observation.
+        old = omap.state()
+        for d in old["nodes"]:
+            del d["view_size_m"]
+        other.load_state(old)
+        for node in other.nodes.values():
+            lo, hi = node.points.min(0), node.points.max(0)
+            assert node.view_size_m == pytest.approx(float(np.hypot(*(hi - lo)[:2])))
