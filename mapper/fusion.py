@@ -206,6 +206,12 @@ class FusionConfig(BaseModel):
         "Measured depth only; 0 disables",
     )
     growth_slack_m: float = Field(default=0.3, ge=0.0, description="... plus this, metres")
+    keep_told_apart: bool = Field(
+        default=True,
+        description="duplicate and fragment merging leave alone two nodes that one keyframe showed as two "
+        "detections (as ghost merging does): books side by side on a shelf, whose estimated depth makes their "
+        "boxes overlap, are two objects",
+    )
     max_label_alternatives: int = Field(default=3, ge=0, description="label alternatives kept per node")
     seed: int = Field(default=0, description="seed of point subsampling")
 
@@ -750,6 +756,10 @@ class ObjectMap:
         union = footprint_diagonal(np.minimum(lo, points.min(0)), np.maximum(hi, points.max(0)))
         return union > cfg.growth_factor * max(node.view_size_m, size_m) + cfg.growth_slack_m
 
+    def _told_apart(self, a: NodeState, b: NodeState) -> bool:
+        """Whether one keyframe showed ``a`` and ``b`` as two detections (and ``keep_told_apart`` is on)."""
+        return self.cfg.keep_told_apart and not set(a.seen_in).isdisjoint(b.seen_in)
+
     def _near_similar(self, obj: Object3D) -> NodeState | None:
         """The nearest node within ``coarse_max_shift_m`` of ``obj``'s centre with a similar descriptor."""
         c = obj.points.mean(0)
@@ -900,7 +910,7 @@ class ObjectMap:
                     continue
                 if similarity(node.descriptor, obj.descriptor) < cfg.merge_similarity:
                     continue
-                if self._overgrown(keep, node.points, node.view_size_m):
+                if self._overgrown(keep, node.points, node.view_size_m) or self._told_apart(keep, node):
                     continue
                 # The longer-lived node keeps its id (consumers already know it).
                 keep, gone = (keep, node) if (keep.observations, node.node_id) >= (node.observations, target) \
@@ -994,6 +1004,8 @@ class ObjectMap:
                 sim = similarity(a.descriptor, b.descriptor)
                 if sim < cfg.merge_similarity or (a.rays and b.rays):
                     continue  # two coarse (single-view) nodes are one object only if their rays say so
+                if self._told_apart(a, b):
+                    continue
                 ov = max(overlap_fraction(a.points, b, cfg.radius_m), overlap_fraction(b.points, a, cfg.radius_m))
                 # A coarse (single-view) node's box is a guess: containment in it proves nothing.
                 boxes_count = not (a.rays or b.rays)

@@ -252,6 +252,32 @@ class TestFusion:
         (node,) = omap.nodes.values()
         assert node.observations == 3 and node.points[:, 0].max() == pytest.approx(2.2, abs=0.02)
 
+    @pytest.mark.parametrize("keep_told_apart", [True, False])
+    def test_two_books_one_keyframe_showed_apart_are_never_merged(self, keep_told_apart: bool) -> None:
+        # Two books side by side, 5 cm apart: their points overlap at the overlap radius, so duplicate merging
+        # takes them for one object, although one keyframe showed them as two detections.
+        rng = np.random.default_rng(4)
+
+        def book(x0: float) -> np.ndarray:
+            return np.column_stack([rng.uniform(x0, x0 + 0.04, 300), rng.uniform(2.0, 2.2, 300),
+                                    rng.uniform(1.0, 1.25, 300)]).astype(np.float32)
+
+        omap = ObjectMap(FusionConfig(keep_told_apart=keep_told_apart, merge_every_updates=1000))
+        d = label_descriptor("book")
+        res = omap.integrate([Object3D(book(0.0), "book", 0.9, d), Object3D(book(0.05), "book", 0.9, d)], "r", 1)
+        assert res.created == 2
+        res = omap.maintain()
+        if keep_told_apart:
+            assert res.merged_duplicates == 0 and len(omap.nodes) == 2
+        else:  # the old behaviour
+            assert res.merged_duplicates == 1 and len(omap.nodes) == 1
+        # Two sightings in different keyframes are still merged as duplicates.
+        other = ObjectMap(FusionConfig(keep_told_apart=keep_told_apart, merge_every_updates=1000,
+                                       match_threshold=5.0))
+        other.integrate([Object3D(book(0.0), "book", 0.9, d)], "r", 1)
+        other.integrate([Object3D(book(0.01), "book", 0.9, d)], "r", 2)
+        assert len(other.nodes) == 2 and other.maintain().merged_duplicates == 1
+
     def test_no_valid_depth_is_dropped_and_counted(self) -> None:
         cfg = FusionConfig()
         T = look_at([2.0, -1.5, 1.5], [0.25, 0.25, 0.45])
