@@ -22,6 +22,12 @@ from protocol.poses import look_at
 from tests.support.boxes import raycast, world_points
 
 
+def book_points(rng: np.random.Generator, x0: float) -> np.ndarray:
+    """300 points of a 4 cm wide book standing on a shelf, its spine from ``x0``."""
+    return np.column_stack([rng.uniform(x0, x0 + 0.04, 300), rng.uniform(2.0, 2.2, 300),
+                            rng.uniform(1.0, 1.25, 300)]).astype(np.float32)
+
+
 def detections(idx: np.ndarray, labels: list[str]) -> list[Detection]:
     out = []
     for k, lab in enumerate(labels):
@@ -202,8 +208,7 @@ class TestFusion:
         rng = np.random.default_rng(1)
 
         def book(x0: float) -> np.ndarray:
-            return np.column_stack([rng.uniform(x0, x0 + 0.04, 300), rng.uniform(2.0, 2.2, 300),
-                                    rng.uniform(1.0, 1.25, 300)]).astype(np.float32)
+            return book_points(rng, x0)
 
         omap = ObjectMap(FusionConfig(one_node_per_view=one_node_per_view))
         d = label_descriptor("book")
@@ -259,8 +264,7 @@ class TestFusion:
         rng = np.random.default_rng(4)
 
         def book(x0: float) -> np.ndarray:
-            return np.column_stack([rng.uniform(x0, x0 + 0.04, 300), rng.uniform(2.0, 2.2, 300),
-                                    rng.uniform(1.0, 1.25, 300)]).astype(np.float32)
+            return book_points(rng, x0)
 
         omap = ObjectMap(FusionConfig(keep_told_apart=keep_told_apart, merge_every_updates=1000))
         d = label_descriptor("book")
