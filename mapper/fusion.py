@@ -567,6 +567,11 @@ class NodeState:
         )
 
 
+def seen_together(a: NodeState, b: NodeState) -> bool:
+    """Whether one keyframe (fusion update) showed ``a`` and ``b`` as two detections: two objects."""
+    return not set(a.seen_in).isdisjoint(b.seen_in)
+
+
 def footprint_diagonal(lo: np.ndarray, hi: np.ndarray) -> float:
     """Horizontal diagonal (metres) of the axis-aligned box ``lo``..``hi`` (x, y, z)."""
     return float(np.hypot(hi[0] - lo[0], hi[1] - lo[1]))
@@ -694,6 +699,8 @@ class ObjectMap:
         inside = {k: v for k, v in (contained or {}).items() if v >= cfg.min_containment and k in self.nodes}
         cands = {n.node_id: n for n in self._candidates(obj.points)}
         cands.update((k, self.nodes[k]) for k in inside)
+        size = _view_size(obj)
+        lo, hi = (obj.points.min(0), obj.points.max(0)) if size > 0 else (np.zeros(3), np.zeros(3))
         out: dict[str, float] = {}
         for node in cands.values():
             sim = similarity(obj.descriptor, node.descriptor)
@@ -704,21 +711,12 @@ class ObjectMap:
             # their guessed boxes touch: they are judged at the voxel, measured depth at its noise.
             radius = cfg.voxel_m if (node.rays and obj.ray_origin is not None) else cfg.radius_m
             ov = max(overlap_fraction(obj.points, node, radius), held)
-            if ov < cfg.min_overlap or self._overgrown(node, obj.points, _view_size(obj)):
+            if ov < cfg.min_overlap or self._overgrown(node, lo, hi, size):
                 continue
             score = cfg.geo_weight * ov + cfg.sem_weight * sim
             if score >= cfg.match_threshold:
                 out[node.node_id] = score
         return out
-
-    def match(self, obj: Object3D, contained: dict[str, float] | None = None) -> tuple[NodeState | None, float]:
-        """The best node for ``obj`` and its score (None when no node reaches the threshold); ties go to the
-        older node id. ``contained`` as for :meth:`scores`."""
-        scored = self.scores(obj, contained)
-        if not scored:
-            return None, -math.inf
-        best = min(scored, key=lambda k: (-scored[k], k))
-        return self.nodes[best], scored[best]
 
     def assign(self, objects: Sequence[Object3D], inside: Sequence[dict[str, float]]) -> list[NodeState | None]:
         """The node each of one view's detections joins (None: a new node). With ``one_node_per_view`` a node
@@ -745,20 +743,20 @@ class ObjectMap:
                 out[int(i)] = self.nodes[ids[int(j)]]
         return out
 
-    def _overgrown(self, node: NodeState, points: np.ndarray, size_m: float) -> bool:
-        """Whether ``node`` joined by ``points`` (from observations of horizontal size ``size_m``) would be larger
-        than ``growth_factor`` times the largest single observation of either, plus ``growth_slack_m``. A
-        single-view (coarse) side is never judged: its size is a guess."""
+    def _overgrown(self, node: NodeState, lo: np.ndarray, hi: np.ndarray, size_m: float) -> bool:
+        """Whether ``node`` joined by points with corners ``lo``, ``hi`` (from observations of horizontal size
+        ``size_m``) would be larger than ``growth_factor`` times the largest single observation of either, plus
+        ``growth_slack_m``. A single-view (coarse) side (size 0) is never judged: its size is a guess."""
         cfg = self.cfg
-        if cfg.growth_factor <= 0 or node.rays or node.view_size_m <= 0 or size_m <= 0 or len(points) == 0:
+        if cfg.growth_factor <= 0 or node.rays or node.view_size_m <= 0 or size_m <= 0:
             return False
-        lo, hi = node.aabb
-        union = footprint_diagonal(np.minimum(lo, points.min(0)), np.maximum(hi, points.max(0)))
+        nlo, nhi = node.aabb
+        union = footprint_diagonal(np.minimum(nlo, lo), np.maximum(nhi, hi))
         return union > cfg.growth_factor * max(node.view_size_m, size_m) + cfg.growth_slack_m
 
     def _told_apart(self, a: NodeState, b: NodeState) -> bool:
         """Whether one keyframe showed ``a`` and ``b`` as two detections (and ``keep_told_apart`` is on)."""
-        return self.cfg.keep_told_apart and not set(a.seen_in).isdisjoint(b.seen_in)
+        return self.cfg.keep_told_apart and seen_together(a, b)
 
     def _near_similar(self, obj: Object3D) -> NodeState | None:
         """The nearest node within ``coarse_max_shift_m`` of ``obj``'s centre with a similar descriptor."""
@@ -910,7 +908,7 @@ class ObjectMap:
                     continue
                 if similarity(node.descriptor, obj.descriptor) < cfg.merge_similarity:
                     continue
-                if self._overgrown(keep, node.points, node.view_size_m) or self._told_apart(keep, node):
+                if self._overgrown(keep, *node.aabb, node.view_size_m) or self._told_apart(keep, node):
                     continue
                 # The longer-lived node keeps its id (consumers already know it).
                 keep, gone = (keep, node) if (keep.observations, node.node_id) >= (node.observations, target) \
@@ -1017,7 +1015,7 @@ class ObjectMap:
             if a_id not in self.nodes or b_id not in self.nodes:
                 continue
             a, b = self.nodes[a_id], self.nodes[b_id]
-            if self._overgrown(a, b.points, b.view_size_m):
+            if self._overgrown(a, *b.aabb, b.view_size_m):
                 continue
             keep, gone = (a, b) if (a.observations, b.node_id) >= (b.observations, a.node_id) else (b, a)
             self.merge_nodes(keep, gone)
@@ -1070,7 +1068,7 @@ class ObjectMap:
         cfg = self.cfg
         if (host.rays or host is ghost or ghost.observations > cfg.ghost_max_observations
                 or ghost.observations > host.observations
-                or set(ghost.seen_in) & set(host.seen_in)
+                or seen_together(ghost, host)
                 or similarity(ghost.descriptor, host.descriptor) < cfg.merge_similarity):
             return None
         across = self._on_rays(ghost, host)
