@@ -44,6 +44,15 @@ class VisibilityConfig(_Model):
         "planner's transient memory (about 110 bytes per pair: 4M pairs peaked at ~450 MiB per decision, "
         "250k at ~55 MiB, no slower); the z-buffers do not depend on it",
     )
+    threads: int = Field(
+        default=2,
+        ge=1,
+        le=64,
+        description="worker threads of a decision: panorama builds, frustum tests, occlusion look-ups and the "
+        "frontier classification are split across them (numpy frees the interpreter in its array loops); the "
+        "results are the same for any value, and the panoramas' transient memory stays within "
+        "panorama_batch_pairs in total",
+    )
     image_margin_frac: float = Field(
         default=0.03,
         ge=0.0,

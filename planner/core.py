@@ -202,7 +202,13 @@ class Planner:
         counts = None if pm.counts is None else np.asarray(pm.counts).reshape(-1)
         if counts is not None and counts.shape[0] != pm.points.shape[0]:
             counts = None
-        mask = classify_frontier(np.asarray(pm.points, dtype=np.float64), counts, pm.voxel_m, self.config.see)
+        mask = classify_frontier(
+            np.asarray(pm.points, dtype=np.float64),
+            counts,
+            pm.voxel_m,
+            self.config.see,
+            self.config.visibility.threads,
+        )
         self._frontier_cache = (key, mask)
         return mask
 

@@ -12,7 +12,10 @@ Panoramas whose occluders in range did not change are taken over from the previo
 
 from __future__ import annotations
 
+from collections.abc import Callable, Sequence
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
+from typing import TypeVar
 
 import numpy as np
 from scipy.spatial import cKDTree
@@ -20,6 +23,34 @@ from scipy.spatial import cKDTree
 from planner.config import VisibilityConfig
 from protocol.messages import ViewpointSet
 from protocol.poses import camera_pose_from_base
+
+_A = TypeVar("_A")
+_R = TypeVar("_R")
+_POOLS: dict[int, ThreadPoolExecutor] = {}
+
+
+def parallel_map(fn: Callable[[_A], _R], items: Sequence[_A], threads: int) -> list[_R]:
+    """``[fn(x) for x in items]`` on ``threads`` worker threads (a pool per size, kept for the process), in
+    order. Worth it where ``fn`` spends its time in numpy's array loops, which release the interpreter."""
+    if threads <= 1 or len(items) <= 1:
+        return [fn(x) for x in items]
+    pool = _POOLS.get(threads)
+    if pool is None:
+        pool = _POOLS.setdefault(threads, ThreadPoolExecutor(threads, thread_name_prefix="argus-visibility"))
+    return list(pool.map(fn, items))
+
+
+def split_even(weights: np.ndarray, parts: int) -> list[tuple[int, int]]:
+    """Contiguous ``[a, b)`` ranges of ``weights``' indices, at most ``parts`` of them, none empty, each
+    holding about the same total weight."""
+    n = int(weights.shape[0])
+    parts = max(1, min(int(parts), n))
+    if n == 0:
+        return []
+    cum = np.cumsum(np.asarray(weights, dtype=np.float64))
+    cuts = np.searchsorted(cum, cum[-1] * np.arange(1, parts) / parts, side="right")
+    edges = np.unique(np.concatenate([[0], np.clip(cuts, 1, n - 1) if n > 1 else [], [n]]).astype(np.int64))
+    return [(int(a), int(b)) for a, b in zip(edges[:-1], edges[1:], strict=True)]
 
 
 @dataclass(frozen=True)
@@ -237,9 +268,11 @@ class Panoramas:
 
     def _build(self, rows: list[int]) -> None:
         pts = self.occluders
-        chunk = max(1, self.cfg.panorama_batch_pairs // max(1, pts.shape[0]))  # bounds the temporaries below
-        for c0 in range(0, len(rows), chunk):
-            rr = rows[c0 : c0 + chunk]
+        threads = max(1, int(self.cfg.threads))
+        # batches in flight at once (one per thread) share the bound on the temporaries below
+        chunk = max(1, self.cfg.panorama_batch_pairs // (threads * max(1, pts.shape[0])))
+
+        def build(rr: list[int]) -> np.ndarray:
             zb = np.full((len(rr), self.n_bins), np.inf, dtype=np.float32)
             if pts.shape[0]:
                 d = pts[None, :, :] - self.positions[rr][:, None, :]
@@ -248,6 +281,10 @@ class Panoramas:
                 flat = at * self.n_bins + self._bin_index(d[at, occ])
                 np.minimum.at(zb.reshape(-1), flat, r[at, occ].astype(np.float32))
                 zb = self._fill_holes(zb)
+            return zb
+
+        batches = [rows[c0 : c0 + chunk] for c0 in range(0, len(rows), chunk)]
+        for rr, zb in zip(batches, parallel_map(build, batches, threads), strict=True):
             for j, i in enumerate(rr):
                 self._rows[i] = zb[j]
 
@@ -314,9 +351,15 @@ class Panoramas:
         local = np.zeros(self.positions.shape[0], np.int64)
         local[uniq] = np.arange(uniq.shape[0])
         Z = np.stack([self._rows[int(i)] for i in uniq])
-        b, r = self._bins(X - self.positions[rows])
-        zb = Z[local[rows], b]
-        return r <= zb + self.cfg.occlusion_tol_m + self.cfg.occlusion_tol_rel * r
+
+        def look_up(ab: tuple[int, int]) -> np.ndarray:
+            rr = rows[ab[0] : ab[1]]
+            b, r = self._bins(X[ab[0] : ab[1]] - self.positions[rr])
+            return r <= Z[local[rr], b] + self.cfg.occlusion_tol_m + self.cfg.occlusion_tol_rel * r
+
+        threads = max(1, int(self.cfg.threads))
+        parts = split_even(np.ones(X.shape[0]), threads if X.shape[0] >= 4096 * threads else 1)
+        return np.concatenate(parallel_map(look_up, parts, threads))
 
     def unoccluded(self, targets_world: np.ndarray, pos_rows: np.ndarray | None = None) -> np.ndarray:
         """(P', T) bool: whether each target is not hidden behind the map from each position."""
@@ -356,12 +399,14 @@ def in_view_pairs(
     margin_frac: float = 0.0,
     sizes_m: np.ndarray | None = None,
     min_pixels: float = 0.0,
+    threads: int = 1,
 ) -> tuple[np.ndarray, np.ndarray]:
     """The (camera ``cams[i]``, target ``tgts[i]``) pairs in view: :func:`project_many`'s test (and, with
     ``sizes_m``, at least ``min_pixels`` big), listed instead of a dense (C, T) matrix.
 
     Cameras that share a centre (the headings of one viewpoint) are tested together, on the targets within
-    ``far_m`` of that centre only: one small matrix product gives every heading's camera coordinates."""
+    ``far_m`` of that centre only: one small matrix product gives every heading's camera coordinates. The
+    centres are split across ``threads`` worker threads (the same pairs, in the same order, for any count)."""
     C = T_world_cam.shape[0]
     X = np.asarray(targets_world, dtype=np.float64).reshape(-1, 3)
     if C == 0 or X.shape[0] == 0:
@@ -379,11 +424,11 @@ def in_view_pairs(
     mu, mv = margin_frac * width, margin_frac * height
     cone = image_cone_cos(K, width, height, margin_frac) - RANGE_SLACK_M
     size = None if sizes_m is None or min_pixels <= 0 else np.asarray(sizes_m, dtype=np.float64).reshape(-1)
-    cams, tgts = [], []
-    for g in range(centres.shape[0]):
+
+    def centre_pairs(g: int) -> tuple[np.ndarray, np.ndarray] | None:
         idx = np.flatnonzero(near_enough[g])
         if idx.shape[0] == 0:
-            continue
+            return None
         cg = order[bounds[g] : bounds[g + 1]]
         D = X[idx] - centres[g]
         rng = np.sqrt(np.einsum("tk,tk->t", D, D))
@@ -401,11 +446,17 @@ def in_view_pairs(
         if size is not None:
             with np.errstate(divide="ignore", invalid="ignore"):
                 ok &= K[0, 0] * size[idx[t]] / np.maximum(z, 1e-6) >= min_pixels
-        cams.append(cg[h[ok]])
-        tgts.append(idx[t[ok]])
-    if not cams:
+        return cg[h[ok]], idx[t[ok]]
+
+    def block_pairs(ab: tuple[int, int]) -> list[tuple[np.ndarray, np.ndarray]]:
+        return [p for p in map(centre_pairs, range(ab[0], ab[1])) if p is not None]
+
+    # blocks of centres of about equal work: (targets in range) x (headings there)
+    work = near_enough.sum(axis=1) * np.diff(bounds)
+    found = [p for block in parallel_map(block_pairs, split_even(work, threads), threads) for p in block]
+    if not found:
         return np.zeros(0, np.int64), np.zeros(0, np.int64)
-    return np.concatenate(cams), np.concatenate(tgts)
+    return np.concatenate([c for c, _ in found]), np.concatenate([t for _, t in found])
 
 
 RANGE_SLACK_M = 1e-6
@@ -435,7 +486,9 @@ def detect_matrix(
     margin = cfg.image_margin_frac if margin_frac is None else margin_frac
     X = np.asarray(targets_world, dtype=np.float64).reshape(-1, 3)
     out = np.zeros((T_world_cam.shape[0], X.shape[0]), bool)
-    cams, tgts = in_view_pairs(T_world_cam, K, width, height, X, cfg.near_m, far_m, margin, sizes_m, min_pixels)
+    cams, tgts = in_view_pairs(
+        T_world_cam, K, width, height, X, cfg.near_m, far_m, margin, sizes_m, min_pixels, cfg.threads
+    )
     if cams.shape[0]:
         vis = panoramas.unoccluded_pairs(X[tgts], np.asarray(pos_index, dtype=np.int64).reshape(-1)[cams])
         out[cams[vis], tgts[vis]] = True

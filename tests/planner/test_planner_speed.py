@@ -165,3 +165,37 @@ def test_neighbour_stats_on_a_known_cluster() -> None:
     assert n_occ[27] == 26 and dens[27] == dens[13]
     far = neighbour_stats(np.array([[0.0, 0.0, 0.0], [10.0, 10.0, 10.0]]), None, 0.1)
     assert far[0].tolist() == [0, 0] and far[1].tolist() == [1.0, 1.0]
+
+
+def test_split_even_gives_contiguous_non_empty_ranges_of_about_equal_weight() -> None:
+    from planner.geometry import split_even
+
+    assert split_even(np.ones(10), 2) == [(0, 5), (5, 10)]
+    assert split_even(np.array([9.0, 1, 1, 1, 1, 1, 1, 1, 1, 1]), 2) == [(0, 1), (1, 10)]
+    assert split_even(np.ones(3), 8) == [(0, 1), (1, 2), (2, 3)]  # never more parts than items
+    assert split_even(np.zeros(4), 2) == [(0, 3), (3, 4)]  # no weight: still covers everything
+    assert split_even(np.ones(1), 2) == [(0, 1)]
+    assert split_even(np.ones(0), 2) == []
+
+
+def test_worker_threads_change_nothing_but_the_time() -> None:
+    """Decisions are split across ``visibility.threads`` worker threads: the same panoramas, detections and
+    frontier statistics for 1, 2 and 3 threads, bit for bit (the look-ups are split once past 4,096 pairs
+    per thread, so the targets here are enough to split every stage)."""
+    w, c, occ = _scene(1)
+    rng = np.random.default_rng(7)
+    X = np.column_stack([rng.uniform(-1, 11, 20000), rng.uniform(-1, 10, 20000), rng.uniform(0, 2.6, 20000)])
+    sizes = rng.uniform(0.05, 1.0, X.shape[0])
+    pts = w["points"]
+    counts = rng.uniform(0.5, 5.0, pts.shape[0])  # not integers: the sums must be added in the same order
+    got = []
+    for threads in (1, 2, 3):
+        cfg = VisibilityConfig(threads=threads, panorama_batch_pairs=200_000)
+        pano = Panoramas(c.positions, occ, cfg, far_m=6.0)
+        det = detect_matrix(c.T_world_cam, c.pos_index, pano, c.K, c.width, c.height, X, 6.0, cfg, sizes, 22.0)
+        rows = np.stack([pano.row(i) for i in range(c.positions.shape[0])])
+        got.append((det, rows, *neighbour_stats(pts, counts, 0.05, threads)))
+    assert got[0][0].any() and got[0][1].size
+    for other in got[1:]:
+        for a, b in zip(got[0], other, strict=True):
+            np.testing.assert_array_equal(a, b)
