@@ -5,7 +5,8 @@ one overhead simulated camera, an apartment), each its own process, and follows 
 consumer would: robot states for the step count, graph snapshots for the node count, scored against
 the simulator's ground truth (it knows the scene from the launch file's ``[world]`` table) with
 ``sim.scoring.score_nodes``. After the exploration steps it prints a table (nodes, precision, recall,
-F1, edges, wall time), stops every process, and leaves a Rerun recording of the run.
+F1, edges, wall time, objects found per room: where the exploration has not reached yet), stops every
+process, and leaves a Rerun recording of the run.
 
 Example::
 
@@ -375,13 +376,17 @@ def run(config: DemoConfig) -> int:
             "graph_version": snap.version if snap else 0, "deltas_seen": monitor.deltas,
             "frames_seen": monitor.frames_seen,
         }
+        rooms = scorer.rooms(score)
         if score is not None:
             final.update(precision=score.precision, recall=score.recall, f1=score.f1, n_true=score.n_true)
+        if rooms:
+            final["rooms"] = {r: {"found": f, "objects": n} for r, (f, n) in rooms.items()}
         rows = [("steps", f"{steps} / {config.steps}"), ("nodes", str(final["nodes"])),
                 ("ground-truth objects", str(final.get("n_true", "-"))),
                 ("precision", _f(final.get("precision"))), ("recall", _f(final.get("recall"))),
                 ("F1", _f(final.get("f1"))), ("edges", str(final["edges"])),
                 ("graph version", str(final["graph_version"])), ("wall time", f"{wall:.0f} s (startup {t_up:.0f} s)"),
+                *((f"objects found in {r}", f"{f} / {n}") for r, (f, n) in rooms.items()),
                 ("geometry", "ORACLE (sim)" if mode.startswith("ORACLE") else "RGB-only (mvs)"),
                 ("2D perception", "ORACLE (sim semantic)" if "ORACLE 2D" in mode else "RGB-only (position-only score)")]
         print(format_table(rows))
@@ -435,6 +440,14 @@ class _Scorer:
 
                 self._scene = generate_scene(self.world.family, self.world.seed)
             return self._scene
+
+    def rooms(self, score: Any) -> dict[str, tuple[int, int]]:
+        """Per room of the scene, (objects found, objects): where the exploration has not reached yet."""
+        if score is None or self._scene is None:
+            return {}
+        from sim.scoring import found_by_room
+
+        return found_by_room(score, self._scene)
 
     def score(self, snap: GraphSnapshot) -> Any:
         if self.world is None or self.error is not None:

@@ -190,6 +190,18 @@ def score_nodes(
     )
 
 
+def found_by_room(score: NodeScore, scene: Any) -> dict[str, tuple[int, int]]:
+    """Per room (in the order the scene lists its objects): (objects matched by a node, objects). A room with
+    nothing found is one the map has not reached yet (or saw nothing in)."""
+    matched = {m.obj_id for m in score.matches}
+    out: dict[str, tuple[int, int]] = {}
+    for o in scene.objects:
+        room = str(getattr(o, "room", "") or "-")
+        found, total = out.get(room, (0, 0))
+        out[room] = (found + (o.obj_id in matched), total + 1)
+    return out
+
+
 @dataclass
 class EdgeScore:
     """Edge precision / recall.

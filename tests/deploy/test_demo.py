@@ -63,6 +63,10 @@ def test_demo_runs_the_stack_and_scores_it(tmp_path: Path, procs: list[Proc]) ->
     assert p.wait(300) == 0, p.output
     res = json.loads((tmp_path / "d.json").read_text())
     assert res["steps"] >= 2 and res["nodes"] > 0 and 0 < res["recall"] <= 1 and res["precision"] > 0
+    rooms = res["rooms"]  # objects found per room of the apartment: they add up to the recall
+    assert len(rooms) >= 3 and sum(r["objects"] for r in rooms.values()) == res["n_true"]
+    assert sum(r["found"] for r in rooms.values()) == round(res["recall"] * res["n_true"])
+    assert "| objects found in " in p.output
     assert (tmp_path / "d.rrd").stat().st_size > 10_000
     assert "argus demo: all processes stopped" in p.output and "| precision" in p.output
     assert {f.name for f in (tmp_path / "logs").iterdir()} >= {"mapper.log", "planner.log", "robot0.log"}

@@ -7,7 +7,7 @@ from dataclasses import dataclass
 import pytest
 
 from protocol.messages import GraphEdge, GraphNode, OrientedBox
-from sim.scoring import LabelSimilarity, score_edges, score_nodes, shared_similarity
+from sim.scoring import LabelSimilarity, found_by_room, score_edges, score_nodes, shared_similarity
 
 
 @dataclass
@@ -15,6 +15,7 @@ class Obj:
     obj_id: int
     label: str
     box: OrientedBox
+    room: str = ""
 
 
 @dataclass
@@ -48,6 +49,13 @@ def test_exact_matching_one_to_one() -> None:
     assert sorted(s.unmatched_pred) == ["b", "d"] and s.unmatched_true == [3]
     # A subset of the ground truth (e.g. what was visible).
     assert score_nodes(preds, SCENE, similarity=exact, obj_ids=[1, 2]).recall == 1.0
+
+
+def test_found_by_room() -> None:
+    scene = Scene([Obj(1, "chair", SCENE.objects[0].box, "kitchen"), Obj(2, "table", SCENE.objects[1].box, "kitchen"),
+                   Obj(3, "lamp", SCENE.objects[2].box, "bedroom"), Obj(4, "bowl", SCENE.objects[2].box)])
+    s = score_nodes([node("a", "chair", (0.1, 0, 0.4))], scene, similarity=LabelSimilarity("exact"))
+    assert found_by_room(s, scene) == {"kitchen": (1, 2), "bedroom": (0, 1), "-": (0, 1)}
 
 
 def test_empty_inputs() -> None:
