@@ -37,6 +37,7 @@ from planner.geometry import (
     candidates_from_viewpoints,
     detect_matrix,
     downsample_occluders,
+    in_view_pairs,
 )
 from planner.hypotheses import Hypotheses, realize
 from planner.prior import IndoorPrior, load_prior
@@ -270,6 +271,27 @@ class Planner:
             out[idx] = det
         return out
 
+    def _history_attempts(
+        self, targets: np.ndarray, sizes: np.ndarray | None, min_px: float, far_frac: float, margin: float = 0.1
+    ) -> np.ndarray:
+        """(T,) how many remembered views had each target well in view: inside the image less ``margin``, within
+        ``far_frac`` of their range, at least ``min_px`` big (occlusion not asked)."""
+        out = np.zeros(targets.shape[0], np.int64)
+        if not self.history or targets.shape[0] == 0:
+            return out
+        vcfg = self.config.visibility
+        groups: dict[tuple, list[int]] = {}
+        for i, v in enumerate(self.history):
+            groups.setdefault((v.width, v.height, v.far_m, tuple(v.K.ravel())), []).append(i)
+        for (w, h, far, Kt), idx in groups.items():
+            T = np.stack([self.history[i].T_world_cam for i in idx])
+            _, tgts = in_view_pairs(
+                T, np.array(Kt).reshape(3, 3), w, h, targets, vcfg.near_m, far * far_frac, margin, sizes, min_px,
+                vcfg.threads,
+            )
+            out += np.bincount(tgts, minlength=targets.shape[0])
+        return out
+
     # -- planning -----------------------------------------------------------------------------
     def plan(
         self,
@@ -348,9 +370,13 @@ class Planner:
         self.info.sampler_fallback = bool(getattr(info, "fallback", False))
 
         def seen(targets: np.ndarray, sizes: np.ndarray) -> np.ndarray:
-            return np.asarray(
+            out = np.asarray(
                 self._history_detect(ctx.pano, ctx.hist_rows, targets, sizes, acfg.min_pixels, 0.05).any(axis=0)
             )
+            if acfg.max_attempts > 0:
+                tried = self._history_attempts(targets, sizes, acfg.min_pixels, self.config.see.attempt_range_frac)
+                out = out | (tried >= acfg.max_attempts)
+            return out
 
         hyps = realize(
             completions,

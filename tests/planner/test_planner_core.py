@@ -164,6 +164,25 @@ class TestAsp:
         planner.plan(S.snapshot([]), pm, {"r1": (state, vset)})
         assert planner.info.n_hypotheses == 0
 
+    def test_a_place_looked_at_again_and_again_is_ruled_out_behind_stray_points(self) -> None:
+        pts, _ = half_observed_room()
+        g = np.arange(0.0, 1.0001, VOXEL)
+        blob = np.stack(np.meshgrid(-1.1 + 0.2 * g, -0.4 + 0.8 * g, 0.2 + 0.9 * g, indexing="ij"), -1).reshape(-1, 3)
+        pm = S.point_map(np.concatenate([pts, blob]), VOXEL, counts=5.0)  # stray estimated depth before the chair
+        comps = [Completion((HypObject("chair", xyz=(-2.0, 0.0, 0.45)),)), Completion(())]
+        vset = two_view_set()
+
+        def left(max_attempts: int) -> int:
+            planner = Planner(self.config(detect_reject=1.0, max_attempts=max_attempts), sampler=StubSampler(comps))
+            for y in (-0.1, 0.1):  # two past views from beside the origin, facing the chair's place
+                planner.record_view(S.robot_state("r1", 0.2, y, math.pi).T_world_cam, vset.intrinsics)
+            planner.plan(S.snapshot([]), pm, {"r1": (S.robot_state("r1", 0.5, 0.5, math.pi / 2), vset)})
+            return planner.info.n_hypotheses
+
+        assert left(0) > 0  # hidden behind the stray points from both views: never ruled out
+        assert left(3) > 0  # two attempts are not three
+        assert left(2) == 0
+
     def test_small_object_needs_a_close_view(self) -> None:
         _, pm = half_observed_room()
         comps = [Completion((HypObject("cup", xyz=(-2.5, 0.0, 0.8)),)), Completion(())]
