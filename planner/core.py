@@ -246,19 +246,15 @@ class Planner:
     ) -> np.ndarray:
         """(V, T) detections of ``targets`` by the remembered views (rows: their panorama rows)."""
         out = np.zeros((len(self.history), targets.shape[0]), bool)
-        if not self.history or targets.shape[0] == 0:
+        if targets.shape[0] == 0:
             return out
         vcfg = self.config.visibility
-        groups: dict[tuple, list[int]] = {}
-        for i, v in enumerate(self.history):
-            groups.setdefault((v.width, v.height, v.far_m, tuple(v.K.ravel())), []).append(i)
-        for (w, h, far, Kt), idx in groups.items():
-            T = np.stack([self.history[i].T_world_cam for i in idx])
+        for idx, T, K, w, h, far in self._history_groups():
             det = detect_matrix(
                 T,
                 np.array([rows[i] for i in idx]),
                 pano,
-                np.array(Kt).reshape(3, 3),
+                K,
                 w,
                 h,
                 targets,
@@ -271,23 +267,28 @@ class Planner:
             out[idx] = det
         return out
 
+    def _history_groups(self) -> list[tuple[list[int], np.ndarray, np.ndarray, int, int, float]]:
+        """The remembered views grouped by camera model: (indices, poses (n, 4, 4), K, width, height, range)."""
+        groups: dict[tuple, list[int]] = {}
+        for i, v in enumerate(self.history):
+            groups.setdefault((v.width, v.height, v.far_m, tuple(v.K.ravel())), []).append(i)
+        return [
+            (idx, np.stack([self.history[i].T_world_cam for i in idx]), np.array(Kt).reshape(3, 3), w, h, far)
+            for (w, h, far, Kt), idx in groups.items()
+        ]
+
     def _history_attempts(
         self, targets: np.ndarray, sizes: np.ndarray | None, min_px: float, far_frac: float, margin: float = 0.1
     ) -> np.ndarray:
         """(T,) how many remembered views had each target well in view: inside the image less ``margin``, within
         ``far_frac`` of their range, at least ``min_px`` big (occlusion not asked)."""
         out = np.zeros(targets.shape[0], np.int64)
-        if not self.history or targets.shape[0] == 0:
+        if targets.shape[0] == 0:
             return out
         vcfg = self.config.visibility
-        groups: dict[tuple, list[int]] = {}
-        for i, v in enumerate(self.history):
-            groups.setdefault((v.width, v.height, v.far_m, tuple(v.K.ravel())), []).append(i)
-        for (w, h, far, Kt), idx in groups.items():
-            T = np.stack([self.history[i].T_world_cam for i in idx])
+        for _, T, K, w, h, far in self._history_groups():
             _, tgts = in_view_pairs(
-                T, np.array(Kt).reshape(3, 3), w, h, targets, vcfg.near_m, far * far_frac, margin, sizes, min_px,
-                vcfg.threads,
+                T, K, w, h, targets, vcfg.near_m, far * far_frac, margin, sizes, min_px, vcfg.threads
             )
             out += np.bincount(tgts, minlength=targets.shape[0])
         return out
