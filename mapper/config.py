@@ -207,11 +207,13 @@ class SingleViewConfig(BaseModel):
         "views' rays refine later",
     )
     measured_support: bool = Field(
-        default=False,
+        default=True,
         description="... and such a detection that does not touch the floor is placed on the level surface this "
-        "keyframe's confident depth shows just under its mask (a frame on a dresser, a bowl on a table). Off: on "
-        "the static sim tuning seeds 0-4 (mvs) F1 0.807 -> 0.813 and recall 0.807 -> 0.837, but nodes 24.6 -> 26.2 "
-        "(true 24.4); on the held-out seeds 10-14 F1 fell (0.823 -> 0.806, with this stop's other changes)",
+        "keyframe's confident depth shows just under its mask (a frame on a dresser, a bowl on a table). On since "
+        "fusion keeps told-apart nodes and limits growth: RGB-only ASP on the tuning apartments (seeds 1-2, 2 starts "
+        "each) recall@30 0.795 -> 0.853 (better in 3 of 4 episodes), static replay of tuning rooms 0-9 F1 0.885 -> "
+        "0.888 (nodes 24.5 -> 24.8, true 23.8). Before those (off then): static tuning seeds 0-4 F1 0.807 -> 0.813, "
+        "nodes 24.6 -> 26.2; held-out 0.823 -> 0.806",
     )
     mapped_support: bool = Field(
         default=False,

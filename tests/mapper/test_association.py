@@ -175,4 +175,5 @@ def test_a_detection_without_depth_on_a_measured_table_top_stands_on_it() -> Non
     assert obj.points[:, 2].min() == pytest.approx(0.75, abs=0.1)  # on the table top, not the floor
     off = MapperCore(MapperCoreConfig(geometry=GeometryConfig(backend="oracle"),
                                       perception=PerceptionConfig(segmenter="sim", embedder="sim")))
+    off.config.single_view.measured_support = False
     assert off._place_depthless(view, cam, dets, [0], vg) == []  # a guess on a guess (the table's box) is not kept
