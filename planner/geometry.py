@@ -7,7 +7,9 @@ per-candidate work is only a frustum projection of the targets.
 
 The frustum test runs per camera centre on the targets within range of it (one small matrix product for
 all the headings there), and only the (camera, target) pairs in view are looked up in the panoramas.
-Panoramas whose occluders in range did not change are taken over from the previous decision.
+Panoramas whose occluders in range did not change are taken over from the previous decision. Panorama builds,
+frustum tests and occlusion look-ups are split across ``VisibilityConfig.threads`` worker threads
+(:func:`parallel_map`), with the same results for any count.
 """
 
 from __future__ import annotations
