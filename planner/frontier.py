@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 
 from planner.config import SeeConfig
-from planner.geometry import parallel_map, split_even
+from planner.geometry import item_blocks, parallel_map
 
 _OFF = 1 << 20
 _OFFSETS = np.array(
@@ -58,8 +58,7 @@ def neighbour_stats(
             dens += np.where(hit, ucount[pos], 0.0)
         return n_occ, dens
 
-    parts = split_even(np.ones(N), threads if N >= 8192 * threads else 1)
-    done = parallel_map(block, parts, threads)
+    done = parallel_map(block, item_blocks(N, threads, 8192), threads)
     out_occ, out_dens = np.empty(N, np.int64), np.empty(N)
     out_occ[order] = np.concatenate([o for o, _ in done])
     out_dens[order] = np.concatenate([d for _, d in done])

@@ -55,6 +55,12 @@ def split_even(weights: np.ndarray, parts: int) -> list[tuple[int, int]]:
     return [(int(a), int(b)) for a, b in zip(edges[:-1], edges[1:], strict=True)]
 
 
+def item_blocks(n: int, threads: int, min_each: int) -> list[tuple[int, int]]:
+    """``n`` items as contiguous ranges of about equal size: one per thread once each would hold at least
+    ``min_each`` items, else one range (splitting small work costs more than it saves)."""
+    return split_even(np.ones(n), threads if n >= min_each * threads else 1)
+
+
 @dataclass(frozen=True)
 class Candidates:
     """The candidate views of one robot, with their camera poses precomputed.
@@ -360,8 +366,7 @@ class Panoramas:
             return r <= Z[local[rr], b] + self.cfg.occlusion_tol_m + self.cfg.occlusion_tol_rel * r
 
         threads = max(1, int(self.cfg.threads))
-        parts = split_even(np.ones(X.shape[0]), threads if X.shape[0] >= 4096 * threads else 1)
-        return np.concatenate(parallel_map(look_up, parts, threads))
+        return np.concatenate(parallel_map(look_up, item_blocks(X.shape[0], threads, 4096), threads))
 
     def unoccluded(self, targets_world: np.ndarray, pos_rows: np.ndarray | None = None) -> np.ndarray:
         """(P', T) bool: whether each target is not hidden behind the map from each position."""
