@@ -36,7 +36,7 @@ from typing import Any
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
-from bench.explore import core_config, steps_to
+from bench.explore import mapper_config, steps_to
 from bench.report import machine, markdown_table
 
 EXPERIMENTS = ("static", "external", "active")
@@ -66,6 +66,11 @@ class StaticConfig(BaseModel):
     geometries: list[str] = Field(default_factory=lambda: ["oracle", "mvs"], description="reconstructors compared")
     perception: str = Field(default="sim", description="2D perception (sim = ORACLE semantic camera, classical)")
     frames: FramesConfig = Field(default_factory=FramesConfig, description="the robot frames")
+    mapper: dict[str, Any] = Field(
+        default_factory=dict,
+        description="mapper configuration written over the defaults for every geometry (nested tables, as in "
+        "the mapper's TOML), e.g. {fusion = {fill_mask_depth = true}}",
+    )
 
 
 class ExternalConfig(BaseModel):
@@ -222,11 +227,12 @@ def fixed_camera_views(scene: Any, n: int, seed: int, width: int, height: int) -
 
 
 def map_views(views: Sequence[Any], geometry: str, perception: str, torch_threads: int = 2,
-              force_keyframes: bool = True) -> tuple[Any, dict[str, float]]:
-    """Feed views to an in-process MapperCore; returns its final snapshot and counters."""
+              force_keyframes: bool = True, overrides: dict[str, Any] | None = None) -> tuple[Any, dict[str, float]]:
+    """Feed views to an in-process MapperCore (its configuration with ``overrides`` written over it); returns
+    its final snapshot and counters."""
     from mapper.core import MapperCore
 
-    core = MapperCore(core_config(geometry, perception, torch_threads))
+    core = MapperCore(mapper_config(geometry, perception, torch_threads, overrides))
     for v in views:
         core.ingest(v, force_keyframe=force_keyframes)
     return core.snapshot(), dict(core.counters)
@@ -274,7 +280,7 @@ def run_static(cfg: StaticConfig, torch_threads: int, log: Callable[[str], None]
             # relative information beyond the absolute prior, and the frames say so.
             views = _mapper_views(scene, poses, use_priors, intr, "robot0", trusted=False,
                                   prior_rel_rot_deg=math.inf, prior_rel_trans_m=math.inf)
-            snap, counters = map_views(views, geometry, cfg.perception, torch_threads)
+            snap, counters = map_views(views, geometry, cfg.perception, torch_threads, overrides=cfg.mapper)
             row = {"seed": seed, "geometry": geometry, **score(snap.nodes, scene), "edges": len(snap.edges),
                    "frames": len(views), "seconds": round(time.perf_counter() - t0, 1),
                    "keyframe_errors": counters.get("keyframe_errors", 0.0)}

@@ -53,6 +53,24 @@ def test_static_and_external_tiny(tmp_path: Path) -> None:
     assert "ORACLE" in (tmp_path / "external.md").read_text()
 
 
+def test_static_mapper_overrides_reach_the_mapper(tmp_path: Path) -> None:
+    """``[static.mapper]`` is written over the mapper's configuration: masks no detection reaches leave no node."""
+    from pydantic import ValidationError
+
+    frames = FramesConfig(n_frames=3, width=160, height=120)
+    big = {"fusion": {"min_mask_pixels": 10**6}}
+    cfg = EvalConfig(out=tmp_path, experiments=["static"],
+                     static=StaticConfig(seeds=[0], geometries=["oracle"], frames=frames, mapper=big))
+    run(cfg, log=lambda m: None)
+    (row,) = json.loads((tmp_path / "static.json").read_text())["per_scene"]
+    assert row["n_pred"] == 0 and row["recall"] == 0
+    bad = EvalConfig(out=tmp_path, experiments=["static"],
+                     static=StaticConfig(seeds=[0], geometries=["oracle"], frames=frames,
+                                         mapper={"fusion": {"no_such_field": 1}}))
+    with pytest.raises(ValidationError, match="no_such_field"):
+        run(bad, log=lambda m: None)
+
+
 def test_cli_rejects_unknown_experiment(tmp_path: Path) -> None:
     assert main(["nonsense", "--out", str(tmp_path)]) == 2
 

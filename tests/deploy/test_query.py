@@ -265,7 +265,7 @@ def test_cli_returns_what_a_real_mapper_holds(router: str, procs: list[Proc], tm
 
 
 def core_config_oracle() -> Any:
-    from bench.eval import core_config
+    from bench.explore import core_config
 
     return core_config("oracle", "sim", 1)
 

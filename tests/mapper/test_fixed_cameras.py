@@ -8,7 +8,8 @@ import math
 import numpy as np
 import pytest
 
-from bench.eval import core_config, fixed_camera_views, score
+from bench.eval import fixed_camera_views, score
+from bench.explore import core_config
 from mapper.core import MapperCore
 from mapper.geometry.contract import OracleData, View
 from mapper.geometry.features import extract_features

@@ -82,7 +82,7 @@ def test_an_older_robot_agent_state_still_decodes() -> None:
 
 
 def test_the_mapper_says_a_robot_frame_was_processed_even_when_it_changed_nothing() -> None:
-    from bench.eval import core_config
+    from bench.explore import core_config
     from mapper.core import MapperCore
     from mapper.geometry.contract import View
 
