@@ -69,7 +69,7 @@ class StaticConfig(BaseModel):
     mapper: dict[str, Any] = Field(
         default_factory=dict,
         description="mapper configuration written over the defaults for every geometry (nested tables, as in "
-        "the mapper's TOML), e.g. {fusion = {fill_mask_depth = true}}",
+        "the mapper's TOML), e.g. {single_view = {mapped_support = true}}",
     )
 
 
