@@ -196,7 +196,7 @@ def found_by_room(score: NodeScore, scene: Any) -> dict[str, tuple[int, int]]:
     matched = {m.obj_id for m in score.matches}
     out: dict[str, tuple[int, int]] = {}
     for o in scene.objects:
-        room = str(getattr(o, "room", "") or "-")
+        room = o.room or "-"
         found, total = out.get(room, (0, 0))
         out[room] = (found + (o.obj_id in matched), total + 1)
     return out
