@@ -63,7 +63,11 @@ class StaticConfig(BaseModel):
     model_config = ConfigDict(extra="forbid")
     family: str = Field(default="furnished_room", description="scene family (Replica rooms are single rooms)")
     seeds: list[int] = Field(default_factory=lambda: [0, 1, 2, 3, 4], description="scene seeds")
-    geometries: list[str] = Field(default_factory=lambda: ["oracle", "mvs"], description="reconstructors compared")
+    geometries: list[str] = Field(
+        default_factory=lambda: ["oracle", "mvs"],
+        description="reconstructors compared; 'probe:<pixels>' (confident, unconfident, objects, uncovered) is mvs "
+        "with ORACLE true depth at those pixels: where RGB-only loses against true geometry",
+    )
     perception: str = Field(default="sim", description="2D perception (sim = ORACLE semantic camera, classical)")
     frames: FramesConfig = Field(default_factory=FramesConfig, description="the robot frames")
     mapper: dict[str, Any] = Field(
@@ -291,6 +295,8 @@ def run_static(cfg: StaticConfig, torch_threads: int, log: Callable[[str], None]
     for geometry in cfg.geometries:
         rows = [r for r in per_scene if r["geometry"] == geometry]
         name = {"oracle": "CG (oracle geometry)", "mvs": "CG-RGB (mvs, ours)"}.get(geometry, geometry)
+        if geometry.startswith("probe:"):
+            name = f"ORACLE probe: mvs + true depth at {geometry.split(':', 1)[1]} pixels"
         entry: dict[str, str | float] = {"experiment": name, "geometry": geometry}
         for k in ("precision", "recall", "f1", "n_pred"):
             m, s = _mean_std(rows, k)

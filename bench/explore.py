@@ -107,12 +107,19 @@ def _merged(base: dict[str, Any], update: dict[str, Any]) -> dict[str, Any]:
 
 def core_config(geometry: str, perception: str, torch_threads: int = 2) -> MapperCoreConfig:
     """The in-process mapper of the benchmarks: reconstructor ``geometry``, segmenter ``perception`` with its
-    usual embedder (sim: sim, sam: clip, else classical)."""
+    usual embedder (sim: sim, sam: clip, else classical). ``probe:<truth_at>`` names the ORACLE diagnostic
+    ``probe`` backend with that option (e.g. ``probe:objects``)."""
     from mapper.config import MapperCoreConfig
 
     embedder = "sim" if perception == "sim" else ("clip" if perception == "sam" else "classical")
+    backend, _, truth_at = geometry.partition(":")
+    geo: dict[str, Any] = {"backend": backend}
+    if truth_at:
+        if backend != "probe":
+            raise ValueError(f"geometry {geometry!r}: only probe takes an option after ':'")
+        geo["options"] = {"truth_at": truth_at}
     return MapperCoreConfig.model_validate({
-        "geometry": {"backend": geometry},
+        "geometry": geo,
         "perception": {"segmenter": perception, "embedder": embedder},
         "torch_threads": torch_threads,
     })

@@ -41,10 +41,12 @@ if TYPE_CHECKING:
 
 def needs_oracle(config: MapperConfig) -> bool:
     """Whether the configured backends read simulator ground truth (ORACLE keys)."""
+    from mapper.geometry.registry import ORACLE_RECONSTRUCTORS
     from mapper.perception.registry import ORACLE_BACKENDS
 
     p = config.perception
-    return config.geometry.backend == "oracle" or p.segmenter in ORACLE_BACKENDS or p.embedder in ORACLE_BACKENDS
+    return (config.geometry.backend in ORACLE_RECONSTRUCTORS or p.segmenter in ORACLE_BACKENDS
+            or p.embedder in ORACLE_BACKENDS)
 
 
 def oracle_data(msg: OracleFrame) -> OracleData:

@@ -23,8 +23,12 @@ RECONSTRUCTORS = FactoryRegistry("reconstructor", {
     "mapanything": ("mapper.geometry.mapanything_adapter:MapAnythingReconstructor",
                     "mapper.geometry.mapanything_adapter:MapAnythingConfig"),
     "da3": ("mapper.geometry.da3:Da3Reconstructor", "mapper.geometry.da3:Da3Config"),
+    "probe": ("mapper.geometry.probe:ProbeReconstructor", "mapper.geometry.probe:ProbeConfig"),
 }, ENTRY_POINT_GROUP)
 """Name -> (factory, options model)."""
+
+ORACLE_RECONSTRUCTORS = frozenset({"oracle", "probe"})
+"""Backends that read simulator ground truth (``View.oracle``): sim frames only."""
 
 
 def available() -> dict[str, str]:

@@ -71,6 +71,26 @@ def test_static_mapper_overrides_reach_the_mapper(tmp_path: Path) -> None:
         run(bad, log=lambda m: None)
 
 
+def test_static_probe_geometry_is_named_as_an_oracle(tmp_path: Path) -> None:
+    """``probe:<pixels>`` runs the ORACLE diagnostic backend with that option, and its table row says ORACLE."""
+    from pydantic import ValidationError
+
+    from bench.explore import core_config
+
+    geo = core_config("probe:objects", "sim").geometry
+    assert geo.backend == "probe" and geo.options.truth_at == "objects"
+    with pytest.raises(ValueError, match="only probe"):
+        core_config("mvs:objects", "sim")
+    with pytest.raises(ValidationError, match="truth_at"):
+        core_config("probe:everywhere", "sim")
+    frames = FramesConfig(n_frames=3, width=160, height=120)
+    cfg = EvalConfig(out=tmp_path, experiments=["static"],
+                     static=StaticConfig(seeds=[0], geometries=["probe:confident"], frames=frames))
+    run(cfg, log=lambda m: None)
+    (entry,) = json.loads((tmp_path / "static.json").read_text())["summary"]
+    assert entry["experiment"].startswith("ORACLE probe") and entry["geometry"] == "probe:confident"
+
+
 def test_cli_rejects_unknown_experiment(tmp_path: Path) -> None:
     assert main(["nonsense", "--out", str(tmp_path)]) == 2
 
