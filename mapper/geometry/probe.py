@@ -26,7 +26,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
 from mapper.geometry.contract import FactoredReconstruction, View, pixel_rays, z_to_ray_depth
-from mapper.geometry.mvs import MvsConfig, MvsReconstructor
+from mapper.geometry.mvs import MvsReconstructor
 from mapper.geometry.oracle import resize_nearest
 from protocol.messages import Intrinsics
 from protocol.poses import invert
@@ -42,7 +42,6 @@ class ProbeConfig(BaseModel):
     min_confidence: float = Field(
         default=0.3, ge=0.0, le=1.0, description="mvs confidence that counts as confident (the fusion's threshold)"
     )
-    mvs: MvsConfig = Field(default_factory=MvsConfig, description="the mvs reconstructor underneath")
 
 
 def covered_by_others(depth_m: np.ndarray, K_out: np.ndarray, T_world_cam: np.ndarray,
@@ -92,7 +91,7 @@ class ProbeReconstructor:
 
     def __init__(self, **opts: Any) -> None:
         self.config = ProbeConfig(**opts)
-        self.mvs = MvsReconstructor(**self.config.mvs.model_dump())
+        self.mvs = MvsReconstructor()  # the default RGB-only reconstructor, whose losses the probe measures
         self.counters: dict[str, int] = {"probe_pixels_replaced": 0, "probe_pixels_target": 0}
 
     def reconstruct(self, views: Sequence[View], targets: Sequence[int] | None = None) -> FactoredReconstruction:
@@ -118,7 +117,8 @@ class ProbeReconstructor:
                                        (kj.width, kj.height)))
                 covered = covered_by_others(true_z, k.K(), np.asarray(o.T_world_cam_true, dtype=np.float64), others)
             sel = truth_mask(self.config.truth_at, confident, true_z, ids, covered)
-            depth[i] = np.where(sel, z_to_ray_depth(true_z, rays), depth[i])
+            # depth_along_ray is in the reconstruction's units (metres / metric_scale)
+            depth[i] = np.where(sel, z_to_ray_depth(true_z, rays) / recon.metric_scale, depth[i])
             if self.config.truth_at != "confident":
                 conf[i] = np.where(sel, 1.0, conf[i])
             self.counters["probe_pixels_replaced"] += int(sel.sum())
