@@ -37,6 +37,7 @@ def test_truth_mask_selects_the_named_pixels() -> None:
     truth = np.array([[1.0, 1.0, 1.0, 0.0]])  # the last pixel has no true depth (sky, window)
     ids = np.array([[3, 3, 0, 3]])
     covered = np.array([[True, True, False, False]])
+
     def picked(truth_at: str, ids_: np.ndarray | None, covered_: np.ndarray | None) -> list[bool]:
         return truth_mask(truth_at, confident, truth, ids_, covered_)[0].tolist()  # type: ignore[arg-type]
 
