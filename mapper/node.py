@@ -24,6 +24,7 @@ from mapper.config import MapperConfig
 from mapper.core import MapperCore
 from mapper.geometry.contract import View
 from mapper.geometry.features import LruCache
+from mapper.geometry.registry import ORACLE_RECONSTRUCTORS
 from mapper.inbox import FrameIntake
 from mapper.keeper import StateKeeper
 from mapper.outbox import GraphOutbox
@@ -69,7 +70,7 @@ class MapperNode(Process):
         self.node = Node(config.zenoh, self.keys, ROLE, config.id, counters=self.counters,
                          status_period_s=config.status_period_s, logger=log)
         self.local_workers: LocalWorkers | None = None
-        if config.workers.enabled and config.geometry.backend != "oracle":  # jobs carry no ORACLE samples:
+        if config.workers.enabled and config.geometry.backend not in ORACLE_RECONSTRUCTORS:  # jobs carry no ORACLE:
             # ORACLE 2D perception (the simulator's semantic camera) then stays in the mapper, after the job.
             perception = runs_perception(config) and not self.intake.needs_oracle
             self.offloader = Offloader(config.workers, config, self.keys, self.counters, perception)

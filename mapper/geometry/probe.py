@@ -92,7 +92,7 @@ class ProbeReconstructor:
     def __init__(self, **opts: Any) -> None:
         self.config = ProbeConfig(**opts)
         self.mvs = MvsReconstructor()  # the default RGB-only reconstructor, whose losses the probe measures
-        self.counters: dict[str, int] = {"probe_pixels_replaced": 0, "probe_pixels_target": 0}
+        self.counters: dict[str, int] = {"probe_pixels_replaced": 0, "probe_target_pixels": 0}
 
     def reconstruct(self, views: Sequence[View], targets: Sequence[int] | None = None) -> FactoredReconstruction:
         recon = self.mvs.reconstruct(views, targets)
@@ -122,6 +122,6 @@ class ProbeReconstructor:
             if self.config.truth_at != "confident":
                 conf[i] = np.where(sel, 1.0, conf[i])
             self.counters["probe_pixels_replaced"] += int(sel.sum())
-            self.counters["probe_pixels_target"] += int(sel.size)
+            self.counters["probe_target_pixels"] += int(sel.size)
         info = dict(recon.info, probe=self.config.truth_at)
         return replace(recon, depth_along_ray=depth.astype(np.float32), confidence=conf.astype(np.float32), info=info)
