@@ -29,7 +29,7 @@ from mapper.geometry.contract import FactoredReconstruction, View, pixel_rays, z
 from mapper.geometry.mvs import MvsReconstructor
 from mapper.geometry.oracle import resize_nearest
 from protocol.messages import Intrinsics
-from protocol.poses import invert
+from protocol.poses import invert, project, unproject
 
 TruthAt = Literal["confident", "unconfident", "objects", "uncovered"]
 
@@ -50,19 +50,15 @@ def covered_by_others(depth_m: np.ndarray, K_out: np.ndarray, T_world_cam: np.nd
     front of and inside at least one of ``others`` (K (3, 3), T_world_cam (4, 4), (width, height))."""
     h, w = depth_m.shape
     valid = np.isfinite(depth_m) & (depth_m > 0)
-    u, v = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
-    d = np.where(valid, depth_m, 0.0)
-    pc = np.stack([(u - K_out[0, 2]) / K_out[0, 0] * d, (v - K_out[1, 2]) / K_out[1, 1] * d, d], -1).reshape(-1, 3)
+    v, u = np.mgrid[0:h, 0:w]
+    pc = unproject(K_out, np.stack([u.ravel(), v.ravel()], axis=1), np.where(valid, depth_m, 0.0))
     pw = pc @ T_world_cam[:3, :3].T + T_world_cam[:3, 3]
     out = np.zeros(h * w, dtype=bool)
     for K, T, (ow, oh) in others:
         T_cam_world = invert(T)
-        q = pw @ T_cam_world[:3, :3].T + T_cam_world[:3, 3]
-        z = q[:, 2]
-        with np.errstate(divide="ignore", invalid="ignore"):
-            x = K[0, 0] * q[:, 0] / z + K[0, 2]
-            y = K[1, 1] * q[:, 1] / z + K[1, 2]
-        out |= (z > 0.05) & (x >= -0.5) & (x < ow - 0.5) & (y >= -0.5) & (y < oh - 0.5)
+        uv, z = project(K, pw @ T_cam_world[:3, :3].T + T_cam_world[:3, 3])
+        with np.errstate(invalid="ignore"):
+            out |= (z > 0.05) & (uv[:, 0] >= -0.5) & (uv[:, 0] < ow - 0.5) & (uv[:, 1] >= -0.5) & (uv[:, 1] < oh - 0.5)
     return out.reshape(h, w) & valid
 
 
@@ -92,7 +88,7 @@ class ProbeReconstructor:
     def __init__(self, **opts: Any) -> None:
         self.config = ProbeConfig(**opts)
         self.mvs = MvsReconstructor()  # the default RGB-only reconstructor, whose losses the probe measures
-        self.counters: dict[str, int] = {"probe_pixels_replaced": 0, "probe_target_pixels": 0}
+        self.counters: dict[str, int] = {"probe_pixels_replaced": 0}
 
     def reconstruct(self, views: Sequence[View], targets: Sequence[int] | None = None) -> FactoredReconstruction:
         recon = self.mvs.reconstruct(views, targets)
@@ -122,6 +118,5 @@ class ProbeReconstructor:
             if self.config.truth_at != "confident":
                 conf[i] = np.where(sel, 1.0, conf[i])
             self.counters["probe_pixels_replaced"] += int(sel.sum())
-            self.counters["probe_target_pixels"] += int(sel.size)
         info = dict(recon.info, probe=self.config.truth_at)
         return replace(recon, depth_along_ray=depth.astype(np.float32), confidence=conf.astype(np.float32), info=info)
