@@ -38,7 +38,7 @@ from bench.report import key_values
 from bench.simdrive import sim_sequences
 from mapper.geometry.contract import OracleData, View, anchor_pose, compose
 from mapper.geometry.register import MapKeyframe, PoseEstimate, register_view
-from mapper.geometry.registry import make_reconstructor
+from mapper.geometry.registry import ORACLE_RECONSTRUCTORS, make_reconstructor
 from mapper.keyframes import intrinsics_of
 from protocol.poses import rotation_angle_deg
 
@@ -210,7 +210,8 @@ def load_labelfusion(root: Path = LABELFUSION_DIR) -> list[tuple[View, np.ndarra
 
 
 def bench_real(backend: str, quick: bool, opts: dict[str, Any]) -> dict[str, Any] | None:
-    if not (LABELFUSION_DIR / "frames").is_dir() or backend == "oracle":  # real frames carry no ORACLE data
+    # Real frames carry no ORACLE data.
+    if not (LABELFUSION_DIR / "frames").is_dir() or backend in ORACLE_RECONSTRUCTORS:
         return None
     data = load_labelfusion()
     if quick:

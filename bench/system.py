@@ -344,10 +344,12 @@ def run(cameras: int, fps: float, phase_s: float, warmup_s: float, width: int, h
         workers: list[int] | None = None, frames_cache: Path | None = None) -> dict[str, Any]:
     """Run the benchmark and write ``system.json`` / ``system.md`` under ``out``. With ``workers`` (counts of
     ``argus worker`` processes, one fresh stack each, the same frames): the scaling curve, one row per count."""
+    from mapper.geometry.registry import ORACLE_RECONSTRUCTORS
+
     t_render = time.monotonic()
     geo = mapper_settings.get("geometry", {}).get("backend", "mvs")
     per = mapper_settings.get("perception", {})
-    oracle = geo == "oracle" or "sim" in (per.get("segmenter"), per.get("embedder"))
+    oracle = geo in ORACLE_RECONSTRUCTORS or "sim" in (per.get("segmenter"), per.get("embedder"))
     cams = cached_cameras(frames_cache, cameras, frames_per_camera, width, height, family, seed, oracle)
     _log(f"rendered {cameras} x {frames_per_camera} frames at {width}x{height} in "
          f"{time.monotonic() - t_render:.1f}s")

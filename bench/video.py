@@ -28,6 +28,7 @@ from bench.geomscore import ScenarioResult, score_depth
 from mapper.config import KeyframeConfig
 from mapper.core import typical_depth
 from mapper.geometry.contract import View, anchor_pose, compose
+from mapper.geometry.registry import ORACLE_RECONSTRUCTORS
 from mapper.keyframes import KeyframeSelector, KeyframeStore
 from protocol.messages import Intrinsics
 from protocol.poses import check_pose, rotation_angle_deg
@@ -203,7 +204,7 @@ def bench_video(backend: str, quick: bool, opts: dict[str, Any], sim_seeds: Sequ
     extra: dict[str, Any] = {}
     names = ["tum-fr1-xyz", "hololens-dvmvs"]
     for name in names:
-        if not available(name) or backend == "oracle":
+        if not available(name) or backend in ORACLE_RECONSTRUCTORS:
             continue
         frames, stats = load_sequence(name)
         if quick:
