@@ -25,11 +25,11 @@ from typing import Any, Literal
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
+from mapper.consistency import DepthMap, coverage_count
 from mapper.geometry.contract import FactoredReconstruction, View, pixel_rays, z_to_ray_depth
 from mapper.geometry.mvs import MvsReconstructor
 from mapper.geometry.oracle import resize_nearest
 from protocol.messages import Intrinsics
-from protocol.poses import invert, project, unproject
 
 TruthAt = Literal["confident", "unconfident", "objects", "uncovered"]
 
@@ -47,19 +47,14 @@ class ProbeConfig(BaseModel):
 def covered_by_others(depth_m: np.ndarray, K_out: np.ndarray, T_world_cam: np.ndarray,
                       others: Sequence[tuple[np.ndarray, np.ndarray, tuple[int, int]]]) -> np.ndarray:
     """(h, w) bool: the pixel's 3D point (z-depth ``depth_m``; 0 or non-finite: never covered) projects in
-    front of and inside at least one of ``others`` (K (3, 3), T_world_cam (4, 4), (width, height))."""
-    h, w = depth_m.shape
+    front of and inside at least one of ``others`` (K (3, 3), T_world_cam (4, 4), (width, height)).
+
+    The depth check's ``coverage_count`` against frames that have depth everywhere: inside a frame is covered."""
     valid = np.isfinite(depth_m) & (depth_m > 0)
-    v, u = np.mgrid[0:h, 0:w]
-    pc = unproject(K_out, np.stack([u.ravel(), v.ravel()], axis=1), np.where(valid, depth_m, 0.0))
-    pw = pc @ T_world_cam[:3, :3].T + T_world_cam[:3, 3]
-    out = np.zeros(h * w, dtype=bool)
-    for K, T, (ow, oh) in others:
-        T_cam_world = invert(T)
-        uv, z = project(K, pw @ T_cam_world[:3, :3].T + T_cam_world[:3, 3])
-        with np.errstate(invalid="ignore"):
-            out |= (z > 0.05) & (uv[:, 0] >= -0.5) & (uv[:, 0] < ow - 0.5) & (uv[:, 1] >= -0.5) & (uv[:, 1] < oh - 0.5)
-    return out.reshape(h, w) & valid
+    frames = [DepthMap(np.ones((oh, ow), np.float32), np.asarray(K, np.float64), np.asarray(T, np.float64))
+              for K, T, (ow, oh) in others]
+    d = np.where(valid, depth_m, 0.0).astype(np.float32)
+    return (coverage_count(d, K_out, T_world_cam, frames) > 0) & valid
 
 
 def truth_mask(truth_at: TruthAt, confident: np.ndarray, true_depth: np.ndarray, instance_id: np.ndarray | None,
