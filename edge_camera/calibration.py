@@ -9,6 +9,12 @@ Two formats, picked by the file ending:
   ``camera_matrix`` + ``image_width`` + ``image_height`` are accepted instead of ``intrinsics``.
 
 Either part may be absent, not both. A calibration's pose is trusted (``pose_trusted = true``).
+
+The pose's accuracy may be stated in both formats with the keys ``pose_sigma_trans_m`` (standard
+deviation of each position axis, metres) and ``pose_sigma_rot_deg`` (of each rotation axis, degrees),
+both or neither, both > 0, and only next to a ``T_world_cam``. Stated, the frame header carries
+:func:`edge_camera.pose_accuracy.pose_covariance` of them and the mapper takes the pose as that
+accurate; unstated, the header has no covariance and the mapper judges the pose from the images.
 """
 
 from __future__ import annotations
@@ -21,6 +27,7 @@ from typing import Any
 import cv2
 import numpy as np
 
+from edge_camera.pose_accuracy import declared_covariance
 from protocol.messages import Intrinsics
 from protocol.poses import PoseError, as_pose
 
@@ -31,11 +38,23 @@ class CalibrationError(ValueError):
 
 @dataclass(frozen=True)
 class Calibration:
-    """What a calibration file says: intrinsics at ``intrinsics.width x height`` and/or the pose."""
+    """What a calibration file says: intrinsics at ``intrinsics.width x height`` and/or the pose.
+
+    ``pose_covariance``: ``(6, 6)`` covariance of ``T_world_cam`` (x y z roll pitch yaw; m^2, rad^2) when the
+    file states the pose's accuracy, else None.
+    """
 
     intrinsics: Intrinsics | None
     T_world_cam: np.ndarray | None
     distortion: np.ndarray | None = None
+    pose_covariance: np.ndarray | None = None
+
+
+def _covariance(sigma_trans_m: Any, sigma_rot_deg: Any, path: Path) -> np.ndarray | None:
+    try:
+        return declared_covariance(sigma_trans_m, sigma_rot_deg, f"calibration file {path}")
+    except ValueError as e:
+        raise CalibrationError(str(e)) from None
 
 
 def _intrinsics_from_matrix(K: Any, width: Any, height: Any) -> Intrinsics:
@@ -76,9 +95,10 @@ def _from_yaml(path: Path) -> Calibration:
         T = mat("T_world_cam")
         dist = mat("distortion_coefficients", "dist_coeffs")
         intr = _intrinsics_from_matrix(K, num("image_width"), num("image_height")) if K is not None else None
+        cov = _covariance(num("pose_sigma_trans_m"), num("pose_sigma_rot_deg"), path)
     finally:
         fs.release()
-    return Calibration(intr, T, dist)
+    return Calibration(intr, T, dist, cov)
 
 
 def _from_json(path: Path) -> Calibration:
@@ -89,7 +109,7 @@ def _from_json(path: Path) -> Calibration:
     if not isinstance(data, dict):
         raise CalibrationError(f"{path}: expected a JSON object")
     unknown = set(data) - {"intrinsics", "camera_matrix", "image_width", "image_height", "T_world_cam",
-                           "distortion_coefficients"}
+                           "distortion_coefficients", "pose_sigma_trans_m", "pose_sigma_rot_deg"}
     if unknown:
         raise CalibrationError(f"{path}: unknown fields {sorted(unknown)}")
     intr: Intrinsics | None = None
@@ -103,6 +123,7 @@ def _from_json(path: Path) -> Calibration:
         intr,
         None if T is None else np.asarray(T, dtype=np.float64),
         None if dist is None else np.asarray(dist, dtype=np.float64),
+        _covariance(data.get("pose_sigma_trans_m"), data.get("pose_sigma_rot_deg"), path),
     )
 
 
@@ -118,6 +139,9 @@ def load_calibration(path: Path) -> Calibration:
         raise CalibrationError(f"calibration file {path}: {e}") from None
     if calib.intrinsics is None and calib.T_world_cam is None:
         raise CalibrationError(f"calibration file {path} holds neither camera_matrix nor T_world_cam")
+    if calib.pose_covariance is not None and calib.T_world_cam is None:
+        raise CalibrationError(f"calibration file {path} states pose_sigma_trans_m / pose_sigma_rot_deg but no "
+                               "T_world_cam they would describe")
     if calib.T_world_cam is not None:
         try:
             # A surveyed pose written with a few decimals is projected onto SO(3) here, once.

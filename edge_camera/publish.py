@@ -76,15 +76,21 @@ class FramePublisher:
         self._warned_aspect = False
 
     def header_for(self, grab: Grab, size: tuple[int, int]) -> FrameHeader:
+        """The header of a frame sent at ``size``: the calibration's intrinsics and pose over the grab's.
+
+        The pose's covariance comes with the pose, from whichever supplied it; no pose, no covariance.
+        """
         w, h = size
         intr: Intrinsics | None = grab.intrinsics
         T = grab.T_world_cam
         trusted = grab.pose_trusted
+        cov = grab.pose_covariance
         if self.calibration is not None:
             if self.calibration.intrinsics is not None:
                 intr = self.calibration.intrinsics
             if self.calibration.T_world_cam is not None:
-                T, trusted = self.calibration.T_world_cam, True
+                # The grab's covariance describes the grab's pose, not this one.
+                T, trusted, cov = self.calibration.T_world_cam, True, self.calibration.pose_covariance
         if intr is not None and (intr.width, intr.height) != (w, h):
             if not self._warned_aspect and abs(intr.width / intr.height - w / h) > 0.01:
                 log.warning("calibration is for %dx%d but frames are %dx%d (aspect differs); scaling anyway",
@@ -100,6 +106,7 @@ class FramePublisher:
             height=h,
             intrinsics=intr,
             T_world_cam=None if T is None else rows(T),
+            pose_covariance=None if T is None or cov is None else rows(cov),
             pose_trusted=trusted if T is not None else False,
         )
 

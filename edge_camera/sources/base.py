@@ -36,7 +36,9 @@ class Grab:
 
     ``rgb`` is ``(H, W, 3)`` uint8 RGB; ``stamp_ns`` the capture time (ns since the epoch).
     ``intrinsics`` (at the image's resolution) and ``T_world_cam`` are set when the source knows
-    them (a simulated camera); a calibration file overrides them.
+    them (a simulated camera, a recording with poses); a calibration file overrides them.
+    ``pose_covariance``: ``(6, 6)`` covariance of ``T_world_cam`` (x y z roll pitch yaw; m^2, rad^2) when
+    the source declares how accurate its pose is (see :mod:`edge_camera.pose_accuracy`), else None.
     """
 
     rgb: np.ndarray
@@ -44,6 +46,7 @@ class Grab:
     intrinsics: Intrinsics | None = None
     T_world_cam: np.ndarray | None = None
     pose_trusted: bool = False
+    pose_covariance: np.ndarray | None = None
     oracle: OracleCapture | None = None
 
 

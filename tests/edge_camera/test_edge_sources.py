@@ -13,6 +13,7 @@ import pytest
 
 from edge_camera.calibration import CalibrationError, load_calibration
 from edge_camera.config import EdgeCameraConfig, PublishConfig
+from edge_camera.pose_accuracy import pose_covariance
 from edge_camera.publish import FramePublisher, output_size
 from edge_camera.sources import SOURCES, create_source, parse_source_config
 from edge_camera.sources.base import FrameSource, SourceConfigError, SourceError
@@ -171,6 +172,22 @@ class TestCalibration:
         for name in ("calibration.json", "calibration.yaml"):
             c = load_calibration(REPO / "edge_camera" / "examples" / name)
             assert c.intrinsics is not None and c.T_world_cam is not None
+        assert np.array_equal(load_calibration(REPO / "edge_camera" / "examples" / "calibration.json").pose_covariance,
+                              pose_covariance(0.02, 1.0))
+
+    def test_pose_accuracy_json_and_yaml(self, tmp_path):
+        T = np.eye(4)
+        (tmp_path / "c.json").write_text(json.dumps({"T_world_cam": T.tolist(), "pose_sigma_trans_m": 0.05,
+                                                     "pose_sigma_rot_deg": 2}))
+        assert np.array_equal(load_calibration(tmp_path / "c.json").pose_covariance, pose_covariance(0.05, 2.0))
+        fs = cv2.FileStorage(str(tmp_path / "c.yaml"), cv2.FILE_STORAGE_WRITE)
+        fs.write("T_world_cam", T)
+        fs.write("pose_sigma_trans_m", 0.05)
+        fs.write("pose_sigma_rot_deg", 2.0)
+        fs.release()
+        assert np.array_equal(load_calibration(tmp_path / "c.yaml").pose_covariance, pose_covariance(0.05, 2.0))
+        (tmp_path / "n.json").write_text(json.dumps({"T_world_cam": T.tolist()}))
+        assert load_calibration(tmp_path / "n.json").pose_covariance is None
 
     @pytest.mark.parametrize(
         ("content", "suffix", "match"),
@@ -182,6 +199,16 @@ class TestCalibration:
             ('{"intrinsics": {"width": 0}}', ".json", "calibration"),
             ('{"colour": 1}', ".json", "unknown fields"),
             ("garbage: [", ".yaml", "calibration"),
+            ('{"T_world_cam": [[1,0,0,0],[0,1,0,0],[0,0,1,0],[0,0,0,1]], "pose_sigma_trans_m": 0.1}', ".json",
+             "both or neither"),
+            ('{"T_world_cam": [[1,0,0,0],[0,1,0,0],[0,0,1,0],[0,0,0,1]], "pose_sigma_trans_m": 0.1, '
+             '"pose_sigma_rot_deg": -1}', ".json", "sigma_rot_deg must be finite and > 0"),
+            ('{"T_world_cam": [[1,0,0,0],[0,1,0,0],[0,0,1,0],[0,0,0,1]], "pose_sigma_trans_m": "1cm", '
+             '"pose_sigma_rot_deg": 1}', ".json", "sigma_trans_m must be finite and > 0"),
+            ('{"intrinsics": {"width": 640, "height": 480, "fx": 1, "fy": 1, "cx": 1, "cy": 1}, '
+             '"pose_sigma_trans_m": 0.1, "pose_sigma_rot_deg": 1}', ".json", "no T_world_cam"),
+            ("%YAML:1.0\n---\npose_sigma_rot_deg: 1.0\nT_world_cam: !!opencv-matrix\n   rows: 4\n   cols: 4\n"
+             "   dt: d\n   data: [1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1]\n", ".yaml", "both or neither"),
         ],
     )
     def test_bad_files(self, tmp_path, content, suffix, match):
@@ -206,6 +233,51 @@ def test_header_scales_calibration_to_the_published_size(tmp_path):
     h = pub.header_for(Grab(rgb=np.zeros((480, 640, 3), np.uint8), stamp_ns=5), (320, 240))
     assert (h.width, h.height, h.intrinsics.fx, h.intrinsics.cx) == (320, 240, 200.0, 159.5)
     assert h.T_world_cam is None and h.pose_trusted is False
+
+
+class TestHeaderPoseCovariance:
+    """The header's covariance comes with its pose, from whichever supplied the pose."""
+
+    T_GRAB = np.diag([1.0, -1.0, -1.0, 1.0])
+    COV_GRAB = pose_covariance(0.3, 5.0)
+
+    def header(self, tmp_path, calibration: dict | None, **grab):
+        from edge_camera.sources.base import Grab
+
+        calib = None
+        if calibration is not None:
+            (tmp_path / "c.json").write_text(json.dumps(calibration))
+            calib = load_calibration(tmp_path / "c.json")
+        pub = FramePublisher(EdgeCameraConfig(source={"type": "pattern"}), None, None, calib)  # type: ignore[arg-type]
+        return pub.header_for(Grab(rgb=np.zeros((24, 32, 3), np.uint8), stamp_ns=5, **grab), (32, 24))
+
+    def test_from_the_grab_without_calibration(self, tmp_path):
+        h = self.header(tmp_path, None, T_world_cam=self.T_GRAB, pose_covariance=self.COV_GRAB)
+        assert np.array_equal(np.asarray(h.pose_covariance), self.COV_GRAB) and h.pose_trusted is False
+        assert self.header(tmp_path, None, T_world_cam=self.T_GRAB).pose_covariance is None
+
+    def test_no_pose_no_covariance(self, tmp_path):
+        h = self.header(tmp_path, None, pose_covariance=self.COV_GRAB)
+        assert h.T_world_cam is None and h.pose_covariance is None
+        intr_only = {"intrinsics": {"width": 32, "height": 24, "fx": 30, "fy": 30, "cx": 15.5, "cy": 11.5}}
+        h = self.header(tmp_path, intr_only, pose_covariance=self.COV_GRAB)
+        assert h.T_world_cam is None and h.pose_covariance is None
+
+    def test_calibration_pose_brings_its_own_covariance(self, tmp_path):
+        calib = {"T_world_cam": np.eye(4).tolist(), "pose_sigma_trans_m": 0.01, "pose_sigma_rot_deg": 0.5}
+        h = self.header(tmp_path, calib, T_world_cam=self.T_GRAB, pose_covariance=self.COV_GRAB)
+        assert np.array_equal(np.asarray(h.T_world_cam), np.eye(4)) and h.pose_trusted is True
+        assert np.array_equal(np.asarray(h.pose_covariance), pose_covariance(0.01, 0.5))
+        # A calibrated pose without a stated accuracy does not borrow the grab's.
+        h = self.header(tmp_path, {"T_world_cam": np.eye(4).tolist()}, T_world_cam=self.T_GRAB,
+                        pose_covariance=self.COV_GRAB)
+        assert h.pose_trusted is True and h.pose_covariance is None
+
+    def test_calibration_intrinsics_only_keep_the_grabs_pose_and_covariance(self, tmp_path):
+        intr_only = {"intrinsics": {"width": 32, "height": 24, "fx": 30, "fy": 30, "cx": 15.5, "cy": 11.5}}
+        h = self.header(tmp_path, intr_only, T_world_cam=self.T_GRAB, pose_covariance=self.COV_GRAB)
+        assert np.array_equal(np.asarray(h.T_world_cam), self.T_GRAB)
+        assert np.array_equal(np.asarray(h.pose_covariance), self.COV_GRAB) and h.pose_trusted is False
 
 
 @pytest.mark.parametrize(
