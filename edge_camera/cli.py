@@ -32,7 +32,7 @@ COMMAND = ProcessCommand(
     EPILOG, what="camera", config_help="TOML config file (see edge_camera/examples/)",
     set_example="source.rate_hz=1", node_module="edge_camera.node",
     flags=(
-        Flag("--source", "source.type", "source type: opencv, stream, video, folder, pattern, sim"),
+        Flag("--source", "source.type", "source type: opencv, stream, video, folder, recorded, pattern, sim"),
         Flag("--rate", "publish.max_rate_hz", "max frames per second (publish.max_rate_hz)", float),
         Flag("--width", "publish.width", "publish width in pixels", int),
         Flag("--height", "publish.height", "publish height in pixels", int),

@@ -32,7 +32,7 @@ class EdgeCameraConfig(AgentConfig):
 
     id: str = Field(default="cam0", description="camera id (a single key chunk: letters, digits, _ . -)")
     source: SerializeAsAny[SourceConfig] = Field(
-        description="[source] table: 'type' picks the backend (opencv, stream, video, folder, pattern, sim); "
+        description="[source] table: 'type' picks the backend (opencv, stream, video, folder, recorded, pattern, sim); "
         "the other fields belong to that backend (see --describe)"
     )
     publish: PublishConfig = Field(default_factory=PublishConfig, description="rate, size and JPEG quality")

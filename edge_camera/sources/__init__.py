@@ -19,6 +19,7 @@ SOURCES: dict[str, str] = {
     "stream": "edge_camera.sources.stream",
     "video": "edge_camera.sources.video",
     "folder": "edge_camera.sources.folder",
+    "recorded": "edge_camera.sources.recorded",
     "pattern": "edge_camera.sources.pattern",
     "sim": "edge_camera.sources.sim",
 }

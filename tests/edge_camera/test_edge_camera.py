@@ -157,6 +157,7 @@ def test_folder_emptied_mid_stream_reconnects_and_stays_up(tmp_path, router, pro
         ('type = "no_such_source"', "", "unknown source type"),
         ('type = "pattern"', 'calibration = "/nonexistent/calib.yaml"', "calibration file"),
         ('type = "pattern"', 'calibration = "BADFILE"', "calibration"),
+        ('type = "recorded"\npath = "/nonexistent/seq"', "", "/nonexistent/seq/frames does not exist"),
     ],
 )
 @pytest.mark.integration
@@ -239,6 +240,39 @@ def test_video_end_without_loop_keeps_process_up_and_router_may_come_later(tmp_p
                          and s.counters.get("frames_sent", 0) >= 1 for s in list(lst.statuses)),
              timeout=30, what=f"Status: 3 frames then end of video:\n{proc.output}")
     assert proc.alive()
+    proc.signal(signal.SIGTERM)
+    assert proc.wait(timeout=15) == 0
+
+
+def test_recorded_source_sends_its_poses_with_their_accuracy_once(tmp_path, router, procs, listener_factory):
+    from edge_camera.pose_accuracy import pose_covariance
+    from tests.support.recorded import pose_of, write_sequence
+
+    seq = write_sequence(tmp_path / "seq", n=3, meta={"rate_hz": 20, "pose_sigma_trans_m": 0.05,
+                                                      "pose_sigma_rot_deg": 2.0})
+    cfg = write_config(tmp_path / "cam.toml", router, f'type = "recorded"\npath = "{seq}"\n')
+    lst = listener_factory(router, "cam_t")
+    proc = Proc(["edge-camera", "--config", str(cfg)])
+    procs.append(proc)
+
+    def ended_without_replay(min_errors: int) -> bool:
+        return any(s.last_error and "end of recording" in s.last_error
+                   and s.counters.get("frames_sent", 0) + s.counters.get("frames_undelivered", 0) == 3
+                   and s.counters.get("frames_sent", 0) >= 1 and s.counters.get("source_errors", 0) >= min_errors
+                   for s in list(lst.statuses))
+
+    wait_for(lambda: ended_without_replay(1), timeout=30, what=f"3 frames then end of recording:\n{proc.output}")
+    # Reopened after the end (back-off 0.1..0.3 s) and told the end again, never replayed.
+    wait_for(lambda: ended_without_replay(3), timeout=30, what=f"the end reported again, no replay:\n{proc.output}")
+    assert proc.alive()
+    frames = list(lst.frames)
+    assert frames and all(f.header.seq < 3 for f in frames)
+    for f in frames:
+        h = f.header
+        assert (h.source_kind, h.pose_trusted, h.width, h.height) == ("fixed", False, 160, 120)
+        assert np.allclose(np.asarray(h.T_world_cam), pose_of(h.seq), atol=1e-8)
+        assert np.array_equal(np.asarray(h.pose_covariance), pose_covariance(0.05, 2.0))
+        assert h.intrinsics.fx == pytest.approx(50.0 * 5) and h.intrinsics.width == 160
     proc.signal(signal.SIGTERM)
     assert proc.wait(timeout=15) == 0
 

@@ -147,7 +147,7 @@ def test_unknown_source_type_and_extra_fields_are_refused():
         parse_source_config({"type": "nope"})
     with pytest.raises(ValueError):
         parse_source_config({"type": "folder", "path": "/x", "colour": "red"})
-    assert set(SOURCES) >= {"opencv", "stream", "video", "folder", "pattern", "sim"}
+    assert set(SOURCES) >= {"opencv", "stream", "video", "folder", "recorded", "pattern", "sim"}
 
 
 class TestCalibration:
@@ -326,7 +326,7 @@ def test_light_imports_pull_in_neither_torch_nor_open3d_nor_sim():
         "import protocol.codec, protocol.transport, protocol.session, protocol.tomlconfig\n"
         "import edge_camera.cli, edge_camera.node, edge_camera.config\n"
         "from edge_camera.sources import create_source, parse_source_config\n"
-        "for t in ('opencv', 'stream', 'video', 'folder', 'pattern', 'sim'):\n"
+        "for t in ('opencv', 'stream', 'video', 'folder', 'recorded', 'pattern', 'sim'):\n"
         "    __import__('edge_camera.sources.' + {'opencv': 'opencv_device'}.get(t, t))\n"
         "s = create_source(parse_source_config({'type': 'pattern', 'width': 8, 'height': 8})); s.open(); s.read()\n"
         "import robot_agent.cli, robot_agent.node, robot_agent.config\n"
