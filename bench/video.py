@@ -24,41 +24,19 @@ from typing import Any
 import cv2
 import numpy as np
 
+from bench import sequences as seqs
 from bench.geomscore import ScenarioResult, score_depth
+from bench.sequences import DATA_ROOT, RecordedFrame, WireFeed
 from mapper.config import KeyframeConfig
 from mapper.core import typical_depth
 from mapper.geometry.contract import View, anchor_pose, compose
 from mapper.geometry.registry import ORACLE_RECONSTRUCTORS
 from mapper.keyframes import KeyframeSelector, KeyframeStore
-from protocol.messages import Intrinsics
-from protocol.poses import check_pose, rotation_angle_deg
+from protocol.poses import PoseAccuracy, rotation_angle_deg
 
-DATA_ROOT = Path(__file__).resolve().parents[1] / ".." / "shared" / "data"
-
-
-@dataclass(frozen=True)
-class SequenceSpec:
-    """How to read one packaged RGB-D sequence."""
-
-    folder: str
-    intrinsics_file: str
-    depth: Callable[[np.ndarray], np.ndarray]  # raw uint16 -> metres
-    valid_m: tuple[float, float]  # recorded depth scored only inside this range
-    rel_rot_deg: float  # relative rotation accuracy of the recorded poses (View.prior_rel_rot_deg)
-
-
-SEQUENCES: dict[str, SequenceSpec] = {
-    # TUM RGB-D fr1/xyz, 30 Hz, ~1.2 cm between frames, motion-capture poses (CC BY 4.0).
-    "tum-fr1-xyz": SequenceSpec("tum-fr1-xyz", "camera-intrinsics.txt", lambda r: r.astype(np.float32) / 5000.0,
-                                (0.1, 10.0), 0.05),
-    # HoloLens corridor, ~5.7 cm between frames, device-tracked poses (MIT).
-    "hololens-dvmvs": SequenceSpec("hololens-dvmvs", "camera-intrinsics.txt",
-                                   lambda r: r.astype(np.float32) / 1000.0, (0.1, 10.0), 0.05),
-    # label-fusion shelf, 6-32 cm between frames, recorded poses off by ~2 deg per frame (its README); the depth
-    # encoding wraps at 0.82 m (MIT).
-    "labelfusion": SequenceSpec("labelfusion", "camera-intrinsics.color.txt",
-                                lambda r: (r >> 3).astype(np.float32) / 10000.0, (0.3, 0.82), 2.0),
-}
+DECLARED_DEFAULT = PoseAccuracy(trans_m=0.005, rot_deg=0.05)
+"""The accuracy the 'declared' runs state for a sequence whose meta file states none: tracking grade (motion
+capture, a robot arm, visual-inertial tracking; what every shared sequence without a statement is)."""
 
 
 @dataclass
@@ -77,32 +55,31 @@ def read_image(path: Path, flags: int = cv2.IMREAD_COLOR) -> np.ndarray:
     return np.asarray(img)
 
 
-def load_sequence(name: str, root: Path = DATA_ROOT) -> tuple[list[Frame], dict[str, int]]:
-    """Frames of a packaged sequence with recorded poses as priors (as written: near-orthonormal rotations are
-    projected, and counted in the returned stats)."""
-    spec = SEQUENCES[name]
-    base = root / spec.folder
-    K = np.loadtxt(base / spec.intrinsics_file)[:3, :3]
-    frames, stats = [], {"poses_projected": 0}
-    for p in sorted((base / "frames").glob("frame-*.color.png")):
-        stem = p.name[: -len(".color.png")]
-        bgr = read_image(p)
-        raw = read_image(base / "frames" / f"{stem}.depth.png", cv2.IMREAD_UNCHANGED)
-        chk = check_pose(np.loadtxt(base / "frames" / f"{stem}.pose.txt"), source=f"{name} {stem}")
-        stats["poses_projected"] += int(chk.projected)
-        h, w = bgr.shape[:2]
-        intr = Intrinsics(width=w, height=h, fx=K[0, 0], fy=K[1, 1], cx=K[0, 2], cy=K[1, 2])
-        depth = spec.depth(raw)
-        rgb = np.asarray(cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB), dtype=np.uint8)
-        view = View(rgb, name, intr, chk.T, seq=int(stem[6:]),
-                    prior_rel_rot_deg=spec.rel_rot_deg)
-        frames.append(Frame(view, depth, (depth > spec.valid_m[0]) & (depth < spec.valid_m[1]), chk.T))
-    return frames, stats
+def wire_frames(recorded: Sequence[RecordedFrame], declared: PoseAccuracy | None,
+                source_id: str = "replay") -> list[Frame]:
+    """Recorded frames as the mapper sees them from the wire (``bench.sequences.WireFeed``: header + JPEG through
+    the mapper's intake), each with its recorded depth as the reference. The recorded pose is the prior and
+    the reference pose. A frame the intake refuses is left out."""
+    feed = WireFeed(source_id)
+    out = []
+    for r in recorded:
+        v = feed.view(r, declared)
+        if v is not None:
+            out.append(Frame(v, r.depth_m, r.valid, r.T_world_cam))
+    return out
+
+
+def load_sequence(name: str, root: Path = DATA_ROOT, declared: PoseAccuracy | None = None
+                  ) -> tuple[list[Frame], dict[str, int]]:
+    """Frames of a sequence folder ``root / name`` through the wire (``wire_frames``; ``declared``: the accuracy
+    the frames declare, None: none), and counts (``poses_projected``: near-rotations projected onto SO(3))."""
+    seq = seqs.load(root / name)
+    return wire_frames(seq.frames, declared, name), {"poses_projected": seq.poses_projected}
 
 
 def available(name: str, root: Path = DATA_ROOT) -> bool:
-    """Whether a packaged sequence is present (they are test data outside the repository)."""
-    return (root / SEQUENCES[name].folder / "frames").is_dir()
+    """Whether a sequence folder is present (they are test data outside the repository)."""
+    return (root / name / "frames").is_dir()
 
 
 def _record(result: ScenarioResult, label: str, k: int, frame: Frame, prior: np.ndarray | None, recon: Any,
@@ -128,8 +105,10 @@ def _record(result: ScenarioResult, label: str, k: int, frame: Frame, prior: np.
 
 
 def run_keyframed(rec: Any, frames: Sequence[Frame], result: ScenarioResult, label: str,
-                  kcfg: KeyframeConfig | None = None) -> dict[str, int]:
-    """Stream frames through the mapper's keyframe and source selection; score every keyframe that gets depth."""
+                  kcfg: KeyframeConfig | None = None, after_frame: Callable[[int], None] | None = None
+                  ) -> dict[str, int]:
+    """Stream frames through the mapper's keyframe and source selection; score every keyframe that gets depth.
+    ``after_frame(k)`` is called after frame ``k`` was handled."""
     kcfg = kcfg or KeyframeConfig()
     selector, store = KeyframeSelector(kcfg), KeyframeStore(kcfg)
     deferred: list[int] = []
@@ -153,6 +132,8 @@ def run_keyframed(rec: Any, frames: Sequence[Frame], result: ScenarioResult, lab
         return True
 
     for k, f in enumerate(frames):
+        if after_frame is not None and k:
+            after_frame(k - 1)
         if not selector.consider(f.view):
             store.note_frame(f.view)
             continue
@@ -167,27 +148,21 @@ def run_keyframed(rec: Any, frames: Sequence[Frame], result: ScenarioResult, lab
                 if not process(j):
                     deferred.append(j)
                 break
+    if after_frame is not None and frames:
+        after_frame(len(frames) - 1)
     counts["keyframes_without_depth"] = len(deferred)
     return counts
 
 
-def run_last_window(rec: Any, frames: Sequence[Frame], result: ScenarioResult, label: str, window: int) -> None:
-    """The previous policy: every frame a target, reconstructed with the last ``window - 1`` frames."""
-    for k in range(1, len(frames)):
-        win = [f.view for f in frames[max(0, k - window + 1): k + 1]]
-        t0 = time.perf_counter()
-        r = rec.reconstruct(win, targets=[len(win) - 1])
-        dt = time.perf_counter() - t0
-        g = compose(r, anchor_pose(r, win))
-        _record(result, label, k, frames[k], win[-1].T_world_cam, r, g, len(win) - 1, dt)
-
-
 def sim_video_frames(family: str, seed: int, n: int) -> list[Frame]:
-    """A simulated robot camera at video rate: 2 cm and 0.6 deg between frames (0.6 m/s at 30 fps)."""
+    """A simulated robot camera at video rate: 2 cm and 0.6 deg between frames (0.6 m/s at 30 fps), true poses
+    as priors declared tracking-grade, through the wire like the recorded sequences."""
     from bench.simdrive import sim_sequences
 
     kfs, _, _ = sim_sequences(family, seed, 1, n, None, step_m=0.02, turn_deg=0.6, flip_every=30)
-    return [Frame(replace(k.view, prior_rel_rot_deg=0.05), k.gt_depth, k.gt_depth > 0, k.T_true) for k in kfs]
+    rec = [RecordedFrame(i, k.view.image, k.view.intrinsics.K() if k.view.intrinsics else np.eye(3), k.T_true,
+                         k.gt_depth, k.gt_depth > 0) for i, k in enumerate(kfs)]
+    return wire_frames(rec, DECLARED_DEFAULT, f"sim{seed}")
 
 
 def _progress(res: ScenarioResult) -> None:
@@ -196,42 +171,96 @@ def _progress(res: ScenarioResult) -> None:
           f"scale {s['median_scale']:.3f}, {s['median_s_per_keyframe']:.2f} s/keyframe", file=sys.stderr, flush=True)
 
 
+def stretches(n: int, length: int) -> list[tuple[int, int]]:
+    """Non-overlapping [start, stop) stretches of ``length`` frames covering ``n`` frames (a shorter tail
+    stretch is dropped unless it is the only one)."""
+    if length <= 0 or n <= 0:
+        return []
+    out = [(a, a + length) for a in range(0, n - length + 1, length)]
+    return out or [(0, n)]
+
+
+def long_stream(rec: Any, frames: Sequence[Frame], n_frames: int, label: str) -> dict[str, Any]:
+    """``n_frames`` frames played back and forth over ``frames`` (no jump at the turn) through the keyframe path:
+    resident memory every 50 frames and seconds per keyframe over the run (the keyframe store and every cache
+    are bounded, so both must stay flat)."""
+    import resource
+
+    def rss_mb() -> float:
+        try:
+            with open("/proc/self/statm") as f:
+                return int(f.read().split()[1]) * resource.getpagesize() / 2**20
+        except OSError:  # not Linux: the peak is the best there is
+            return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
+
+    period = max(1, 2 * len(frames) - 2)
+    order = [k % period if k % period < len(frames) else period - k % period for k in range(n_frames)]
+    res = ScenarioResult(label)
+    rss: list[tuple[int, float]] = []
+    # Each pass is a new stretch of stream: frames get new sequence numbers, like a camera that keeps running.
+    played = [replace(frames[i], view=replace(frames[i].view, seq=k)) for k, i in enumerate(order)]
+
+    def sample(k: int) -> None:
+        if (k + 1) % 50 == 0 or k + 1 == n_frames:
+            rss.append((k + 1, rss_mb()))
+            print(f"[bench geometry] long stream: {k + 1}/{n_frames} frames, {len(res.frames)} keyframes, "
+                  f"RSS {rss[-1][1]:.0f} MB", file=sys.stderr, flush=True)
+
+    run_keyframed(rec, played, res, label, after_frame=sample)
+    secs = [f["seconds"] for f in res.frames]
+    q = max(1, len(secs) // 4)
+    after = [m for k, m in rss if k >= 200]
+    return {
+        "scenario": label, "frames": n_frames, "keyframes": len(secs), "rss_mb": rss,
+        "rss_growth_after_200": (after[-1] / after[0] - 1.0) if len(after) >= 2 else float("nan"),
+        "s_per_keyframe_first_quarter": float(np.median(secs[:q])) if secs else float("nan"),
+        "s_per_keyframe_last_quarter": float(np.median(secs[-q:])) if secs else float("nan"),
+        "median_absrel": res.summary()["median_absrel"],
+    }
+
+
 def bench_video(backend: str, quick: bool, opts: dict[str, Any], sim_seeds: Sequence[int],
-                make: Callable[..., Any]) -> dict[str, Any]:
-    """All video-rate scenarios: each real sequence present (consecutive, every 3rd frame, and the previous
-    last-5-frames window in the full run) and the simulator at video rate."""
+                make: Callable[..., Any], folders: Sequence[Path] | None = None, stretch: int = 0,
+                long_frames: int = 0) -> dict[str, Any]:
+    """Every recorded sequence (``folders``; default: every folder of ../shared/data with a meta file) through
+    the wire twice, with the accuracy its meta file states (else ``DECLARED_DEFAULT``) declared and with none
+    declared (an unconfigured camera); with ``stretch`` also every ``stretch``-frame piece of each, undeclared,
+    as its own stream; with ``long_frames`` a long stream of the first sequence; then the simulator at video rate."""
     scenarios: list[ScenarioResult] = []
     extra: dict[str, Any] = {}
-    names = ["tum-fr1-xyz", "hololens-dvmvs"]
-    for name in names:
-        if not available(name) or backend in ORACLE_RECONSTRUCTORS:
-            continue
-        frames, stats = load_sequence(name)
-        if quick:
-            frames = frames[:24]
-        variants: list[tuple[str, int, bool]] = [("consecutive", 1, False), ("every 3rd frame", 3, False)]
-        if not quick:
-            variants.append(("consecutive, last-5 window (previous policy)", 1, True))
-        for vname, stride, old in variants:
-            res = ScenarioResult(f"{name}, {vname}")
-            rec = make(backend, **opts)
-            sub = list(frames[::stride])
-            if old:
-                run_last_window(rec, sub, res, name, 5)
-                counts = {"frames": len(sub), "keyframes": len(sub) - 1, "keyframes_without_depth": 0}
-            else:
-                counts = run_keyframed(rec, sub, res, name)
-            counts.update(stats)
+    out: dict[str, Any] = {"stretches": [], "long": None}
+    if backend in ORACLE_RECONSTRUCTORS:  # real frames carry no ORACLE data
+        folders = []
+    for folder in (seqs.discover() if folders is None else folders):
+        seq = seqs.load(folder, stop=24 if quick else None)
+        declared = seq.meta.declared() or DECLARED_DEFAULT
+        for tag, decl in (("declared", declared), ("undeclared", None)):
+            frames = wire_frames(seq.frames, decl, seq.name)
+            res = ScenarioResult(f"{seq.name}, {tag}")
+            counts: dict[str, Any] = dict(run_keyframed(make(backend, **opts), frames, res, seq.name))
+            counts.update(poses_projected=seq.poses_projected, sequence=seq.name, declared=tag,
+                          declared_rot_deg=None if decl is None else decl.rot_deg,
+                          declared_trans_m=None if decl is None else decl.trans_m)
             extra[res.name] = counts
             scenarios.append(res)
             _progress(res)
+        for a, b in stretches(len(seq.frames), stretch):
+            frames = wire_frames(seq.frames[a:b], None, seq.name)
+            res = ScenarioResult(f"{seq.name} frames {a}-{b - 1}, undeclared")
+            n = run_keyframed(make(backend, **opts), frames, res, seq.name)
+            out["stretches"].append(dict(res.summary(), **n, sequence=seq.name))
+            _progress(res)
+        if long_frames and out["long"] is None:
+            frames = wire_frames(seq.frames, None, seq.name)
+            out["long"] = long_stream(make(backend, **opts), frames, long_frames,
+                                      f"{seq.name} played back and forth, {long_frames} frames, undeclared")
+            print(f"[bench geometry] long stream: {out['long']}", file=sys.stderr, flush=True)
     for seed in sim_seeds:
         frames = sim_video_frames("furnished_room", seed, 24 if quick else 48)
-        res = ScenarioResult(f"sim furnished_room/{seed} at video rate, true poses as priors")
+        res = ScenarioResult(f"sim furnished_room/{seed} at video rate, true poses declared")
         extra[res.name] = run_keyframed(make(backend, **opts), frames, res, f"sim/{seed}")
         scenarios.append(res)
         _progress(res)
-    return {
-        "depth": [dict(s.summary(), **extra.get(s.name, {})) for s in scenarios],
-        "depth_frames": {s.name: s.frames for s in scenarios},
-    }
+    out.update(depth=[dict(s.summary(), **extra.get(s.name, {})) for s in scenarios],
+               depth_frames={s.name: s.frames for s in scenarios})
+    return out

@@ -11,6 +11,10 @@ shape) counts as ``header_errors``. Every kind of bad input is logged as a WARNI
 Memory is bounded: compressed frames wait in a newest-frames ring per source (``ring_depth``, under
 ``limits.max_buffered_frame_bytes``), plus the same bound for frames waiting for their ORACLE sample, and
 frames are decoded one at a time, just before processing, under ``limits.decode_budget_pixels``.
+
+A header's ``pose_covariance`` becomes the view's prior accuracy (:class:`PriorAccuracy`); a covariance that
+is not one (a negative or non-finite variance) is counted (``frames_bad_covariance``) and the frame goes on
+as one that declared nothing: the reconstructor then judges its prior's accuracy from the images.
 """
 
 from __future__ import annotations
@@ -31,7 +35,7 @@ from protocol.jpeg import JpegError, decode_jpeg
 from protocol.keys import Keys
 from protocol.messages import OracleFrame
 from protocol.oracle import decode_u16_png, png_to_depth
-from protocol.poses import PoseError, check_pose
+from protocol.poses import PoseError, check_pose, pose_accuracy
 from protocol.ratelog import RateLimitedLog
 from protocol.transport import Counters, Frame, LatestSlots, decode_frame_sample, decode_message_sample
 
@@ -64,6 +68,41 @@ def oracle_data(msg: OracleFrame) -> OracleData:
     return OracleData(
         depth_m=depth, T_world_cam_true=np.asarray(msg.T_world_cam_true), instance_id=ids, labels=labels
     )
+
+
+class PriorAccuracy:
+    """How accurate a source's pose priors are, from the covariances its frame headers declare.
+
+    A pose's error is taken as drift (odometry, visual-inertial tracking: it accrues with motion and is
+    shared by the frames after it, so the declared covariance grows) on top of a per-frame error that
+    does not accrue. The per-frame part is the smallest covariance the source has declared so far
+    (elementwise over the diagonal); a source that declares a constant covariance (a motion-capture system,
+    a calibration file, a recording's stated accuracy) has no drift part at all. The view gets the
+    per-frame part as ``prior_rel_trans_m`` / ``prior_rel_rot_deg`` and the covariance itself, from which
+    the reconstructor adds the drift between two views (the growth of the covariance between them).
+    Bounded: the floors of at most ``max_sources`` sources are kept (the oldest forgotten first).
+    """
+
+    def __init__(self, max_sources: int) -> None:
+        self.max_sources = max_sources
+        self._floor: collections.OrderedDict[str, np.ndarray] = collections.OrderedDict()
+
+    def fields(self, source_id: str, covariance: object) -> dict[str, object]:
+        """The View fields for a frame of ``source_id`` that declared ``covariance`` (None: none declared).
+        Raises :class:`PoseError` for a covariance that is not one."""
+        if covariance is None:
+            return {}
+        C = np.asarray(covariance, dtype=np.float64)
+        pose_accuracy(C, source=f"{source_id} pose covariance")  # shape, finite, >= 0
+        d = np.diag(C)
+        floor = self._floor.get(source_id)
+        floor = d.copy() if floor is None else np.minimum(floor, d)
+        self._floor[source_id] = floor
+        self._floor.move_to_end(source_id)
+        while len(self._floor) > self.max_sources:
+            self._floor.popitem(last=False)
+        acc = pose_accuracy(np.diag(floor))
+        return {"prior_rel_trans_m": acc.trans_m, "prior_rel_rot_deg": acc.rot_deg, "pose_covariance": C}
 
 
 class DecodeBudget:
@@ -106,6 +145,7 @@ class FrameIntake:
         # Frames (still compressed) waiting for their ORACLE sample, with their deadline; bounded in count and bytes.
         self._pending: collections.deque[tuple[Frame, float]] = collections.deque(maxlen=2 * config.max_sources)
         self.decode_budget = DecodeBudget(lim.decode_budget_pixels)
+        self.accuracy = PriorAccuracy(config.max_sources)
 
     def extra_counters(self) -> dict[str, float]:
         """The intake's share of the mapper's Status counters."""
@@ -143,11 +183,21 @@ class FrameIntake:
             return
         try:
             frame = decode_frame_sample(sample)
+        except (DecodeError, ValueError) as e:
+            self.refuse("header_errors", "bad frame sample on %s: %s", sample.key_expr, e)
+            return
+        self.admit_frame(frame)
+
+    def admit_frame(self, frame: Frame) -> None:
+        """The checks of :meth:`admit` on a frame whose header decoded (``protocol.transport.decode_frame_bytes``
+        makes one from a sample's bytes): replays and benchmarks go through here exactly as live frames do."""
+        lim = self.config.limits
+        try:
             kind, source_id = self.keys.parse_frame(frame.key)
             if source_id != frame.header.source_id or kind != frame.header.source_kind:
                 raise DecodeError(f"header names {frame.header.source_id!r}, key {frame.key!r}")
         except (DecodeError, ValueError) as e:
-            self.refuse("header_errors", "bad frame sample on %s: %s", sample.key_expr, e)
+            self.refuse("header_errors", "bad frame sample on %s: %s", frame.key, e)
             return
         h = frame.header
         problem = frame_problem(h, frame.jpeg, lim)
@@ -219,6 +269,11 @@ class FrameIntake:
     def view(self, frame: Frame, rgb: np.ndarray, oracle: OracleFrame | None) -> View | None:
         h = frame.header
         try:
+            accuracy = self.accuracy.fields(h.source_id, h.pose_covariance) if h.T_world_cam is not None else {}
+        except PoseError as e:
+            self.refuse("frames_bad_covariance", "ignored the pose covariance of %s#%d: %s", h.source_id, h.seq, e)
+            accuracy = {}
+        try:
             od = oracle_data(oracle) if oracle is not None else None
             return View(
                 image=rgb,
@@ -229,6 +284,7 @@ class FrameIntake:
                 stamp_ns=h.stamp_ns,
                 seq=h.seq,
                 oracle=od,
+                **accuracy,  # type: ignore[arg-type]
             )
         except (ValueError, JpegError) as e:
             self.refuse("decode_errors", "unusable frame from %s#%d: %s", h.source_id, h.seq, e)

@@ -491,6 +491,16 @@ class WorkFrame(Message):
         default=None, description="the pose the mapper holds for this view (prior or registered); null: unknown"
     )
     pose_trusted: bool = Field(default=False, description="a surveyed calibration reconstruction must not move")
+    pose_covariance: Mat6 | None = Field(
+        default=None, description="the pose covariance the frame's header declared (x y z roll pitch yaw; m^2, rad^2)"
+    )
+    prior_rel_trans_m: float | None = Field(
+        default=None, ge=0, description="per-frame std-dev of the prior's position relative to the source's other "
+        "frames, metres (null: judged from the images; +inf: independent per-frame errors)"
+    )
+    prior_rel_rot_deg: float | None = Field(
+        default=None, ge=0, description="the same for the rotation, degrees"
+    )
 
 
 class WorkJob(Message):
@@ -501,6 +511,8 @@ class WorkJob(Message):
     """
 
     KIND: ClassVar[str] = "work_job"
+    # 1.1: its frames carry the declared pose accuracy (pose_covariance, prior_rel_*).
+    SCHEMA: ClassVar[tuple[int, int]] = (1, 1)
     job_id: str = Field(min_length=1, max_length=300, description="the keyframe id: <source_id>#<seq>")
     attempt: int = Field(ge=1, description="1 for the first issue, +1 for each re-issue")
     window: list[WorkFrame] = Field(min_length=1, max_length=64, description="the views reconstructed together")

@@ -217,3 +217,33 @@ def unproject(K: ArrayLike, uv: ArrayLike, depth_m: ArrayLike) -> F64:
     x = (uv_a[:, 0] - Km[0, 2]) / Km[0, 0] * d
     y = (uv_a[:, 1] - Km[1, 2]) / Km[1, 1] * d
     return np.stack([x, y, d], axis=1)
+
+
+@dataclass(frozen=True)
+class PoseAccuracy:
+    """A pose's declared accuracy as standard deviations: the largest of its three position std-devs
+    (metres) and of its three rotation std-devs (degrees)."""
+
+    trans_m: float
+    rot_deg: float
+
+
+def pose_accuracy(covariance: ArrayLike, source: str = "pose covariance") -> PoseAccuracy:
+    """Std-devs from a 6x6 pose covariance (order x y z roll pitch yaw; m^2 and rad^2, as
+    ``FrameHeader.pose_covariance``). Only the diagonal is read. A shape other than 6x6, a non-finite
+    entry or a negative variance is a :class:`PoseError` naming ``source``."""
+    C = np.asarray(covariance, dtype=np.float64)
+    if C.shape != (6, 6):
+        raise PoseError(f"{source}: expected a 6x6 covariance, got shape {C.shape}")
+    d = np.diag(C)
+    if not np.all(np.isfinite(d)) or np.any(d < 0):
+        raise PoseError(f"{source}: variances must be finite and >= 0, got {np.round(d, 9).tolist()}")
+    return PoseAccuracy(float(np.sqrt(d[:3].max())), float(np.degrees(np.sqrt(d[3:].max()))))
+
+
+def covariance_from_accuracy(trans_m: float, rot_deg: float) -> F64:
+    """The diagonal 6x6 pose covariance (x y z roll pitch yaw) of position std-dev ``trans_m`` (metres, per
+    axis) and rotation std-dev ``rot_deg`` (degrees, per axis): the inverse of :func:`pose_accuracy`."""
+    if not (np.isfinite(trans_m) and np.isfinite(rot_deg) and trans_m >= 0 and rot_deg >= 0):
+        raise PoseError(f"pose accuracy must be finite and >= 0, got {trans_m} m, {rot_deg} deg")
+    return np.diag([trans_m**2] * 3 + [np.radians(rot_deg) ** 2] * 3).astype(np.float64)

@@ -141,12 +141,18 @@ def decode_frame_sample(sample: zenoh.Sample) -> Frame:
     The JPEG bytes are not decoded here (that is the receiver's choice and cost).
     """
     att = sample.attachment
-    if att is None:
+    return decode_frame_bytes(str(sample.key_expr), None if att is None else att.to_bytes(), sample.payload.to_bytes())
+
+
+def decode_frame_bytes(key: str, attachment: bytes | None, payload: bytes) -> Frame:
+    """:func:`decode_frame_sample` on a sample's parts (its key, attachment bytes and payload bytes): what a
+    replay or a benchmark hands the receiver to go the way a frame from the wire goes."""
+    if attachment is None:
         raise DecodeError("frame sample has no header attachment")
-    if len(att) > MAX_HEADER_BYTES:
-        raise DecodeError(f"frame header attachment of {len(att)} bytes exceeds {MAX_HEADER_BYTES}")
-    header = decode(att.to_bytes(), FrameHeader)
-    return Frame(header=header, jpeg=sample.payload.to_bytes(), key=str(sample.key_expr), received_ns=time.time_ns())
+    if len(attachment) > MAX_HEADER_BYTES:
+        raise DecodeError(f"frame header attachment of {len(attachment)} bytes exceeds {MAX_HEADER_BYTES}")
+    header = decode(attachment, FrameHeader)
+    return Frame(header=header, jpeg=payload, key=key, received_ns=time.time_ns())
 
 
 def decode_message_sample(sample: zenoh.Sample, expected: type[M]) -> M:

@@ -66,6 +66,12 @@ F64 = NDArray[np.float64]
 I64 = NDArray[np.int64]
 
 
+MIN_REL_ROT_RAD = np.radians(0.001)
+"""Smallest rotation std-dev of a between-factor (a declared 0 would be an infinite weight)."""
+MIN_REL_TRANS_M = 1e-5
+"""Smallest translation std-dev of a between-factor, metres."""
+
+
 def build_tracks(n_kp: list[int], pair_matches: dict[tuple[int, int], I64]) -> list[I64]:
     """Join pairwise matches into tracks with union-find.
 
@@ -175,6 +181,8 @@ class BundleProblem:
     rel_trans_sigma_m: dict[tuple[int, int], float] = field(default_factory=dict)
     """Per camera: odometry source. Between-factors link consecutive cameras of one group only (two
     robots, or a robot and a hand-held phone, share no odometry). Empty: one group."""
+    holdout: NDArray[np.bool_] | None = None
+    """Per point: held out of the solve, to judge it (``BundleResult.holdout_px_*``). None: none."""
 
 
 @dataclass
@@ -202,6 +210,13 @@ class BundleResult:
     """Median over points of the largest angle between their observing rays, with the prior poses."""
     n_inliers: int = 0
     """Number of True entries of ``inlier_obs``."""
+    holdout_px_prior: float = float("nan")
+    """Median reprojection error (px) of the held-out tracks (``BundleProblem.holdout``), each triangulated
+    afresh with the prior poses; NaN without held-out tracks."""
+    holdout_px_refined: float = float("nan")
+    """The same with the refined poses (the priors' when ``status`` is not "ok")."""
+    n_holdout_obs: int = 0
+    """Observations of held-out tracks both errors are measured on."""
 
 
 def _obs_errors(Ks: list[F64], T_world_cam: list[F64], X_world: F64, oc: I64, op: I64, uv: F64) -> tuple[F64, F64]:
@@ -241,6 +256,34 @@ def _median_parallax_deg(centres: F64, X_world: F64, oc: I64, op: I64) -> float:
     return float(np.degrees(np.median(np.arccos(np.clip(min_cos[seen], -1.0, 1.0)))))
 
 
+def holdout_error_px(Ks: list[F64], T_world_cam: list[F64], oc: I64, op: I64, uv: F64) -> tuple[float, int]:
+    """Median reprojection error (px) of tracks triangulated afresh (linear DLT) with ``T_world_cam``: how well
+    the poses explain tracks the solve did not see. ``oc``/``op``/``uv``: the tracks' observations (camera,
+    point id, pixel); points with fewer than two observations are skipped. An observation behind its camera
+    counts as off by 100 px. Returns (median, observations measured); (NaN, 0) when there are none."""
+    order = np.argsort(op, kind="stable")
+    oc, op, uv = oc[order], op[order], uv[order]
+    ids, start, count = np.unique(op, return_index=True, return_counts=True)
+    Ps = np.stack([projection_matrix(K, T) for K, T in zip(Ks, T_world_cam, strict=True)]) if Ks else None
+    errs: list[F64] = []
+    for n in np.unique(count[count >= 2]).tolist():
+        sel = np.flatnonzero(count == n)
+        rows = (start[sel][:, None] + np.arange(n)[None, :])  # (T, n) observation rows per point
+        assert Ps is not None
+        X = triangulate_many(Ps[oc[rows]], uv[rows])
+        ok = np.all(np.isfinite(X), axis=1)
+        if not ok.any():
+            continue
+        rows, X = rows[ok], X[ok]
+        flat = rows.reshape(-1)
+        e, z = _obs_errors(Ks, T_world_cam, np.repeat(X, n, axis=0), oc[flat], np.arange(len(flat)), uv[flat])
+        errs.append(np.where((z > 0) & np.isfinite(e), e, 100.0))
+    if not errs:
+        return float("nan"), 0
+    allerr = np.concatenate(errs)
+    return float(np.median(allerr)), int(len(allerr))
+
+
 def _pose_noise(rot_rad: float, trans_m: float) -> gtsam.noiseModel.Base:
     # gtsam orders Pose3 tangent vectors (rotation, translation), both in the pose's local frame.
     return gtsam.noiseModel.Diagonal.Sigmas(np.array([rot_rad] * 3 + [trans_m] * 3))
@@ -272,8 +315,9 @@ def _pose_factors(
             pair_trans = prob.rel_trans_sigma_m.get((int(a), int(b)), sigma_rel_trans_m)
             if not (np.isfinite(pair_trans) and (pair_rot is None or np.isfinite(pair_rot))):
                 continue  # independent per-frame errors: the absolute priors already say all there is
-            noise = _pose_noise(rel_rot_rad if pair_rot is None else np.radians(pair_rot),
-                                pair_trans + rel_trans_frac * step_m)
+            # Floors: a declared accuracy of 0 (a perfect prior) must not become an infinite weight.
+            noise = _pose_noise(max(rel_rot_rad if pair_rot is None else np.radians(pair_rot), MIN_REL_ROT_RAD),
+                                max(pair_trans + rel_trans_frac * step_m, MIN_REL_TRANS_M))
             if rel_huber is not None:
                 # Robust odometry: tight where the priors agree with the images (video-grade tracking), but a
                 # prior that the images contradict by many sigmas (independent per-frame errors) costs
@@ -334,15 +378,23 @@ def bundle_adjust(
         seen[op[oc == c]] = True
         n_views += seen
     in_graph_pt = finite & (n_views >= 2)
+    held_pt = np.zeros(len(pts0), bool) if prob.holdout is None else np.asarray(prob.holdout, bool) & in_graph_pt
+    held_obs = held_pt[op] if len(op) else np.zeros(0, bool)
+    in_graph_pt &= ~held_pt
     in_graph_obs = in_graph_pt[op] if len(op) else np.zeros(0, bool)
     parallax = _median_parallax_deg(C_prior, pts0, oc[in_graph_obs], op[in_graph_obs])
 
+    def holdout(T: list[F64]) -> tuple[float, int]:
+        return holdout_error_px(prob.Ks, T, oc[held_obs], op[held_obs], ouv[held_obs])
+
     def keep_priors(status: str, scale_correction: float = 1.0, n_iterations: int = 0) -> BundleResult:
         inl = (err0 < 3.0 * huber_px) & (z0 > 0)
+        h_prior, n_h = holdout(T_prior)
         return BundleResult(
             T_world_cam=[T.copy() for T in T_prior], points_world=pts0.copy(), inlier_obs=inl,
             rms_px_before=rms0, rms_px_after=rms0, n_iterations=n_iterations, status=status,
             scale_correction=scale_correction, median_parallax_deg=parallax, n_inliers=int(inl.sum()),
+            holdout_px_prior=h_prior, holdout_px_refined=h_prior, n_holdout_obs=n_h,
         )
 
     if not np.any(~fixed):
@@ -436,8 +488,10 @@ def bundle_adjust(
         return keep_priors("few_inliers", 1.0 / s, n_it)
     if abs(1.0 - s) > max_scale_change:
         return keep_priors("scale_change", 1.0 / s, n_it)
+    h_prior, n_h = holdout(T_prior)
+    h_ref, _ = holdout(T_ref)
     return BundleResult(
         T_world_cam=T_ref, points_world=pts, inlier_obs=inl, rms_px_before=rms0, rms_px_after=_rms(err, z),
         n_iterations=n_it, status="ok", scale_correction=1.0 / s, median_parallax_deg=parallax,
-        n_inliers=int(inl.sum()),
+        n_inliers=int(inl.sum()), holdout_px_prior=h_prior, holdout_px_refined=h_ref, n_holdout_obs=n_h,
     )

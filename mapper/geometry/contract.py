@@ -54,7 +54,11 @@ class View:
     tracking, motion capture or a gyro, ~1 for priors with independent per-frame errors; None lets the
     reconstructor judge it from the images; ``math.inf`` says the prior's errors are independent per frame
     (no relative information beyond the absolute prior). prior_rel_trans_m: the same for the relative
-    translation (std-dev, metres; None: the reconstructor's default). oracle: ORACLE truth (simulated sources only).
+    translation (std-dev, metres; None: the reconstructor's default). pose_covariance: the 6x6 covariance the
+    frame's header declared for its pose (x y z roll pitch yaw; m^2, rad^2), None when it declared none; between
+    two views of one source its growth is the drift accrued in between (odometry, visual-inertial tracking),
+    on top of the per-frame accuracy in ``prior_rel_*`` (``mapper.inbox.PriorAccuracy`` derives both from the
+    wire). oracle: ORACLE truth (simulated sources only).
     """
 
     image: NDArray[np.uint8]
@@ -67,6 +71,7 @@ class View:
     oracle: OracleData | None = None
     prior_rel_rot_deg: float | None = None
     prior_rel_trans_m: float | None = None
+    pose_covariance: F64 | None = None
 
     def __post_init__(self) -> None:
         img = np.asarray(self.image)

@@ -107,6 +107,23 @@ class MvsConfig(BaseModel):
     static_px: float = Field(
         default=2.0, ge=0, description="matches moving less than this while the camera moved are dropped"
     )
+    holdout_every: int = Field(
+        default=5, ge=0,
+        description="every n-th track is held out of the adjustment and triangulated afresh with the priors and "
+        "with the refined poses (0: none). Where a view declares no pose accuracy the refined poses replace the "
+        "priors only when they explain these tracks better (``holdout_min_gain``, ``holdout_min_px``)",
+    )
+    holdout_min_gain: float = Field(
+        default=0.15, ge=0, lt=1,
+        description="undeclared priors: the refined poses' held-out median error must be this fraction below the "
+        "priors'",
+    )
+    holdout_min_px: float = Field(
+        default=0.3, ge=0, description="... and at least this many pixels below it (accurate priors stay as they are)"
+    )
+    holdout_min_obs: int = Field(
+        default=20, ge=1, description="held-out observations needed to judge; with fewer, undeclared priors are kept"
+    )
     max_ba_rms_px: float = Field(default=4.0, gt=0, description="reject an adjustment whose RMS stays above")
     max_ba_sigmas: float = Field(
         default=5.0, gt=0, description="reject an adjustment that moves a prior by more than this many sigmas"
@@ -142,6 +159,16 @@ class _Prepared:
     intr: Intrinsics
     T_prior: F64 | None
     feats: features.Features
+
+
+def _drift_variance(a: View, b: View, axes: slice) -> float:
+    """Variance the pose error of one source accrued between views ``a`` and ``b`` along ``axes`` of the declared
+    covariances (0:3 position, m^2; 3:6 rotation, rad^2): the largest growth of the diagonal between them
+    (0 unless both declared a covariance; ``mapper.inbox.PriorAccuracy`` says why)."""
+    if a.pose_covariance is None or b.pose_covariance is None:
+        return 0.0
+    grown = np.abs(np.diag(b.pose_covariance)[axes] - np.diag(a.pose_covariance)[axes])
+    return float(grown.max())
 
 
 def _guess_intrinsics(v: View, hfov_deg: float) -> Intrinsics:
@@ -398,6 +425,10 @@ class MvsReconstructor:
                     op.append(p)
                     ouv.append(prep[v].feats.uv[k])
                     orig.append(o)
+        c = self.config
+        # Where no view declares how accurate its prior is, a share of the tracks is held out to judge the result.
+        undeclared = any(has_prior[i] and not prep[i].view.pose_trusted and prep[i].view.prior_rel_rot_deg is None
+                         for i in idx)
         sources = sorted({prep[i].view.source_id for i in idx})
         group = [sources.index(prep[i].view.source_id) for i in idx]
         prob = bundle.BundleProblem(
@@ -412,8 +443,9 @@ class MvsReconstructor:
             prior_group=group,
             rel_rot_sigma_deg=self._relative_rotation_sigmas(prep, idx, group, has_prior),
             rel_trans_sigma_m=self._declared_translation_sigmas(prep, idx, group, has_prior),
+            holdout=(np.arange(len(pts)) % c.holdout_every == c.holdout_every - 1
+                     if undeclared and c.holdout_every > 1 else None),
         )
-        c = self.config
         res = bundle.bundle_adjust(
             prob, c.sigma_rot_deg, c.sigma_trans_m, sigma_rel_rot_deg=c.sigma_rel_rot_deg,
             sigma_rel_trans_m=c.sigma_rel_trans_m, rel_trans_frac=c.rel_trans_frac, min_parallax_deg=c.min_parallax_deg,
@@ -430,14 +462,21 @@ class MvsReconstructor:
         accepted = (
             res.status == "ok" and res.rms_px_after <= self.config.max_ba_rms_px and worst <= self.config.max_ba_sigmas
         )
+        status = res.status if res.status != "ok" or accepted else "moved_too_far"
+        if accepted and undeclared and not self._holdout_says_better(res):
+            # Nothing says how good these priors are, and tracks the solve did not see are explained no better
+            # by the refined poses: keep the priors (a refinement of good priors over a short baseline can trade
+            # rotation against depth and rescale the scene while fitting its own tracks as well as they do).
+            accepted, status = False, "holdout_not_better"
         if accepted:
             for k, i in enumerate(idx):
                 poses[i] = res.T_world_cam[k]
         info.setdefault("ba", []).append(
             {"rms_px_before": res.rms_px_before, "rms_px_after": res.rms_px_after, "nfev": res.n_iterations,
              "n_obs": len(oc), "n_points": len(pts), "max_move_sigmas": worst, "accepted": accepted,
-             "status": res.status if res.status != "ok" or accepted else "moved_too_far",
-             "scale_correction": res.scale_correction, "median_parallax_deg": res.median_parallax_deg}
+             "status": status, "scale_correction": res.scale_correction,
+             "median_parallax_deg": res.median_parallax_deg, "holdout_px_prior": res.holdout_px_prior,
+             "holdout_px_refined": res.holdout_px_refined, "n_holdout_obs": res.n_holdout_obs}
         )
         if not accepted:
             # Keep only the points that the priors themselves explain.
@@ -458,6 +497,14 @@ class MvsReconstructor:
         keep = [p for p, lst in per_point.items() if len(lst) >= 2]
         return res.points_world[keep].reshape(-1, 3), [np.array(per_point[p]) for p in keep]
 
+    def _holdout_says_better(self, res: bundle.BundleResult) -> bool:
+        """Whether the refined poses explain the held-out tracks clearly better than the priors."""
+        c = self.config
+        if res.n_holdout_obs < c.holdout_min_obs:
+            return False
+        prior, refined = res.holdout_px_prior, res.holdout_px_refined
+        return bool(refined <= (1.0 - c.holdout_min_gain) * prior and prior - refined >= c.holdout_min_px)
+
     @staticmethod
     def _chain_pairs(
         prep: list[_Prepared], idx: list[int], group: list[int], has_prior: list[bool]
@@ -472,9 +519,10 @@ class MvsReconstructor:
         """Translation std-dev floor of each between-factor where both views declare one (else the default)."""
         out = {}
         for ka, kb in self._chain_pairs(prep, idx, group, has_prior):
-            da, db = prep[idx[ka]].view.prior_rel_trans_m, prep[idx[kb]].view.prior_rel_trans_m
+            va, vb = prep[idx[ka]].view, prep[idx[kb]].view
+            da, db = va.prior_rel_trans_m, vb.prior_rel_trans_m
             if da is not None and db is not None:
-                out[(ka, kb)] = float(max(da, db))
+                out[(ka, kb)] = float(np.sqrt(max(da, db) ** 2 + _drift_variance(va, vb, slice(0, 3))))
         return out
 
     def _relative_rotation_sigmas(
@@ -491,7 +539,8 @@ class MvsReconstructor:
             a, b = prep[idx[ka]], prep[idx[kb]]
             declared = [v.prior_rel_rot_deg for v in (a.view, b.view)]
             if declared[0] is not None and declared[1] is not None:  # the source knows its accuracy
-                out[(ka, kb)] = float(max(declared[0], declared[1]))
+                drift_deg2 = float(np.degrees(np.sqrt(_drift_variance(a.view, b.view, slice(3, 6))))) ** 2
+                out[(ka, kb)] = float(np.sqrt(max(declared[0], declared[1]) ** 2 + drift_deg2))
                 continue
             R_img = self._pair_rot.get((a.view.key, b.view.key))
             disagree = None if R_img is None else self._prior_disagreement_deg(a, b, cast(F64, R_img))

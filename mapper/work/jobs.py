@@ -68,7 +68,9 @@ def frame_of(view: View) -> WorkFrame:
     return WorkFrame(source_id=view.source_id, seq=view.seq, stamp_ns=view.stamp_ns, width=w, height=h,
                      intrinsics=view.intrinsics,
                      T_world_cam=None if view.T_world_cam is None else view.T_world_cam.tolist(),
-                     pose_trusted=view.pose_trusted)
+                     pose_trusted=view.pose_trusted,
+                     pose_covariance=None if view.pose_covariance is None else view.pose_covariance.tolist(),
+                     prior_rel_trans_m=view.prior_rel_trans_m, prior_rel_rot_deg=view.prior_rel_rot_deg)
 
 
 def view_of(frame: WorkFrame, image: np.ndarray) -> View:
@@ -78,7 +80,9 @@ def view_of(frame: WorkFrame, image: np.ndarray) -> View:
                          f"the job says {frame.width}x{frame.height}")
     return View(image=image, source_id=frame.source_id, intrinsics=frame.intrinsics,
                 T_world_cam=None if frame.T_world_cam is None else np.asarray(frame.T_world_cam),
-                pose_trusted=frame.pose_trusted, stamp_ns=frame.stamp_ns, seq=frame.seq)
+                pose_trusted=frame.pose_trusted, stamp_ns=frame.stamp_ns, seq=frame.seq,
+                pose_covariance=None if frame.pose_covariance is None else np.asarray(frame.pose_covariance),
+                prior_rel_trans_m=frame.prior_rel_trans_m, prior_rel_rot_deg=frame.prior_rel_rot_deg)
 
 
 def make_job(views: list[View], target: int, jpeg: bytes, attempt: int, perception: bool,

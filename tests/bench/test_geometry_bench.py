@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from bench.geometry import check_bars, main, markdown, score_depth
+from bench.geometry import check_bars, main, markdown, score_depth, worst_rows
 
 
 def test_score_depth_exact() -> None:
@@ -24,18 +24,44 @@ def test_score_depth_exact() -> None:
     assert empty.confident == 0.0 and np.isnan(empty.absrel)
 
 
-def test_bars_and_markdown_report_misses() -> None:
-    frames = [{"seconds": 3.0, "cpu_seconds": 1.0}]
-    depth = {"scenario": "x", "n_keyframes": 1, "median_absrel": 0.2, "median_delta125": 0.9, "median_confident": 0.8,
-             "mean_confident": 0.8, "median_s_per_keyframe": 3.0, "p90_s_per_keyframe": 3.0,
-             "median_cpu_s_per_keyframe": 1.0}
+def _row(name: str, declared: str, absrel: float, scale: float) -> dict:
+    from bench.geomscore import ScenarioResult
+
+    res = ScenarioResult(f"{name}, {declared}")
+    res.seconds.append(0.3)
+    res.frames.append({"n_gt": 100, "absrel": absrel, "delta125": 0.95, "confident": 0.6, "scale": scale,
+                       "seconds": 0.3, "cpu_seconds": 0.3, "t_poses_s": 0.1, "t_dense_s": 0.2, "rot_deg_before": 0.0,
+                       "rot_deg_after": 0.0, "trans_cm_before": 0.0, "trans_cm_after": 0.0})
+    return dict(res.summary(), sequence=name, declared=declared)
+
+
+def test_the_worst_sequence_decides_and_misses_are_reported() -> None:
+    rows = [_row("a", "undeclared", 0.05, 0.99), _row("b", "undeclared", 0.09, 1.05), _row("a", "declared", 0.04, 1.0),
+            _row("b", "declared", 0.05, 1.0), dict(_row("sim", "x", 0.5, 1.0), declared=None)]
+    frames = {r["scenario"]: [{"seconds": 0.3}] for r in rows}
     report = {"backend": "mvs", "machine": "m", "cpus": 2, "load_avg": "0", "sim": None,
-              "real": {"depth": [depth], "depth_frames": {"x": frames}}}
+              "video": {"depth": rows, "depth_frames": frames}}
+    worst = {w["declared"]: w for w in worst_rows(rows)}
+    assert worst["undeclared"]["absrel"] == 0.09 and worst["undeclared"]["absrel_at"] == "b"
+    assert worst["undeclared"]["scale"] == 1.05 and worst["declared"]["absrel"] == 0.05
     report["bars"] = check_bars(report)
     met = {b["bar"]: b["met"] for b in report["bars"]}
-    assert met["real frames: median AbsRel"] is False and met["real frames: confident fraction"] is True
+    assert met["worst recorded sequence, undeclared: AbsRel (b)"] is False
+    assert met["worst recorded sequence, declared: AbsRel (b)"] is True
+    assert met["worst recorded sequence, undeclared: scale (b)"] is False
     text = markdown(report)
-    assert "| real frames: median AbsRel | <= 0.1 | 0.200 | False |" in text
+    assert "| worst recorded sequence, undeclared: AbsRel (b) | <= 0.08 | 0.090 | False |" in text
+    assert "| undeclared | 2 | 0.090 (b) |" in text
+
+
+def test_a_broken_sequence_folder_is_one_line_naming_the_file(tmp_path, capsys: pytest.CaptureFixture[str]) -> None:
+    from tests.support.recorded import write_sequence
+
+    folder = write_sequence(tmp_path / "seq", n=2)
+    with pytest.raises(SystemExit) as e:
+        main(["--only-video", "--no-sim", "--sequence", str(folder)])
+    assert e.value.code == 2
+    assert f"{folder / 'meta.json'}: missing" in capsys.readouterr().err
 
 
 def test_help_exits_cleanly(capsys: pytest.CaptureFixture[str]) -> None:

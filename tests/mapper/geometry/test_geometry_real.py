@@ -15,9 +15,10 @@ DATA = REPO / ".." / "shared" / "data" / "labelfusion"
 
 @pytest.mark.skipif(not (DATA / "frames").is_dir(), reason="real frames not present (../shared/data/labelfusion)")
 def test_real_frames_depth_against_recorded_depth() -> None:
-    from bench.geometry import load_labelfusion
+    from bench.video import load_sequence
 
-    data = load_labelfusion(DATA)[6:11]
+    frames, _ = load_sequence("labelfusion", DATA.parent)  # through the wire, no accuracy declared
+    data = [(f.view, f.depth_m) for f in frames[6:11]]
     views = [v for v, _ in data]
     r = make_reconstructor("mvs").reconstruct(views, targets=[2])
     g = compose(r, anchor_pose(r, views))
