@@ -27,7 +27,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
-from pydantic import BaseModel, ConfigDict, Field, ValidationError
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from mapper.geometry.contract import View
 from protocol.messages import FrameHeader, Intrinsics
@@ -53,13 +53,19 @@ class SequenceMeta(BaseModel):
     valid_depth_m: tuple[float, float] = Field(description="recorded depth is scored only inside this range, metres")
     intrinsics_file: str = Field(default="camera-intrinsics.txt", description="the file holding K (first 3 rows)")
     pose_sigma_trans_m: float | None = Field(
-        default=None, ge=0, description="stated accuracy of the recorded poses: position std-dev, metres"
+        default=None, gt=0, description="stated accuracy of the recorded poses: position std-dev, metres"
     )
     pose_sigma_rot_deg: float | None = Field(
-        default=None, ge=0, description="stated accuracy of the recorded poses: rotation std-dev, degrees"
+        default=None, gt=0, description="stated accuracy of the recorded poses: rotation std-dev, degrees"
     )
     licence: str = Field(default="", description="the data's licence")
     pose_source: str = Field(default="", description="where the poses come from")
+
+    @model_validator(mode="after")
+    def _both_or_neither(self) -> SequenceMeta:
+        if (self.pose_sigma_trans_m is None) != (self.pose_sigma_rot_deg is None):
+            raise ValueError("pose_sigma_trans_m and pose_sigma_rot_deg go together (both or neither)")
+        return self
 
     def declared(self) -> PoseAccuracy | None:
         """The accuracy the sequence states for its poses, when it states both parts."""

@@ -10,6 +10,8 @@ import math
 
 import numpy as np
 
+from protocol.poses import covariance_from_accuracy
+
 
 def pose_covariance(sigma_trans_m: float, sigma_rot_deg: float) -> np.ndarray:
     """``(6, 6)`` diagonal covariance ``diag([st^2] * 3 + [radians(sr)^2] * 3)``.
@@ -21,9 +23,7 @@ def pose_covariance(sigma_trans_m: float, sigma_rot_deg: float) -> np.ndarray:
     for name, v in (("sigma_trans_m", sigma_trans_m), ("sigma_rot_deg", sigma_rot_deg)):
         if isinstance(v, bool) or not isinstance(v, (int, float)) or not (math.isfinite(v) and v > 0.0):
             raise ValueError(f"{name} must be finite and > 0, got {v!r}")
-    st2 = float(sigma_trans_m) ** 2
-    sr2 = math.radians(sigma_rot_deg) ** 2
-    return np.diag([st2, st2, st2, sr2, sr2, sr2])
+    return covariance_from_accuracy(float(sigma_trans_m), float(sigma_rot_deg))
 
 
 def declared_covariance(sigma_trans_m: float | None, sigma_rot_deg: float | None, where: str) -> np.ndarray | None:

@@ -468,6 +468,9 @@ class MvsReconstructor:
             # by the refined poses: keep the priors (a refinement of good priors over a short baseline can trade
             # rotation against depth and rescale the scene while fitting its own tracks as well as they do).
             accepted, status = False, "holdout_not_better"
+        depth_ratio = 1.0
+        if accepted and undeclared:
+            depth_ratio = self._hold_depth_scale(prob, res, [has_prior[i] or prep[i].view.pose_trusted for i in idx])
         if accepted:
             for k, i in enumerate(idx):
                 poses[i] = res.T_world_cam[k]
@@ -476,7 +479,8 @@ class MvsReconstructor:
              "n_obs": len(oc), "n_points": len(pts), "max_move_sigmas": worst, "accepted": accepted,
              "status": status, "scale_correction": res.scale_correction,
              "median_parallax_deg": res.median_parallax_deg, "holdout_px_prior": res.holdout_px_prior,
-             "holdout_px_refined": res.holdout_px_refined, "n_holdout_obs": res.n_holdout_obs}
+             "holdout_px_refined": res.holdout_px_refined, "n_holdout_obs": res.n_holdout_obs,
+             "depth_ratio": depth_ratio}
         )
         if not accepted:
             # Keep only the points that the priors themselves explain.
@@ -496,6 +500,53 @@ class MvsReconstructor:
                 per_point.setdefault(p, []).append(o)
         keep = [p for p, lst in per_point.items() if len(lst) >= 2]
         return res.points_world[keep].reshape(-1, 3), [np.array(per_point[p]) for p in keep]
+
+    @staticmethod
+    def _hold_depth_scale(prob: bundle.BundleProblem, res: bundle.BundleResult, anchored: list[bool]) -> float:
+        """Keep the refined solution's scene scale (in place) within what the images can have measured, and
+        return the depth ratio kept (refined / prior median depth of the same tracks).
+
+        The adjustment keeps the priors' camera-centre scale, but freed relative rotations change where rays
+        meet (vergence), so the scene's depth scale moves with them. Part of that is real: priors whose
+        rotations are off by ~e/f rad (e: their held-out reprojection error, px; f: focal length, px) put the
+        tracks' depths off by up to ~(e/f) / parallax, and the images correct it. A larger change is not
+        something the images measure: unmodelled lens distortion or intrinsics errors pull the rotations and
+        scale the scene by a few percent while the reprojections improve. That excess is taken out: camera
+        centres and points are scaled about the anchored cameras' centroid (rotations and every reprojection
+        unchanged)."""
+        ok = res.inlier_obs & np.isfinite(prob.points_world[prob.obs_pt]).all(axis=1)
+        if ok.sum() < 10:
+            return 1.0
+        z_prior = np.empty(len(ok))
+        z_ref = np.empty(len(ok))
+        for k, (K, T0, T1) in enumerate(zip(prob.Ks, prob.T_world_cam, res.T_world_cam, strict=True)):
+            sel = ok & (prob.obs_cam == k)
+            if sel.any():
+                z_prior[sel] = bundle.reproject(K, T0, prob.points_world[prob.obs_pt[sel]])[1]
+                z_ref[sel] = bundle.reproject(K, T1, res.points_world[prob.obs_pt[sel]])[1]
+        good = ok & (z_prior > 0) & (z_ref > 0)
+        if good.sum() < 10:
+            return 1.0
+        ratio = float(np.median(z_ref[good] / z_prior[good]))
+        if not (np.isfinite(ratio) and ratio > 0):
+            return 1.0
+        # What the priors' own inconsistency explains: rotation errors of ~e/f rad (e: their held-out error, px)
+        # move depth by ~(e/f) / parallax. A scale change within that the images measured; beyond it, not.
+        f = float(np.mean([K[0, 0] for K in prob.Ks]))
+        parallax = np.radians(max(res.median_parallax_deg, 1e-3))
+        e = res.holdout_px_prior if np.isfinite(res.holdout_px_prior) else res.rms_px_before
+        explained = float(np.log1p((e / f) / parallax))
+        kept = float(np.exp(np.clip(np.log(ratio), -explained, explained)))
+        ratio = ratio / kept
+        if abs(ratio - 1.0) < 1e-12:
+            return kept
+        a = np.asarray(anchored, bool)
+        centres = np.stack([T[:3, 3] for T in res.T_world_cam])
+        c = centres[a].mean(axis=0) if a.any() else centres.mean(axis=0)
+        for T in res.T_world_cam:
+            T[:3, 3] = c + (T[:3, 3] - c) / ratio
+        res.points_world = c + (res.points_world - c) / ratio
+        return kept
 
     def _holdout_says_better(self, res: bundle.BundleResult) -> bool:
         """Whether the refined poses explain the held-out tracks clearly better than the priors."""
