@@ -202,7 +202,10 @@ class FrameHeader(Message):
     intrinsics: Intrinsics | None = Field(default=None, description="calibration, if known")
     T_world_cam: Mat4 | None = Field(default=None, description="camera pose, if known (odometry/calibration)")
     pose_covariance: Mat6 | None = Field(
-        default=None, description="6x6 covariance of the pose (x y z roll pitch yaw), if any"
+        default=None,
+        description="6x6 covariance of the pose's error (x y z roll pitch yaw; m^2, rad^2), if known: its "
+        "smallest value per source is the per-frame accuracy, its growth between frames drift; null: "
+        "undeclared (see 'Pose priors and their accuracy')"
     )
     pose_trusted: bool = Field(
         default=False,
