@@ -244,11 +244,16 @@ class _Run:
         self.seq = 0
         self.records: list[dict[str, Any]] = []
         self.last_score = {"recall": 0.0, "precision": 0.0}
+        from mapper.inbox import PriorAccuracy
+
+        # The robots' odometry covariance becomes their views' prior accuracy as the mapper's intake makes it.
+        self.accuracy = PriorAccuracy(max_sources=64)
 
     # -- frames into the mapper ---------------------------------------------------------------
     def ingest(self, rgb_out: Any, T_true: np.ndarray, T_prior: np.ndarray | None, source: str,
-               trusted: bool = False) -> None:
-        """Map one rendered view; ``trusted``: its pose is surveyed (a calibrated fixed camera), not odometry."""
+               trusted: bool = False, pose_covariance: np.ndarray | None = None) -> None:
+        """Map one rendered view; ``trusted``: its pose is surveyed (a calibrated fixed camera), not odometry;
+        ``pose_covariance``: the accuracy its header would declare (read as the mapper's intake reads it)."""
         from mapper.geometry.contract import OracleData, View
 
         oracle = OracleData(
@@ -258,12 +263,17 @@ class _Run:
             labels=self.labels,
         )
         self.seq += 1
+        accuracy = self.accuracy.fields(source, pose_covariance) if T_prior is not None else {}
         view = View(image=rgb_out.rgb, source_id=source, intrinsics=self.world.intr, T_world_cam=T_prior,
-                    pose_trusted=trusted, stamp_ns=self.seq * 100_000_000, seq=self.seq, oracle=oracle)
+                    pose_trusted=trusted, stamp_ns=self.seq * 100_000_000, seq=self.seq, oracle=oracle,
+                    **accuracy)  # type: ignore[arg-type]
         self.mapper.ingest(view, force_keyframe=True)
 
-    def ingest_bot(self, bot: _Bot, rgb_out: Any, T_true: np.ndarray, T_odom: np.ndarray) -> None:
-        self.ingest(rgb_out, T_true, T_odom, bot.rid)
+    def ingest_bot(self, bot: _Bot, rgb_out: Any, T_true: np.ndarray, T_odom: np.ndarray,
+                   cov: np.ndarray | None = None) -> None:
+        """Map one of ``bot``'s views; ``cov``: its odometry covariance when it was taken (default: now)."""
+        self.ingest(rgb_out, T_true, T_odom, bot.rid,
+                    pose_covariance=bot.robot.odometry_covariance() if cov is None else cov)
         bot.frames += 1
 
     def add_fixed_cameras(self) -> list[str]:
@@ -290,7 +300,7 @@ class _Run:
         0.3 m or 20 deg) before the arrival view: stereo baselines for RGB-only geometry."""
         n_frames = self.ep.move_frames
         robot = bot.robot
-        passed: list[tuple[np.ndarray, np.ndarray]] = []
+        passed: list[tuple[np.ndarray, np.ndarray, np.ndarray]] = []
         last = np.asarray(robot.T_world_cam_true())
         t = 0.0
         while robot.status == "moving" and t < 600.0:
@@ -300,10 +310,10 @@ class _Run:
             moved = np.linalg.norm(T[:3, 3] - last[:3, 3])
             turned = np.degrees(np.arccos(np.clip(float(T[:3, 2] @ last[:3, 2]), -1.0, 1.0)))
             if n_frames > 0 and robot.status == "moving" and (moved >= 0.3 or turned >= 20.0):
-                passed = [*passed, (T, np.asarray(robot.T_world_cam_odom()))][-n_frames:]
+                passed = [*passed, (T, np.asarray(robot.T_world_cam_odom()), robot.odometry_covariance())][-n_frames:]
                 last = T
-        for T_true, T_odom in passed:
-            self.ingest_bot(bot, self.world.renderer.render(self.world.intr, T_true), T_true, T_odom)
+        for T_true, T_odom, cov in passed:
+            self.ingest_bot(bot, self.world.renderer.render(self.world.intr, T_true), T_true, T_odom, cov)
 
     def capture(self, bot: _Bot) -> None:
         """At the goal, also map the views from the camera moved ``goal_capture_m`` to its left and to its

@@ -69,6 +69,7 @@ class SimRobot:
         self.status = "idle"
         self.reason: str | None = None
         self.distance_m = 0.0
+        self.turned_rad = 0.0  # total absolute heading change, radians (turn-in-place drift grows with it)
         self.steps = 0
         self._path: np.ndarray | None = None
         self._wp = 0
@@ -113,6 +114,16 @@ class SimRobot:
         self._goal_yaw = wrap_angle(float(yaw))
         self.status, self.reason = "moving", None
         return True
+
+    def odometry_covariance(self) -> np.ndarray:
+        """The 6x6 covariance (x y z roll pitch yaw; m^2, rad^2) the drift model has accrued so far, as a robot
+        declares it in its frame headers: position and heading variance grow with the distance driven and the
+        angle turned; heading error also displaces the position over the distance (small-angle bound)."""
+        n, d = self.noise, self.distance_m
+        var_yaw = (math.radians(n.rot_std_deg_per_m) ** 2 * d
+                   + math.radians(n.rot_std_deg_per_rad) ** 2 * self.turned_rad)
+        var_xy = n.trans_std_per_m**2 * d + var_yaw * d * d / 3.0
+        return np.diag([var_xy, var_xy, 1e-6, 1e-6, 1e-6, var_yaw + 1e-8])
 
     def step(self, dt_s: float) -> str:
         """Advance the current motion by ``dt_s`` seconds of simulated time; returns the status."""
@@ -169,6 +180,7 @@ class SimRobot:
         ds = math.hypot(x - x0, y - y0)
         dth = abs(wrap_angle(yaw - yaw0))
         self.distance_m += ds
+        self.turned_rad += dth
         if self.noise.is_zero or (ds == 0 and dth == 0):
             return
         n = self.noise

@@ -59,6 +59,11 @@ class MvsConfig(BaseModel):
     best_k_sources: int = Field(default=2, ge=1, le=2, description="average the k cheapest sources per pixel")
     depth_min_m: float = Field(default=0.2, gt=0, description="lower clamp of the fitted depth range")
     depth_max_m: float = Field(default=20.0, gt=0, description="upper clamp of the fitted depth range")
+    range_far_factor: float = Field(
+        default=1.5, ge=1.0,
+        description="the sweep reaches this many times the far (98th percentile) depth of the sparse points a view "
+        "sees: textureless far surfaces (floor, walls) have no sparse points of their own",
+    )
     default_range_m: tuple[float, float] = Field(
         default=(0.3, 8.0), description="depth range when too few sparse points see a view"
     )
@@ -663,7 +668,7 @@ class MvsReconstructor:
         c = self.config
         if len(seen) >= 10:
             lo, hi = np.percentile(seen, [2, 98])
-            lo, hi = 0.7 * lo, 1.5 * hi
+            lo, hi = 0.7 * lo, c.range_far_factor * hi
             return float(max(c.depth_min_m, lo)), float(min(c.depth_max_m, max(hi, lo * 1.5)))
         return c.default_range_m
 

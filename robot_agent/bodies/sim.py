@@ -99,13 +99,8 @@ class SimBody:
         return np.asarray(self.robot.T_world_cam_odom(), dtype=np.float64)
 
     def pose_covariance(self) -> np.ndarray:
-        """Diagonal growth of the drift model with distance (turn-in-place drift not tracked)."""
-        d = self.robot.distance_m
-        var_xy = self.noise.trans_std_per_m**2 * d
-        var_yaw = math.radians(self.noise.rot_std_deg_per_m) ** 2 * d
-        # Heading error also displaces the position over the distance driven (small-angle bound).
-        var_xy += var_yaw * d * d / 3.0
-        return np.diag([var_xy, var_xy, 1e-6, 1e-6, 1e-6, var_yaw + 1e-8])
+        """The drift model's covariance so far (``sim.robot.SimRobot.odometry_covariance``)."""
+        return np.asarray(self.robot.odometry_covariance(), dtype=np.float64)
 
     def distance_m(self) -> float:
         return float(self.robot.distance_m)
