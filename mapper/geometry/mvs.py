@@ -517,13 +517,13 @@ class MvsReconstructor:
         tracks' depths off by up to ~(e/f) / parallax, and the images correct it. A larger change is not
         something the images measure: unmodelled lens distortion or intrinsics errors pull the rotations and
         scale the scene by a few percent while the reprojections improve. That excess is taken out: camera
-        centres and points are scaled about the anchored cameras' centroid (rotations and every reprojection
-        unchanged)."""
+        centres and points are scaled about a surveyed camera's centre or else the anchored cameras' centroid
+        (rotations and every reprojection unchanged); two surveyed cameras pin the scale themselves."""
         ok = res.inlier_obs & np.isfinite(prob.points_world[prob.obs_pt]).all(axis=1)
         if ok.sum() < 10:
             return 1.0
-        z_prior = np.empty(len(ok))
-        z_ref = np.empty(len(ok))
+        z_prior = np.zeros(len(ok))
+        z_ref = np.zeros(len(ok))
         for k, (K, T0, T1) in enumerate(zip(prob.Ks, prob.T_world_cam, res.T_world_cam, strict=True)):
             sel = ok & (prob.obs_cam == k)
             if sel.any():
@@ -545,9 +545,13 @@ class MvsReconstructor:
         ratio = ratio / kept
         if abs(ratio - 1.0) < 1e-12:
             return kept
-        a = np.asarray(anchored, bool)
         centres = np.stack([T[:3, 3] for T in res.T_world_cam])
-        c = centres[a].mean(axis=0) if a.any() else centres.mean(axis=0)
+        fixed = np.flatnonzero(np.asarray(prob.fixed or [False] * len(centres), bool))
+        if len(fixed) >= 2 and np.ptp(centres[fixed], axis=0).max() > 1e-9:
+            return kept * ratio  # two surveyed cameras pin the scale themselves
+        a = np.asarray(anchored, bool)
+        # About a surveyed camera when there is one (it must not move), else the anchored cameras' centroid.
+        c = centres[fixed[0]].copy() if len(fixed) else centres[a].mean(axis=0) if a.any() else centres.mean(axis=0)
         for T in res.T_world_cam:
             T[:3, 3] = c + (T[:3, 3] - c) / ratio
         res.points_world = c + (res.points_world - c) / ratio

@@ -11,7 +11,7 @@ import pytest
 from bench import sequences as seqs
 from bench.video import stretches
 from protocol.poses import PoseAccuracy
-from tests.support.recorded import K, SIZE, pose_of, write_sequence
+from tests.support.recorded import SIZE, K, pose_of, write_sequence
 
 META = {"depth_divisor": 1000, "valid_depth_m": [0.2, 5.0], "licence": "test"}
 
