@@ -129,6 +129,11 @@ class MvsConfig(BaseModel):
     holdout_min_obs: int = Field(
         default=20, ge=1, description="held-out observations needed to judge; with fewer, undeclared priors are kept"
     )
+    max_depth_rescale: float = Field(
+        default=0.10, ge=0,
+        description="undeclared priors: the refinement changes the scene's depth scale against the priors' by at most "
+        "what their own held-out error explains at the tracks' parallax, and never by more than this fraction",
+    )
     max_ba_rms_px: float = Field(default=4.0, gt=0, description="reject an adjustment whose RMS stays above")
     max_ba_sigmas: float = Field(
         default=5.0, gt=0, description="reject an adjustment that moves a prior by more than this many sigmas"
@@ -475,7 +480,8 @@ class MvsReconstructor:
             accepted, status = False, "holdout_not_better"
         depth_ratio = 1.0
         if accepted and undeclared:
-            depth_ratio = self._hold_depth_scale(prob, res, [has_prior[i] or prep[i].view.pose_trusted for i in idx])
+            depth_ratio = self._hold_depth_scale(prob, res, [has_prior[i] or prep[i].view.pose_trusted for i in idx],
+                                                 c.max_depth_rescale)
         if accepted:
             for k, i in enumerate(idx):
                 poses[i] = res.T_world_cam[k]
@@ -507,7 +513,8 @@ class MvsReconstructor:
         return res.points_world[keep].reshape(-1, 3), [np.array(per_point[p]) for p in keep]
 
     @staticmethod
-    def _hold_depth_scale(prob: bundle.BundleProblem, res: bundle.BundleResult, anchored: list[bool]) -> float:
+    def _hold_depth_scale(prob: bundle.BundleProblem, res: bundle.BundleResult, anchored: list[bool],
+                          max_change: float) -> float:
         """Keep the refined solution's scene scale (in place) within what the images can have measured, and
         return the depth ratio kept (refined / prior median depth of the same tracks).
 
@@ -516,7 +523,8 @@ class MvsReconstructor:
         rotations are off by ~e/f rad (e: their held-out reprojection error, px; f: focal length, px) put the
         tracks' depths off by up to ~(e/f) / parallax, and the images correct it. A larger change is not
         something the images measure: unmodelled lens distortion or intrinsics errors pull the rotations and
-        scale the scene by a few percent while the reprojections improve. That excess is taken out: camera
+        scale the scene by a few percent while the reprojections improve; and never more than ``max_change``
+        (a larger change is a degenerate solve, not a measurement). That excess is taken out: camera
         centres and points are scaled about a surveyed camera's centre or else the anchored cameras' centroid
         (rotations and every reprojection unchanged); two surveyed cameras pin the scale themselves."""
         ok = res.inlier_obs & np.isfinite(prob.points_world[prob.obs_pt]).all(axis=1)
@@ -540,7 +548,7 @@ class MvsReconstructor:
         f = float(np.mean([K[0, 0] for K in prob.Ks]))
         parallax = np.radians(max(res.median_parallax_deg, 1e-3))
         e = res.holdout_px_prior if np.isfinite(res.holdout_px_prior) else res.rms_px_before
-        explained = float(np.log1p((e / f) / parallax))
+        explained = float(min(np.log1p((e / f) / parallax), np.log1p(max_change)))
         kept = float(np.exp(np.clip(np.log(ratio), -explained, explained)))
         ratio = ratio / kept
         if abs(ratio - 1.0) < 1e-12:

@@ -101,3 +101,39 @@ def test_holdout_error_is_zero_for_exact_poses_and_grows_with_a_rotation_error()
     assert med_wrong > 1.0
     empty = bundle.holdout_error_px([K] * 3, Ts, oc_a[:0], op_a[:0], uv_a[:0])
     assert np.isnan(empty[0]) and empty[1] == 0
+
+
+def _scaled_solution(factor: float, holdout_px: float) -> tuple[bundle.BundleProblem, bundle.BundleResult]:
+    """Two cameras 0.2 m apart and points 2-4 m away; the 'refined' points lie ``factor`` times farther."""
+    K = INTR.K()
+    rng = np.random.default_rng(2)
+    X = rng.uniform([-1, -1, 2], [1, 1, 4], (30, 3))
+    Ts = [make_pose(np.eye(3), [0.0, 0, 0]), make_pose(np.eye(3), [0.2, 0, 0])]
+    oc = np.repeat([0, 1], len(X))
+    op = np.tile(np.arange(len(X)), 2)
+    uv = np.concatenate([bundle.reproject(K, T, X)[0] for T in Ts])
+    prob = bundle.BundleProblem(Ks=[K, K], T_world_cam=Ts, points_world=X, obs_cam=oc, obs_pt=op, obs_uv=uv)
+    c = np.array([0.1, 0, 0])
+    res = bundle.BundleResult(T_world_cam=[T.copy() for T in Ts], points_world=c + factor * (X - c),
+                              inlier_obs=np.ones(len(oc), bool), rms_px_before=0.0, rms_px_after=0.0,
+                              n_iterations=1, median_parallax_deg=4.0, holdout_px_prior=holdout_px)
+    return prob, res
+
+
+def test_the_depth_scale_moves_only_as_far_as_the_priors_error_explains() -> None:
+    from mapper.geometry.mvs import MvsReconstructor
+
+    prob, res = _scaled_solution(1.2, holdout_px=0.0)  # exact priors: nothing explains a 20 % change
+    kept = MvsReconstructor._hold_depth_scale(prob, res, [True, True], 0.10)
+    assert kept == pytest.approx(1.0)
+    z = [bundle.reproject(INTR.K(), T, res.points_world)[1] for T in res.T_world_cam]
+    z0 = [bundle.reproject(INTR.K(), T, prob.points_world)[1] for T in prob.T_world_cam]
+    assert np.median(np.concatenate(z) / np.concatenate(z0)) == pytest.approx(1.0, abs=0.02)
+    # Priors off by a lot (held-out error 50 px): the change is explained, but capped at 10 %.
+    prob, res = _scaled_solution(1.2, holdout_px=50.0)
+    assert MvsReconstructor._hold_depth_scale(prob, res, [True, True], 0.10) == pytest.approx(1.1, abs=0.01)
+    # A small change the priors' error explains stays.
+    prob, res = _scaled_solution(1.02, holdout_px=50.0)
+    before = [T.copy() for T in res.T_world_cam]
+    assert MvsReconstructor._hold_depth_scale(prob, res, [True, True], 0.10) == pytest.approx(1.02, abs=0.005)
+    assert all(np.allclose(a, b) for a, b in zip(before, res.T_world_cam, strict=True))
