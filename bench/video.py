@@ -1,14 +1,14 @@
-"""Geometry on video-rate input: real RGB-D sequences and the simulator at 30 fps.
+"""Geometry on video-rate input: recorded RGB-D sequences and the simulator at 30 fps.
 
-Frames arrive consecutively (or every n-th) like a live stream, and each is handled the way the mapper
-handles it (``mapper.keyframes``): a frame becomes a keyframe by parallax, its source views are chosen
-from all stored keyframes by triangulation angle and overlap, a keyframe without a usable source waits
-for a later one (one retry per new keyframe, like ``MapperCore``). For comparison, the previous policy
-(every frame a target, a window of the last N frames) runs as its own variant.
+Frames arrive consecutively like a live stream, each as a live frame arrives (header + JPEG through the
+mapper's intake, ``bench.sequences.WireFeed``), and each is handled the way the mapper handles it
+(``mapper.keyframes``): a frame becomes a keyframe by parallax, its source views are chosen from all stored
+keyframes by triangulation angle and overlap, a keyframe without a usable source waits for a later one (one
+retry per new keyframe, like ``MapperCore``).
 
-Real sequences live in ``../shared/data/<name>/`` (each with a README and licence; never copied into the
-repository): frames/frame-NNNNNN.{color.png, depth.png, pose.txt} (pose = T_world_cam, OpenCV axes)
-and camera-intrinsics.txt. Recorded poses are the priors; recorded depth is the ground truth.
+Recorded sequences are folders in the layout of ``bench.sequences`` (``../shared/data/<name>/``, each with a
+README and licence, never copied into the repository, or any folder given with ``--sequence``). Recorded
+poses are the priors; recorded depth is the ground truth.
 """
 
 from __future__ import annotations
@@ -131,25 +131,26 @@ def run_keyframed(rec: Any, frames: Sequence[Frame], result: ScenarioResult, lab
         store.add(v, g.T_world_cam[0], d)
         return True
 
-    for k, f in enumerate(frames):
-        if after_frame is not None and k:
-            after_frame(k - 1)
+    def handle(k: int, f: Frame) -> None:
         if not selector.consider(f.view):
             store.note_frame(f.view)
-            continue
+            return
         counts["keyframes"] += 1
         if not process(k):
             store.add(f.view)
             deferred.append(k)
-            continue
+            return
         for j in list(deferred):  # one retry per new keyframe, like MapperCore
             if store.neighbours(frames[j].view, selector.scene_depth(frames[j].view.source_id)):
                 deferred.remove(j)
                 if not process(j):
                     deferred.append(j)
                 break
-    if after_frame is not None and frames:
-        after_frame(len(frames) - 1)
+
+    for k, f in enumerate(frames):
+        handle(k, f)
+        if after_frame is not None:
+            after_frame(k)
     counts["keyframes_without_depth"] = len(deferred)
     return counts
 
