@@ -24,9 +24,10 @@ BENCHES: dict[str, tuple[str, str]] = {
     "perception": ("bench.modeltiming", "seconds per real frame of a segmenter + embedder (sam+clip on a GPU, ...)"),
     "system": ("bench.system", "N cameras into one mapper: ingest, drops, latency, CPU, memory, queries"),
     "soak": ("bench.soak", "the whole stack under load for 30 minutes: RSS per process, latency, drops"),
+    "replay": ("bench.replay", "a recorded sequence through camera, router, mapper + worker: map vs its own depth"),
 }
 
-LONG_RUNNING = {"soak"}  # not part of ``argus bench all``
+LONG_RUNNING = {"soak", "replay"}  # not part of ``argus bench all`` (replay needs a recording: --sequence)
 
 USAGE = """usage: argus bench <name> [options]   (argus bench <name> --help)
        argus bench all [--quick] [--out DIR]
