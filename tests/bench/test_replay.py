@@ -1,0 +1,257 @@
+"""``argus bench replay`` (bench/replay.py): the scorer, the reference surface, the launch file it plays, its errors.
+
+Pure functions on small data, no process and no socket; the whole stack is played in test_replay_stack.py (slow).
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from bench import replay
+from bench import sequences as seqs
+from bench.replay import NodeCloud
+from deploy.up import load_launch
+from protocol.poses import PoseAccuracy, look_at
+from tests.support.recorded import SIZE, write_sequence
+
+
+def plane(step_m: float = 0.01, size_m: float = 1.0, z_m: float = 0.0) -> np.ndarray:
+    """Points on a square of the plane z = ``z_m``, ``step_m`` apart."""
+    g = np.arange(0.0, size_m + 1e-9, step_m)
+    x, y = np.meshgrid(g, g)
+    return np.stack([x.ravel(), y.ravel(), np.full(x.size, z_m)], axis=1)
+
+
+def node(node_id: str, label: str, centroid: tuple[float, float, float], points: np.ndarray | None = None,
+         extent: tuple[float, float, float] = (0.2, 0.2, 0.2)) -> NodeCloud:
+    return NodeCloud(node_id, label, np.asarray(centroid, float), replay.box_corners(centroid, extent, 0.0), points)
+
+
+class TestMapScores:
+    def test_a_map_equal_to_the_reference_is_exact_and_complete(self) -> None:
+        ref = plane()
+        s = replay.map_scores(ref.copy(), ref)
+        assert s["accuracy_mean_m"] == 0.0 and s["accuracy_median_m"] == 0.0
+        assert s["completion_5cm"] == 1.0 and s["completion_10cm"] == 1.0
+        assert s["map_points"] == s["reference_points"] == len(ref)
+
+    def test_a_map_shifted_by_10_cm_is_10_cm_off_and_not_complete_at_5_cm(self) -> None:
+        ref = plane()
+        s = replay.map_scores(ref + [0.0, 0.0, 0.10], ref)
+        assert s["accuracy_median_m"] == pytest.approx(0.10) and s["accuracy_mean_m"] == pytest.approx(0.10)
+        assert s["completion_5cm"] == 0.0
+        assert s["completion_10cm"] > 0.99  # exactly 10 cm away: inside 10 cm up to rounding
+
+    def test_a_sparse_map_of_the_same_surface_is_exact_but_incomplete(self) -> None:
+        ref = plane()
+        sparse = plane(step_m=0.25)
+        s = replay.map_scores(sparse, ref)
+        assert s["accuracy_median_m"] == 0.0
+        assert 0.05 < s["completion_5cm"] < 0.5 < s["completion_10cm"] <= 1.0
+
+    def test_empty_inputs(self) -> None:
+        ref = plane(step_m=0.1)
+        empty = np.zeros((0, 3))
+        s = replay.map_scores(empty, ref)
+        assert math.isnan(s["accuracy_median_m"]) and s["completion_5cm"] == 0.0 and s["map_points"] == 0
+        s = replay.map_scores(ref, empty)
+        assert math.isnan(s["accuracy_mean_m"]) and math.isnan(s["completion_10cm"])
+
+    def test_nearest_m_to_nothing_is_infinitely_far(self) -> None:
+        assert np.isinf(replay.nearest_m(np.zeros((2, 3)), np.zeros((0, 3)))).all()
+        assert replay.nearest_m(np.zeros((0, 3)), np.zeros((1, 3))).shape == (0,)
+
+
+class TestNodes:
+    def test_nodes_are_scored_by_their_own_points_else_their_box(self) -> None:
+        ref = plane()
+        on = node("n1", "object", (0.5, 0.5, 0.0), points=plane(0.05, 0.2) + [0.4, 0.4, 0.02])
+        off = node("n2", "object", (0.5, 0.5, 0.3), points=plane(0.05, 0.2) + [0.4, 0.4, 0.3])
+        boxed = node("n3", "chair", (0.5, 0.5, 0.05), extent=(0.2, 0.2, 0.1))  # corners 0 and 0.1 m above the plane
+        rows, summary = replay.node_scores([on, off, boxed], ref)
+        by_id = {r["node_id"]: r for r in rows}
+        assert by_id["n1"]["within"] == 1.0 and by_id["n1"]["scored_by"] == "points"
+        assert by_id["n2"]["within"] == 0.0 and by_id["n2"]["centroid_m"] == pytest.approx(0.3)
+        assert by_id["n3"]["scored_by"] == "box" and by_id["n3"]["points"] == 9 and by_id["n3"]["within"] == 1.0
+        assert summary["nodes"] == 3 and summary["nodes_scored_by_box"] == 1
+        assert summary["node_points_within"] == pytest.approx(2 / 3)
+        assert summary["nodes_90pct_within"] == pytest.approx(2 / 3)
+        n1, n2 = len(on.points), len(off.points)  # type: ignore[arg-type]
+        assert summary["node_points_within_pooled"] == pytest.approx((n1 + 9) / (n1 + n2 + 9))
+
+    def test_no_nodes(self) -> None:
+        rows, summary = replay.node_scores([], plane(0.1))
+        assert rows == [] and summary["nodes"] == 0 and math.isnan(summary["node_points_within"])
+
+    def test_duplicates_are_close_pairs_of_one_label(self) -> None:
+        nodes = [node("a", "chair", (0, 0, 0)), node("b", "chair", (0.3, 0, 0)), node("c", "chair", (2, 0, 0)),
+                 node("d", "table", (0.1, 0, 0))]
+        pairs = replay.duplicate_pairs(nodes)
+        assert [(p["a"], p["b"], p["label"]) for p in pairs] == [("a", "b", "chair")]
+        assert pairs[0]["distance_m"] == pytest.approx(0.3)
+        assert replay.labels_count(nodes) == {"chair": 3, "table": 1}
+
+    def test_box_corners_turn_with_the_yaw_and_give_it_back(self) -> None:
+        c = replay.box_corners((1.0, 2.0, 0.5), (0.4, 0.2, 1.0), math.pi / 2)
+        assert c.shape == (8, 3)
+        assert np.allclose(c.min(0), [0.9, 1.8, 0.0]) and np.allclose(c.max(0), [1.1, 2.2, 1.0])
+        n = NodeCloud("n", "x", np.zeros(3), c)
+        assert replay._box_yaw(n) == pytest.approx(math.pi / 2)
+        assert np.allclose(replay._box_size(n), [0.4, 0.2, 1.0])
+
+
+class TestCompare:
+    def test_gaps_are_relative_to_the_in_process_figures(self) -> None:
+        a = {"accuracy_mean_m": 0.022, "accuracy_median_m": 0.02, "completion_5cm": 0.5, "completion_10cm": 0.6}
+        b = {"accuracy_mean_m": 0.02, "accuracy_median_m": 0.02, "completion_5cm": 0.5, "completion_10cm": 0.6}
+        g = replay.compare(a, b)
+        assert g["gap_accuracy_mean_m"] == pytest.approx(0.1) and g["gap_max"] == pytest.approx(0.1)
+        assert math.isnan(replay.compare(a, dict(b, completion_5cm=0.0))["gap_max"])
+        assert math.isnan(replay.relative_gap(math.nan, 1.0))
+
+
+class TestUpAxis:
+    def test_upright_cameras_in_a_z_up_world(self) -> None:
+        poses = [look_at([x, 0.0, 1.5], [x, 3.0, 1.0]) for x in (0.0, 1.0)]
+        assert replay.up_axis(poses) == (2, 1)
+
+    def test_opencv_cameras_at_the_origin_make_minus_y_up(self) -> None:
+        assert replay.up_axis([np.eye(4)]) == (1, -1)
+
+
+META = {"depth_divisor": 1000, "valid_depth_m": [0.2, 5.0], "licence": "test"}
+
+
+def with_depth(folder: Path, n: int = 3, meta: dict | None = None, scale: int = 1) -> Path:
+    """A recorded folder (tests.support.recorded, its images and K ``scale`` times larger) whose frames see a wall
+    3 m along world y, with each frame's depth of it."""
+    write_sequence(folder, n=n, meta=META if meta is None else meta)
+    K = np.loadtxt(folder / "camera-intrinsics.txt")
+    w, h = SIZE[0] * scale, SIZE[1] * scale
+    if scale != 1:
+        K[:2, :2] *= scale
+        K[:2, 2] = (K[:2, 2] + 0.5) * scale - 0.5
+        np.savetxt(folder / "camera-intrinsics.txt", K)
+    v, u = np.mgrid[0:h, 0:w]
+    rays = np.stack([(u - K[0, 2]) / K[0, 0], (v - K[1, 2]) / K[1, 1], np.ones((h, w))], -1)  # camera z = 1
+    for i in range(n):
+        stem = folder / "frames" / f"frame-{i:06d}"
+        if scale != 1:
+            img = cv2.imread(f"{stem}.color.png")
+            cv2.imwrite(f"{stem}.color.png", cv2.resize(img, (w, h), interpolation=cv2.INTER_NEAREST))
+        T = np.loadtxt(f"{stem}.pose.txt")
+        z = (3.0 - T[1, 3]) / (rays @ T[:3, :3].T)[..., 1]  # the ray parameter to the wall is the z-depth
+        cv2.imwrite(f"{stem}.depth.png", np.round(z * 1000).astype(np.uint16))
+    return folder
+
+
+class TestReference:
+    def test_the_tsdf_surface_lies_on_the_recorded_wall(self, tmp_path: Path) -> None:
+        seq = seqs.load(with_depth(tmp_path / "s"))
+        voxel = replay.reference_voxel_m(seq.frames)
+        assert 0.005 <= voxel <= 0.02
+        pts, cols = replay.reference_surface(seq.frames, voxel)
+        assert len(pts) > 100 and cols.shape == (len(pts), 3) and cols.dtype == np.uint8
+        assert np.abs(pts[:, 1] - 3.0).max() < 2 * voxel  # every surface point on the wall y = 3 m
+
+    def test_no_valid_depth_is_no_reference(self, tmp_path: Path) -> None:
+        seq = seqs.load(with_depth(tmp_path / "s"))
+        for f in seq.frames:
+            f.valid[:] = False
+        pts, cols = replay.reference_surface(seq.frames, 0.01)
+        assert pts.shape == (0, 3) and cols.shape == (0, 3)
+
+
+class TestLaunch:
+    def test_the_shipped_launch_file_is_a_replay_stack(self, tmp_path: Path) -> None:
+        shipped = load_launch(replay.DEFAULT_LAUNCH)
+        assert [p.command for p in shipped.process] == ["router", "mapper", "edge-camera"]
+        launch, camera_id, mapper = replay.replay_launch(
+            replay.DEFAULT_LAUNCH, tmp_path / "seq", 2.0, PoseAccuracy(0.01, 0.5), "tcp/127.0.0.1:1234",
+            tmp_path / "state")
+        assert launch.endpoint == "tcp/127.0.0.1:1234" and camera_id == "replay"
+        assert mapper["geometry"] == {"backend": "mvs"} and mapper["workers"] == {"local": 1}
+        cam = next(p for p in launch.process if p.command == "edge-camera").settings
+        assert cam is not None
+        assert cam["source"] == {"type": "recorded", "path": str((tmp_path / "seq").resolve()), "rate_hz": 2.0,
+                                 "loop": False, "pose_sigma_trans_m": 0.01, "pose_sigma_rot_deg": 0.5}
+        assert cam["publish"]["max_rate_hz"] >= 4.0
+        m = next(p for p in launch.process if p.command == "mapper").settings
+        assert m is not None and m["state_dir"] == str(tmp_path / "state")
+        undeclared = replay.replay_launch(replay.DEFAULT_LAUNCH, tmp_path, 0.5, None, "tcp/127.0.0.1:1", tmp_path)[0]
+        src = next(p for p in undeclared.process if p.command == "edge-camera").settings["source"]  # type: ignore[index]
+        assert "pose_sigma_trans_m" not in src and "pose_sigma_rot_deg" not in src
+
+    def test_a_launch_file_without_a_recorded_camera_is_refused(self, tmp_path: Path) -> None:
+        bad = tmp_path / "bad.toml"
+        bad.write_text(replay.DEFAULT_LAUNCH.read_text().replace('type = "recorded"', 'type = "pattern"'))
+        with pytest.raises(ValueError, match="recorded"):
+            replay.replay_launch(bad, tmp_path, 1.0, None, "tcp/127.0.0.1:1", tmp_path)
+        two = tmp_path / "two.toml"
+        two.write_text(load_text_without_camera(replay.DEFAULT_LAUNCH))
+        with pytest.raises(ValueError, match="one router, one mapper and one edge-camera"):
+            replay.replay_launch(two, tmp_path, 1.0, None, "tcp/127.0.0.1:1", tmp_path)
+
+
+def load_text_without_camera(path: Path) -> str:
+    text = path.read_text()
+    return text[: text.index('name = "camera"')].rsplit("[[process]]", 1)[0]
+
+
+class TestErrors:
+    def test_a_broken_folder_is_one_line_and_starts_nothing(self, tmp_path: Path,
+                                                           capsys: pytest.CaptureFixture[str]) -> None:
+        folder = with_depth(tmp_path / "s")
+        (folder / "frames" / "frame-000001.pose.txt").unlink()
+        assert replay.main(["--sequence", str(folder), "--out", str(tmp_path / "out")]) == 1
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and "frame-000001.pose.txt: missing" in err[0]
+        assert not (tmp_path / "out").exists()
+
+    def test_k_where_the_camera_does_not_read_it_is_refused(self, tmp_path: Path) -> None:
+        folder = with_depth(tmp_path / "s", meta=dict(META, intrinsics_file="camera-intrinsics.color.txt"))
+        (folder / "camera-intrinsics.txt").rename(folder / "camera-intrinsics.color.txt")
+        with pytest.raises(seqs.SequenceError, match="recorded camera reads K there"):
+            replay.load_checked(replay.ReplaySetup(sequence=folder))
+
+    def test_undeclared_cannot_replay_a_folder_that_declares(self, tmp_path: Path) -> None:
+        folder = with_depth(tmp_path / "s", meta=dict(META, pose_sigma_trans_m=0.01, pose_sigma_rot_deg=1.0))
+        with pytest.raises(seqs.SequenceError, match="--undeclared"):
+            replay.load_checked(replay.ReplaySetup(sequence=folder, declared=False))
+        assert replay.load_checked(replay.ReplaySetup(sequence=folder)).meta.declared() == PoseAccuracy(0.01, 1.0)
+
+    def test_frames_are_told_apart_by_their_pose(self, tmp_path: Path) -> None:
+        seq = seqs.load(with_depth(tmp_path / "s", n=3))
+        sent = {7: seq.frames[2].T_world_cam, 5: seq.frames[0].T_world_cam}
+        assert replay.frame_index_of(sent, seq.frames) == {7: 2, 5: 0}
+        assert replay.frame_index_of(sent, []) == {}
+
+
+def test_pose_errors_compare_by_frame_index() -> None:
+    recorded = {0: np.eye(4), 1: look_at([1.0, 0.0, 1.5], [1.0, 3.0, 1.0])}
+    moved = recorded[1].copy()
+    moved[:3, 3] += [0.03, 0.0, 0.04]
+    pe = replay.pose_errors(recorded, {0: np.eye(4), 1: moved, 9: np.eye(4)})
+    assert pe["n"] == 2 and pe["trans_cm_max"] == pytest.approx(5.0) and pe["rot_deg_max"] == pytest.approx(0.0)
+    assert pe["trans_cm_median"] == pytest.approx(2.5)
+    assert math.isnan(replay.pose_errors(recorded, {})["trans_cm_median"])
+
+
+def test_summary_rows_say_which_bars_are_met() -> None:
+    figs = {"map_points": 10.0, "reference_points": 100.0, "accuracy_mean_m": 0.02, "accuracy_median_m": 0.02,
+            "completion_5cm": 0.4, "completion_10cm": 0.7, "nodes": 2.0, "node_points_within": 0.95,
+            "node_points_within_pooled": 0.95, "nodes_90pct_within": 1.0, "duplicates": 0.0, "keyframes": 3.0,
+            "pose_trans_cm_median": 0.1, "pose_rot_deg_median": 0.05}
+    res = {"replay": figs, "in_process": dict(figs, accuracy_median_m=0.03), "comparison": {"gap_max": 0.3},
+           "figures": {"latency_p50_s": 1.0, "latency_p99_s": 1.5, "frames_sent": 3, "frames_in_folder": 3},
+           "in_process_run": {"counters": {"keyframes": 3.0}}}
+    met = {r["figure"]: r["met"] for r in replay.summary_rows(res)}
+    assert met["accuracy, median"] == "met" and met["completion @ 5 cm"] == "**miss**"
+    assert met["node points within 10 cm (mean over nodes)"] == "met"
+    assert met["capture -> graph latency p99"] == "met"
+    assert met["replay vs in-process, largest gap of the four above"] == "**miss**"
