@@ -98,25 +98,35 @@ def node_cloud(node: Any, points: np.ndarray | None = None) -> NodeCloud:
                      box_corners(b.center, b.extent, b.yaw_rad), points)
 
 
-def nearest_m(points: np.ndarray, to: np.ndarray) -> np.ndarray:
-    """Distance in metres from each of ``points`` (N, 3) to the nearest of ``to`` (M, 3); all inf when ``to`` is
+def nearest_m(points: np.ndarray, to: Any) -> np.ndarray:
+    """Distance in metres from each of ``points`` (N, 3) to the nearest of ``to``: (M, 3) points or a
+    :func:`surface_tree` of them (build it once when querying one surface many times); all inf when ``to`` is
     empty."""
     from scipy.spatial import cKDTree
 
     pts = np.asarray(points, np.float64).reshape(-1, 3)
-    ref = np.asarray(to, np.float64).reshape(-1, 3)
-    if len(ref) == 0:
+    tree = to if isinstance(to, cKDTree) else surface_tree(to)
+    if tree.n == 0:
         return np.full(len(pts), np.inf)
     if len(pts) == 0:
         return np.zeros(0)
-    d, _ = cKDTree(ref).query(pts, k=1)
+    d, _ = tree.query(pts, k=1)
     return np.asarray(d, np.float64)
 
 
-def map_scores(map_points: np.ndarray, reference: np.ndarray, near_m: Sequence[float] = NEAR_M) -> dict[str, float]:
+def surface_tree(points: np.ndarray) -> Any:
+    """A k-d tree (``scipy.spatial.cKDTree``) of (M, 3) points, for :func:`nearest_m`."""
+    from scipy.spatial import cKDTree
+
+    return cKDTree(np.asarray(points, np.float64).reshape(-1, 3))
+
+
+def map_scores(map_points: np.ndarray, reference: np.ndarray, near_m: Sequence[float] = NEAR_M,
+               reference_tree: Any = None) -> dict[str, float]:
     """Accuracy (distance of each map point to the reference: mean, median, metres) and completion (share of the
-    reference within each of ``near_m`` of the map). An empty map has no accuracy (NaN) and completion 0."""
-    acc = nearest_m(map_points, reference)
+    reference within each of ``near_m`` of the map). An empty map has no accuracy (NaN) and completion 0.
+    ``reference_tree``: the reference's :func:`surface_tree`, when already built."""
+    acc = nearest_m(map_points, reference if reference_tree is None else reference_tree)
     acc = acc[np.isfinite(acc)]
     out: dict[str, float] = {
         "map_points": float(len(np.asarray(map_points).reshape(-1, 3))),
@@ -130,13 +140,18 @@ def map_scores(map_points: np.ndarray, reference: np.ndarray, near_m: Sequence[f
     return out
 
 
-def node_scores(nodes: Sequence[NodeCloud], reference: np.ndarray, near_m: float = NODE_NEAR_M
+def node_scores(nodes: Sequence[NodeCloud], reference: Any, near_m: float = NODE_NEAR_M
                 ) -> tuple[list[dict[str, Any]], dict[str, float]]:
-    """Per node: the share of its points within ``near_m`` of the reference (its 8 box corners and centroid when
-    its points are unknown; ``scored_by`` says which) and its centroid's distance; and over all nodes: the mean
-    of the per-node shares, the share of all their points, the share of nodes with >= 90 % of points near."""
+    """Per node: the share of its points within ``near_m`` of the reference (points, or their
+    :func:`surface_tree`; its 8 box corners and centroid when its points are unknown, ``scored_by`` says which)
+    and its centroid's distance; and over all nodes: the mean of the per-node shares, the share of all their
+    points, the share of nodes with >= 90 % of their points near."""
     rows: list[dict[str, Any]] = []
     near_total = n_total = 0
+    from scipy.spatial import cKDTree
+
+    if not isinstance(reference, cKDTree):
+        reference = surface_tree(reference)  # one tree for every node
     for n in nodes:
         have = n.points is not None and len(n.points) > 0
         pts = n.points if have and n.points is not None else np.vstack([n.corners, n.centroid[None]])
@@ -172,6 +187,24 @@ def duplicate_pairs(nodes: Sequence[NodeCloud], radius_m: float = DUPLICATE_M) -
             if a.label == b.label and d < radius_m:
                 out.append({"a": a.node_id, "b": b.node_id, "label": a.label, "distance_m": d})
     return sorted(out, key=lambda p: p["distance_m"])
+
+
+RANGES_M = (0.0, 1.5, 3.0, 5.0, math.inf)
+"""Bins of a map point's distance from the nearest recorded camera position, for :func:`accuracy_by_range`."""
+
+
+def accuracy_by_range(map_points: np.ndarray, distances_m: np.ndarray, cameras: np.ndarray,
+                      edges_m: Sequence[float] = RANGES_M) -> list[dict[str, Any]]:
+    """Median accuracy of the map points binned by their distance from the nearest camera position (M, 3): where
+    in depth the map's error lies."""
+    pts = np.asarray(map_points, np.float64).reshape(-1, 3)
+    rng = nearest_m(pts, cameras) if len(pts) else np.zeros(0)
+    rows = []
+    for lo, hi in zip(edges_m[:-1], edges_m[1:], strict=True):
+        m = (rng >= lo) & (rng < hi)
+        rows.append({"range_m": f"{lo:g}-{hi:g}", "points": int(m.sum()),
+                     "accuracy_median_m": float(np.median(distances_m[m])) if m.any() else math.nan})
+    return rows
 
 
 def relative_gap(value: float, reference: float) -> float:
@@ -680,7 +713,7 @@ def _fmt(v: Any, unit: str = "") -> str:
     if unit == "s":
         return f"{v:.2f} s"
     if isinstance(v, float):
-        return f"{v:g}" if v == int(v) else f"{v:.3g}"
+        return str(int(v)) if v == int(v) else f"{v:.3g}"
     return str(v)
 
 
@@ -825,8 +858,11 @@ def _box_size(n: NodeCloud) -> list[float]:
 def scored(result: MapResult, reference: np.ndarray, recorded: dict[int, np.ndarray]
            ) -> tuple[dict[str, Any], list[dict[str, Any]], list[dict[str, Any]]]:
     """A run's map, node and keyframe-pose figures against the reference; its per-node rows; its duplicates."""
-    figs: dict[str, Any] = dict(map_scores(result.points, reference))
-    rows, summary = node_scores(result.nodes, reference)
+    tree = surface_tree(reference)
+    figs: dict[str, Any] = dict(map_scores(result.points, reference, reference_tree=tree))
+    cams = np.stack([T[:3, 3] for T in recorded.values()]) if recorded else np.zeros((0, 3))
+    figs["accuracy_by_range"] = accuracy_by_range(result.points, nearest_m(result.points, tree), cams)
+    rows, summary = node_scores(result.nodes, tree)
     figs.update(summary)
     dups = duplicate_pairs(result.nodes)
     figs["duplicates"] = float(len(dups))
@@ -927,7 +963,10 @@ def _append_notes(md: Path, res: dict[str, Any], up: tuple[int, int]) -> None:
         "Node points: each node's fused points from the mapper's saved state (box corners and centroid for "
         f"{int(r.get('nodes_scored_by_box', 0))} node(s) without them). Keyframe poses: the worker's results "
         f"(`work/result`), {f['keyframe_results_seen']} seen ({int(f['keyframe_results_rejected'])} results rejected "
-        f"by the mapper); {int(f['keyframes_done_locally'])} done in the mapper itself are not on the wire.",
+        f"by the mapper); keyframes done in the mapper itself ({int(f['keyframes_done_locally'])}) are not on the "
+        "wire.",
+        "Labels: classical 2D perception labels every node `object`, so 'same-label pairs' counts every pair of "
+        "nodes under 0.5 m apart, duplicates or neighbours." if set(r["labels"]) == {"object"} else "",
         f"Top-down view: world {'xyz'[up[0]]} taken as up (the axis nearest to the opposite of the cameras' mean "
         "image-down direction).",
         "",
@@ -937,6 +976,9 @@ def _append_notes(md: Path, res: dict[str, Any], up: tuple[int, int]) -> None:
     ]
     if res["replay_duplicates"]:
         text += ["## Same-label pairs under 0.5 m (replay)", "", markdown_table(res["replay_duplicates"][:30])]
+    text += ["## Accuracy by distance from the nearest camera (replay)", "",
+             markdown_table([{"range (m)": b["range_m"], "map points": b["points"],
+                              "median accuracy": _fmt(b["accuracy_median_m"], "cm")} for b in r["accuracy_by_range"]])]
     text += ["## Nodes (replay)", "",
              markdown_table(res["replay_nodes"][:60], ["node_id", "label", "scored_by", "points", "within",
                                                        "centroid_m"])]

@@ -255,3 +255,10 @@ def test_summary_rows_say_which_bars_are_met() -> None:
     assert met["node points within 10 cm (mean over nodes)"] == "met"
     assert met["capture -> graph latency p99"] == "met"
     assert met["replay vs in-process, largest gap of the four above"] == "**miss**"
+
+
+def test_accuracy_is_binned_by_distance_from_the_cameras() -> None:
+    pts = np.array([[0.0, 1.0, 0.0], [0.0, 2.0, 0.0], [0.0, 4.0, 0.0]])
+    rows = replay.accuracy_by_range(pts, np.array([0.01, 0.1, 0.3]), np.zeros((1, 3)))
+    assert [(r["range_m"], r["points"]) for r in rows] == [("0-1.5", 1), ("1.5-3", 1), ("3-5", 1), ("5-inf", 0)]
+    assert [r["accuracy_median_m"] for r in rows[:3]] == [0.01, 0.1, 0.3] and math.isnan(rows[3]["accuracy_median_m"])
