@@ -950,8 +950,7 @@ def _append_notes(md: Path, res: dict[str, Any], up: tuple[int, int]) -> None:
 
     f, r = res["figures"], res["replay"]
     decl = res["declared"]
-    text = [
-        "",
+    notes = [
         f"Sequence `{res['folder']}`, {res['frames']} frames played once at {res['rate_hz']:g} Hz; pose accuracy "
         + (f"declared ({decl['trans_m']} m, {decl['rot_deg']} deg per axis)." if decl else "undeclared."),
         f"Mapper: geometry {res['geometry']}, 2D perception {res['perception']} (launch file `{res['launch']}`); "
@@ -969,11 +968,9 @@ def _append_notes(md: Path, res: dict[str, Any], up: tuple[int, int]) -> None:
         "nodes under 0.5 m apart, duplicates or neighbours." if set(r["labels"]) == {"object"} else "",
         f"Top-down view: world {'xyz'[up[0]]} taken as up (the axis nearest to the opposite of the cameras' mean "
         "image-down direction).",
-        "",
-        "## Nodes per label (replay)",
-        "",
-        markdown_table([{"label": k, "nodes": v} for k, v in r["labels"].items()]),
     ]
+    text = ["", *(f"- {n}" for n in notes if n), "", "## Nodes per label (replay)", "",
+            markdown_table([{"label": k, "nodes": v} for k, v in r["labels"].items()])]
     if res["replay_duplicates"]:
         text += ["## Same-label pairs under 0.5 m (replay)", "", markdown_table(res["replay_duplicates"][:30])]
     text += ["## Accuracy by distance from the nearest camera (replay)", "",
