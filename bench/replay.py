@@ -676,6 +676,7 @@ def play(setup: ReplaySetup, frames: Sequence[RecordedFrame], accuracy: PoseAccu
         "keyframes_done_locally": m.get("work_jobs_done_locally", 0.0),
         "keyframe_results_rejected": m.get("work_results_rejected", 0.0),
         "latency_n": len(lat_s), "latency_p50_s": _pct(lat_s, 50), "latency_p99_s": _pct(lat_s, 99),
+        "latencies_s": lat_s,
         "point_map_version": None if pm is None else pm.version,
         "mapper_status": m, "camera_status": v["camera"], "camera_id": camera_id, "endpoint": endpoint,
         "site": launch.site, "mapper_settings": mapper_settings,
