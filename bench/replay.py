@@ -539,12 +539,9 @@ def replay_launch(launch_path: Path, sequence: Path, rate_hz: float, accuracy: P
 
 
 def _failure(lines: Sequence[str], names: Sequence[str]) -> str:
-    """The last error-looking output line of the named processes (their ``[name]`` prefix), for a one-line error."""
-    for line in reversed(lines):
-        if any(line.startswith(f"[{n}]") for n in names) and any(
-                w in line.lower() for w in ("error", "exception", "refused", "missing", "cannot", "not ")):
-            return line
-    return lines[-1] if lines else "(no output)"
+    """The last two output lines of the named processes (their ``[name]`` prefix), for a one-line error."""
+    own = [ln.split("] ", 1)[1].strip() for ln in lines if any(ln.startswith(f"[{n}] ") for n in names)]
+    return " / ".join(t for t in own[-2:] if t) or "(no output)"
 
 
 def _wait_workers(session: Any, keys: Any, timeout_s: float, stop: threading.Event) -> int:
@@ -595,8 +592,11 @@ def play(setup: ReplaySetup, frames: Sequence[RecordedFrame], accuracy: PoseAccu
         _log(f"starting router + mapper on {endpoint} (site {launch.site}; logs in {logs}/)")
         stacks[0].start()
         if not stacks[0].wait_healthy(setup.health_timeout_s, stop):
-            raise RuntimeError(f"the mapper did not come up in {setup.health_timeout_s:.0f}s: "
-                               f"{_failure(list(lines), ['mapper', 'router', 'up'])}")
+            failed = stacks[0].failed
+            if failed:
+                raise RuntimeError(f"{', '.join(failed)} exited at start: {_failure(list(lines), failed)}")
+            raise RuntimeError(f"not up after {setup.health_timeout_s:.0f}s: {', '.join(stacks[0].missing())} "
+                               f"(logs in {logs}/)")
         session = open_session(ZenohSettings(mode="client", connect=[endpoint]))
         watch = StackWatch(session, keys, camera_id)
         workers = _wait_workers(session, keys, 60.0, stop)

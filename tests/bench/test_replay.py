@@ -262,3 +262,11 @@ def test_accuracy_is_binned_by_distance_from_the_cameras() -> None:
     rows = replay.accuracy_by_range(pts, np.array([0.01, 0.1, 0.3]), np.zeros((1, 3)))
     assert [(r["range_m"], r["points"]) for r in rows] == [("0-1.5", 1), ("1.5-3", 1), ("3-5", 1), ("5-inf", 0)]
     assert [r["accuracy_median_m"] for r in rows[:3]] == [0.01, 0.1, 0.3] and math.isnan(rows[3]["accuracy_median_m"])
+
+
+def test_a_failed_process_is_named_by_its_last_lines() -> None:
+    lines = ["[up] start mapper", "[mapper] argus mapper: invalid configuration in m.toml:",
+             "[mapper]   geometry.backend: unknown reconstructor 'nope'", "[up] mapper exited with code 2"]
+    assert replay._failure(lines, ["mapper"]) == ("argus mapper: invalid configuration in m.toml: / "
+                                                  "geometry.backend: unknown reconstructor 'nope'")
+    assert replay._failure(lines, ["camera"]) == "(no output)"
