@@ -652,9 +652,9 @@ def play(setup: ReplaySetup, frames: Sequence[RecordedFrame], accuracy: PoseAccu
             session.close()
         for s in reversed(stacks):  # the camera first, the router last; the mapper saves its state as it stops
             s.stop()
+        state = load_state(state_tmp)
+        shutil.rmtree(state_tmp, ignore_errors=True)
     clouds: dict[str, np.ndarray] = {}
-    state = load_state(state_tmp)
-    shutil.rmtree(state_tmp, ignore_errors=True)
     if state is not None:
         objects = ObjectMap(FusionConfig())
         objects.load_state(state["objects"])
