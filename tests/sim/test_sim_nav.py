@@ -131,6 +131,22 @@ def test_robot_odometry_drifts_with_noise(world: tuple[Scene, NavMap]) -> None:
     assert rob2.pose_odom() == errs[0][2]  # ... and the same seed the same drift
 
 
+def test_odometry_covariance_grows_with_distance_and_turning(world: tuple[Scene, NavMap]) -> None:
+    import math
+
+    scene, nav = world
+    a = nav.room_cells(scene.rooms[0])[0]
+    rob = SimRobot(scene, nav, (a[0], a[1], 0.0), noise=OdometryNoise(0.05, 2.0, 1.0))
+    c0 = rob.odometry_covariance()
+    assert c0[0, 0] == 0.0 and c0[5, 5] == pytest.approx(1e-8)
+    rob.drive_to(a[0], a[1], math.pi / 2)  # a quarter turn in place
+    rob.run_to_arrival()
+    c1 = rob.odometry_covariance()
+    assert rob.turned_rad == pytest.approx(math.pi / 2)
+    assert c1[0, 0] == 0.0  # no distance, no position drift
+    assert c1[5, 5] - c0[5, 5] == pytest.approx(math.radians(1.0) ** 2 * math.pi / 2)
+
+
 @pytest.mark.parametrize("family,n", [("apartment", 3), ("furnished_room", 3), ("apartment", 1)])
 def test_fixed_cameras(family: str, n: int) -> None:
     scene = generate_scene(family, 5)
