@@ -8,8 +8,12 @@ Pipeline per call (a window of views, dense depth for ``targets``):
    declared accuracy (``View.prior_rel_rot_deg``) or from how well the images' essential-matrix rotation
    agrees with the priors, and a rescale to the priors' metric scale (images have none). Degenerate
    windows (little parallax, few inliers, a large scale change) keep the priors and say why in
-   ``info["ba"]``. Surveyed calibrations (``pose_trusted``) stay fixed. Views without any pose are
-   registered by PnP + RANSAC against the triangulated tracks.
+   ``info["ba"]``. Every 5th track is held out of the solve: the refined poses replace the priors only
+   when they explain those tracks clearly better ("holdout_not_better" otherwise), and the scene's depth
+   scale moves only as far as the priors' own held-out error explains (at most 10 %). Surveyed
+   calibrations (``pose_trusted``) stay fixed; priors declared with independent per-frame errors
+   (``prior_rel_rot_deg = inf``) are not judged. Views without any pose are registered by PnP + RANSAC
+   against the triangulated tracks.
 2. Dense depth per target by plane sweep over its best sources (``viewselect``: triangulation angle, overlap), census
    cost, 4-path SGM aggregation, sub-plane refinement, over a depth range fitted to the sparse points,
    at ~224 px width (160 px on real frames measured as good).
@@ -115,23 +119,24 @@ class MvsConfig(BaseModel):
     holdout_every: int = Field(
         default=5, ge=0,
         description="every n-th track is held out of the adjustment and triangulated afresh with the priors and "
-        "with the refined poses (0: none). Where a view declares no pose accuracy the refined poses replace the "
-        "priors only when they explain these tracks better (``holdout_min_gain``, ``holdout_min_px``)",
+        "with the refined poses (0: none); the refined poses replace the priors only when they explain these tracks "
+        "better (``holdout_min_gain``, ``holdout_min_px``). Not for surveyed calibrations nor for priors declared "
+        "to have independent per-frame errors (+inf relative accuracy)",
     )
     holdout_min_gain: float = Field(
         default=0.15, ge=0, lt=1,
-        description="undeclared priors: the refined poses' held-out median error must be this fraction below the "
+        description="the refined poses' held-out median error must be this fraction below the "
         "priors'",
     )
     holdout_min_px: float = Field(
         default=0.3, ge=0, description="... and at least this many pixels below it (accurate priors stay as they are)"
     )
     holdout_min_obs: int = Field(
-        default=20, ge=1, description="held-out observations needed to judge; with fewer, undeclared priors are kept"
+        default=20, ge=1, description="held-out observations needed to judge; with fewer, the priors are kept"
     )
     max_depth_rescale: float = Field(
         default=0.10, ge=0,
-        description="undeclared priors: the refinement changes the scene's depth scale against the priors' by at most "
+        description="a refinement changes the scene's depth scale against the priors' by at most "
         "what their own held-out error explains at the tracks' parallax, and never by more than this fraction",
     )
     max_ba_rms_px: float = Field(default=4.0, gt=0, description="reject an adjustment whose RMS stays above")
@@ -169,6 +174,12 @@ class _Prepared:
     intr: Intrinsics
     T_prior: F64 | None
     feats: features.Features
+
+
+def _relative_prior(v: View) -> bool:
+    """Whether ``v``'s prior carries information relative to its source's other priors (undeclared, or declared
+    with a finite relative accuracy), which a refinement could lose."""
+    return v.prior_rel_rot_deg is None or bool(np.isfinite(v.prior_rel_rot_deg))
 
 
 def _drift_variance(a: View, b: View, axes: slice) -> float:
@@ -436,9 +447,10 @@ class MvsReconstructor:
                     ouv.append(prep[v].feats.uv[k])
                     orig.append(o)
         c = self.config
-        # Where no view declares how accurate its prior is, a share of the tracks is held out to judge the result.
-        undeclared = any(has_prior[i] and not prep[i].view.pose_trusted and prep[i].view.prior_rel_rot_deg is None
-                         for i in idx)
+        # A share of the tracks is held out to judge the result wherever a prior could be made worse by it: any
+        # prior but a surveyed calibration and priors declared to have independent per-frame errors (no relative
+        # information to lose: +inf accuracy).
+        judged = any(has_prior[i] and not prep[i].view.pose_trusted and _relative_prior(prep[i].view) for i in idx)
         sources = sorted({prep[i].view.source_id for i in idx})
         group = [sources.index(prep[i].view.source_id) for i in idx]
         prob = bundle.BundleProblem(
@@ -454,7 +466,7 @@ class MvsReconstructor:
             rel_rot_sigma_deg=self._relative_rotation_sigmas(prep, idx, group, has_prior),
             rel_trans_sigma_m=self._declared_translation_sigmas(prep, idx, group, has_prior),
             holdout=(np.arange(len(pts)) % c.holdout_every == c.holdout_every - 1
-                     if undeclared and c.holdout_every > 1 else None),
+                     if judged and c.holdout_every > 1 else None),
         )
         res = bundle.bundle_adjust(
             prob, c.sigma_rot_deg, c.sigma_trans_m, sigma_rel_rot_deg=c.sigma_rel_rot_deg,
@@ -473,13 +485,13 @@ class MvsReconstructor:
             res.status == "ok" and res.rms_px_after <= self.config.max_ba_rms_px and worst <= self.config.max_ba_sigmas
         )
         status = res.status if res.status != "ok" or accepted else "moved_too_far"
-        if accepted and undeclared and not self._holdout_says_better(res):
-            # Nothing says how good these priors are, and tracks the solve did not see are explained no better
-            # by the refined poses: keep the priors (a refinement of good priors over a short baseline can trade
-            # rotation against depth and rescale the scene while fitting its own tracks as well as they do).
+        if accepted and judged and not self._holdout_says_better(res):
+            # Tracks the solve did not see are explained no better by the refined poses: keep the priors (a
+            # refinement of good priors over a short baseline can trade rotation against depth and rescale the
+            # scene while fitting its own tracks as well as they do).
             accepted, status = False, "holdout_not_better"
         depth_ratio = 1.0
-        if accepted and undeclared:
+        if accepted and judged:
             depth_ratio = self._hold_depth_scale(prob, res, [has_prior[i] or prep[i].view.pose_trusted for i in idx],
                                                  c.max_depth_rescale)
         if accepted:
