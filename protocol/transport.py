@@ -141,6 +141,8 @@ def decode_frame_sample(sample: zenoh.Sample) -> Frame:
     The JPEG bytes are not decoded here (that is the receiver's choice and cost).
     """
     att = sample.attachment
+    if att is not None and len(att) > MAX_HEADER_BYTES:  # refused before it is copied out of Zenoh
+        raise DecodeError(f"frame header attachment of {len(att)} bytes exceeds {MAX_HEADER_BYTES}")
     return decode_frame_bytes(str(sample.key_expr), None if att is None else att.to_bytes(), sample.payload.to_bytes())
 
 
