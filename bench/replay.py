@@ -61,6 +61,11 @@ NODE_NEAR_M = 0.10
 """A node's point is on the reference surface within this distance."""
 DUPLICATE_M = 0.5
 """Two same-label nodes whose centroids are closer than this count as one object mapped twice."""
+UNLABELLED = "object"
+"""The label of class-agnostic nodes (``classical`` perception, or a detector mask without a class)."""
+PERCEPTIONS = {"classical": {"segmenter": "classical", "embedder": "classical"},
+               "detector": {"segmenter": "detector", "embedder": "detector"}}
+"""``--perception`` choices: the mapper's 2D segmenter and the embedder that goes with it (``mapper.perception``)."""
 BARS = {"accuracy_median_m": 0.03, "completion_5cm": 0.50, "node_points_within": 0.90, "in_process_gap": 0.10,
         "latency_p99_s": 2.0}
 """The figures' bars (issue 36): median accuracy <= 3 cm, completion@5cm >= 50 %, node points within 10 cm
@@ -81,6 +86,7 @@ class NodeCloud:
     centroid: np.ndarray
     corners: np.ndarray
     points: np.ndarray | None = None
+    label_confidence: float = math.nan
 
 
 def box_corners(center: Sequence[float], extent: Sequence[float], yaw_rad: float) -> np.ndarray:
@@ -95,7 +101,7 @@ def node_cloud(node: Any, points: np.ndarray | None = None) -> NodeCloud:
     """A :class:`NodeCloud` of a ``GraphNode`` (and its fused points, when known)."""
     b = node.box
     return NodeCloud(node.node_id, node.label, np.asarray(node.centroid, float),
-                     box_corners(b.center, b.extent, b.yaw_rad), points)
+                     box_corners(b.center, b.extent, b.yaw_rad), points, float(node.label_confidence))
 
 
 def nearest_m(points: np.ndarray, to: Any) -> np.ndarray:
@@ -152,6 +158,7 @@ def node_scores(nodes: Sequence[NodeCloud], reference: Any, near_m: float = NODE
 
     if not isinstance(reference, cKDTree):
         reference = surface_tree(reference)  # one tree for every node
+    labelled = has_labels(nodes)
     for n in nodes:
         have = n.points is not None and len(n.points) > 0
         pts = n.points if have and n.points is not None else np.vstack([n.corners, n.centroid[None]])
@@ -159,7 +166,11 @@ def node_scores(nodes: Sequence[NodeCloud], reference: Any, near_m: float = NODE
         near = int((d <= near_m).sum())
         near_total += near
         n_total += len(d)
-        rows.append({"node_id": n.node_id, "label": n.label, "scored_by": "points" if have else "box",
+        rows.append({"node_id": n.node_id, "label": n.label, "label_confidence": n.label_confidence,
+                     "judged_on": "label + geometry" if labelled and n.label != UNLABELLED else "geometry only",
+                     "box_center_m": [round(float(v), 3) for v in box_center(n)],
+                     "box_size_m": [round(v, 3) for v in box_size(n)],
+                     "box_yaw_deg": round(math.degrees(_box_yaw(n)), 1), "scored_by": "points" if have else "box",
                      "points": len(d), "within": near / len(d) if len(d) else math.nan,
                      "centroid_m": float(nearest_m(n.centroid[None], reference)[0])})
     shares = [r["within"] for r in rows if not math.isnan(r["within"])]
@@ -178,15 +189,42 @@ def labels_count(nodes: Sequence[NodeCloud]) -> dict[str, int]:
     return dict(collections.Counter(n.label for n in nodes).most_common())
 
 
-def duplicate_pairs(nodes: Sequence[NodeCloud], radius_m: float = DUPLICATE_M) -> list[dict[str, Any]]:
-    """Pairs of nodes with the same label whose centroids are closer than ``radius_m``, closest first."""
+def has_labels(nodes: Sequence[NodeCloud], unlabelled: str = UNLABELLED) -> bool:
+    """Whether any node carries a real class (a label other than ``unlabelled``): a closed-set perception ran."""
+    return any(n.label != unlabelled for n in nodes)
+
+
+def box_center(n: NodeCloud) -> np.ndarray:
+    """Centre (3,) of a node's box, world frame: the mean of its corners."""
+    return np.asarray(n.corners, float).mean(axis=0)
+
+
+def box_size(n: NodeCloud) -> list[float]:
+    """A node's box side lengths along its own x, y and z axes (metres; :func:`box_corners`' corner order)."""
+    c = n.corners
+    return [float(np.linalg.norm(c[4] - c[0])), float(np.linalg.norm(c[2] - c[0])), float(np.linalg.norm(c[1] - c[0]))]
+
+
+def duplicate_pairs(nodes: Sequence[NodeCloud], radius_m: float = DUPLICATE_M, skip_label: str | None = None
+                    ) -> list[dict[str, Any]]:
+    """Pairs of nodes with the same label whose centroids are closer than ``radius_m``, closest first; nodes
+    labelled ``skip_label`` (the class-agnostic label, when real labels exist) are left out."""
+    kept = [n for n in nodes if skip_label is None or n.label != skip_label]
     out = []
-    for i, a in enumerate(nodes):
-        for b in nodes[i + 1:]:
+    for i, a in enumerate(kept):
+        for b in kept[i + 1:]:
             d = float(np.linalg.norm(a.centroid - b.centroid))
             if a.label == b.label and d < radius_m:
                 out.append({"a": a.node_id, "b": b.node_id, "label": a.label, "distance_m": d})
     return sorted(out, key=lambda p: p["distance_m"])
+
+
+def label_duplicates(nodes: Sequence[NodeCloud], radius_m: float = DUPLICATE_M) -> tuple[list[dict[str, Any]], str]:
+    """Same-label pairs under ``radius_m`` and over which nodes they were counted: only the labelled ones when any
+    node has a real class (class-agnostic ``object`` nodes are judged by geometry only), else all nodes."""
+    if has_labels(nodes):
+        return duplicate_pairs(nodes, radius_m, skip_label=UNLABELLED), "labelled nodes"
+    return duplicate_pairs(nodes, radius_m), "all nodes (class-agnostic)"
 
 
 RANGES_M = (0.0, 1.5, 3.0, 5.0, math.inf)
@@ -482,6 +520,8 @@ class ReplaySetup:
     health_timeout_s: float = 180.0
     in_process: bool = True
     out: Path = Path("bench_out/replay")
+    perception: str | None = None
+    """A key of :data:`PERCEPTIONS` for the mapper's segmenter + embedder; None: the launch file's."""
 
 
 def declaration(seq: seqs.Sequence, declared: bool) -> PoseAccuracy | None:
@@ -499,11 +539,29 @@ def accuracy_text(accuracy: PoseAccuracy | None) -> str:
     return "undeclared" if accuracy is None else f"declared {1000 * accuracy.trans_m:g} mm / {accuracy.rot_deg:g} deg"
 
 
+def check_perception(name: str | None) -> None:
+    """Build the ``--perception`` choice's segmenter once (the detector loads its weights), so that a missing model
+    is a one-line ``ValueError`` before any process starts; None (the launch file's) is not checked here."""
+    if name is None:
+        return
+    if name not in PERCEPTIONS:
+        raise ValueError(f"--perception {name!r}: one of {', '.join(PERCEPTIONS)}")
+    from mapper.perception.registry import make_segmenter
+    from mapper.perception.sam import BackendUnavailable
+
+    try:
+        make_segmenter(PERCEPTIONS[name]["segmenter"])
+    except BackendUnavailable as e:
+        raise ValueError(f"--perception {name}: {e}") from None
+
+
 def replay_launch(launch_path: Path, sequence: Path, rate_hz: float, accuracy: PoseAccuracy | None, endpoint: str,
-                  state_dir: Path) -> tuple[Any, str, dict[str, Any]]:
+                  state_dir: Path, perception: str | None = None) -> tuple[Any, str, dict[str, Any]]:
     """The launch file's stack set up for this replay: on ``endpoint``, its camera playing ``sequence`` once at
-    ``rate_hz`` declaring ``accuracy`` (None: nothing), its mapper saving to ``state_dir``. Returns the launch,
-    the camera's id and the mapper's settings; ``ValueError`` when the file is not a replay stack."""
+    ``rate_hz`` declaring ``accuracy`` (None: nothing), its mapper saving to ``state_dir`` and, when
+    ``perception`` names one of :data:`PERCEPTIONS`, segmenting and labelling with it (the launch file's backend
+    options are kept where the backend is the same). Returns the launch, the camera's id and the mapper's
+    settings; ``ValueError`` when the file is not a replay stack."""
     from deploy.up import load_launch
 
     launch = load_launch(launch_path)
@@ -519,6 +577,8 @@ def replay_launch(launch_path: Path, sequence: Path, rate_hz: float, accuracy: P
         settings = dict(p.settings) if p.settings is not None else None
         if p.command == "mapper" and settings is not None:
             settings["state_dir"] = str(state_dir)
+            if perception is not None:
+                settings["perception"] = perception_settings(dict(settings.get("perception", {})), perception)
         if p.command == "edge-camera" and settings is not None:
             source = {k: v for k, v in dict(settings.get("source", {})).items()
                       if k not in ("pose_sigma_trans_m", "pose_sigma_rot_deg", "start", "stop")}
@@ -534,8 +594,24 @@ def replay_launch(launch_path: Path, sequence: Path, rate_hz: float, accuracy: P
     launch = launch.model_copy(update={"endpoint": endpoint, "process": procs})
     camera = by_cmd["edge-camera"][0]
     camera_id = str((camera.settings or {}).get("id", "cam0"))
-    mapper_settings = dict(by_cmd["mapper"][0].settings or {})
+    mapper_settings = dict(by_cmd["mapper"][0].settings or {})  # the file's, without this run's state_dir
+    if perception is not None:  # the in-process comparison maps with what the stack's mapper got
+        mapper_settings["perception"] = perception_settings(dict(mapper_settings.get("perception", {})), perception)
     return launch, camera_id, mapper_settings
+
+
+def perception_settings(current: dict[str, Any], name: str) -> dict[str, Any]:
+    """The mapper's ``perception`` table with the segmenter and embedder of :data:`PERCEPTIONS` ``[name]``; each
+    backend's options from ``current`` stay when that backend is unchanged."""
+    if name not in PERCEPTIONS:
+        raise ValueError(f"--perception {name!r}: one of {', '.join(PERCEPTIONS)}")
+    out = {k: v for k, v in current.items() if k not in ("segmenter", "embedder", "segmenter_options",
+                                                          "embedder_options")}
+    for kind, backend in PERCEPTIONS[name].items():
+        out[kind] = backend
+        if current.get(kind) == backend and f"{kind}_options" in current:
+            out[f"{kind}_options"] = current[f"{kind}_options"]
+    return out
 
 
 def _failure(lines: Sequence[str], names: Sequence[str]) -> str:
@@ -572,7 +648,7 @@ def play(setup: ReplaySetup, frames: Sequence[RecordedFrame], accuracy: PoseAccu
     state_tmp = Path(tempfile.mkdtemp(prefix="argus-replay-state-"))
     endpoint = free_endpoint()
     launch, camera_id, mapper_settings = replay_launch(setup.launch, setup.sequence, setup.rate_hz, accuracy,
-                                                       endpoint, state_tmp)
+                                                       endpoint, state_tmp, setup.perception)
     keys = Keys(launch.site)
     # The camera starts once the mapper and its worker are up, so that every frame meets the deployed mapper.
     core = launch.model_copy(update={"process": [p for p in launch.process if p.command != "edge-camera"]})
@@ -755,7 +831,8 @@ def summary_rows(res: dict[str, Any]) -> list[dict[str, str]]:
          _fmt(i.get("node_points_within_pooled"), "%"), "", ""),
         ("nodes with >= 90 % of their points within 10 cm", _fmt(r["nodes_90pct_within"], "%"),
          _fmt(i.get("nodes_90pct_within"), "%"), "", ""),
-        ("same-label node pairs < 0.5 m apart", _fmt(r["duplicates"]), _fmt(i.get("duplicates")), "", ""),
+        (f"same-label node pairs < 0.5 m apart (over {r.get('duplicates_over', 'all nodes')})",
+         _fmt(r["duplicates"]), _fmt(i.get("duplicates")), "", ""),
         ("capture -> graph latency p50", _fmt(f.get("latency_p50_s"), "s"), "", "", ""),
         ("capture -> graph latency p99", _fmt(f.get("latency_p99_s"), "s"), "", "<= 2 s",
          bar(f.get("latency_p99_s", math.nan), "latency_p99_s", False)),
@@ -770,10 +847,38 @@ def summary_rows(res: dict[str, Any]) -> list[dict[str, str]]:
             for a, b, c, d, e in table]
 
 
+def numbered_nodes(nodes: Sequence[NodeCloud]) -> list[NodeCloud]:
+    """The nodes the top-down view numbers and lists in its legend, in legend order: the labelled ones when any
+    node has a real class (by label, then most points first), else every node (most points first)."""
+    def n_points(n: NodeCloud) -> int:
+        return 0 if n.points is None else len(n.points)
+
+    if has_labels(nodes):
+        return sorted((n for n in nodes if n.label != UNLABELLED), key=lambda n: (n.label, -n_points(n), n.node_id))
+    return sorted(nodes, key=lambda n: (-n_points(n), n.node_id))
+
+
+def spread_labels(anchors: np.ndarray, min_sep: float, max_rings: int = 6) -> np.ndarray:
+    """Text positions (N, 2) for markers at ``anchors`` (N, 2), greedily in order: each at its anchor when no
+    earlier one lies within ``min_sep``, else on the nearest free point of rings of 8 directions ``min_sep``
+    apart around it (the last ring's first point when all are taken)."""
+    a = np.asarray(anchors, float).reshape(-1, 2)
+    placed: list[np.ndarray] = []
+    dirs = [np.array([math.cos(t), math.sin(t)]) for t in np.arange(8) * math.pi / 4]
+    for p in a:
+        candidates = [p] + [p + k * min_sep * d for k in range(1, max_rings + 1) for d in dirs]
+        pick = next((c for c in candidates if all(np.linalg.norm(c - q) >= min_sep for q in placed)), candidates[-8])
+        placed.append(pick)
+    return np.array(placed).reshape(-1, 2)
+
+
 def plot_top_down(path: Path, reference: np.ndarray, ref_colors: np.ndarray, map_points: np.ndarray,
-                  nodes: Sequence[NodeCloud], up: tuple[int, int], title: str) -> None:
+                  nodes: Sequence[NodeCloud], up: tuple[int, int], title: str, max_listed: int = 40) -> None:
     """Reference points seen from above (the two axes other than ``up``), the map's points and each node's box
-    outline (convex hull of its projected corners) with its label."""
+    outline (convex hull of its projected corners). The nodes of :func:`numbered_nodes` carry a number (moved
+    off its neighbours, with a leader line) and are listed beside the map: number, label, confidence, id,
+    points (at most ``max_listed``); with real labels each label has its own colour and the class-agnostic
+    ``object`` boxes are thin grey outlines without a number."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -782,7 +887,7 @@ def plot_top_down(path: Path, reference: np.ndarray, ref_colors: np.ndarray, map
 
     ax0, ax1 = [a for a in range(3) if a != up[0]]
     names = "xyz"
-    fig, ax = plt.subplots(figsize=(9, 9))
+    fig, (ax, lx) = plt.subplots(1, 2, figsize=(14, 9), gridspec_kw={"width_ratios": [3, 1.25]})
     rng = np.random.default_rng(0)
     if len(reference):
         pick = rng.choice(len(reference), min(len(reference), 150_000), replace=False)
@@ -790,25 +895,63 @@ def plot_top_down(path: Path, reference: np.ndarray, ref_colors: np.ndarray, map
         ax.scatter(reference[order, ax0], reference[order, ax1], c=ref_colors[order] / 255.0, s=1.5, linewidths=0,
                    rasterized=True)
     if len(map_points):
-        ax.scatter(map_points[:, ax0], map_points[:, ax1], c="tab:red", s=2, linewidths=0, alpha=0.6,
+        ax.scatter(map_points[:, ax0], map_points[:, ax1], c="tab:red", s=2, linewidths=0, alpha=0.5,
                    label="map points (replay)")
-    for n in nodes:
+    labelled = has_labels(nodes)
+    numbered = numbered_nodes(nodes)
+    palette = plt.get_cmap("tab10" if len({n.label for n in numbered}) <= 10 else "tab20")
+    colour = {lab: palette(k % palette.N) for k, lab in enumerate(dict.fromkeys(n.label for n in numbered))}
+
+    def hull_of(n: NodeCloud) -> np.ndarray:
         xy = n.corners[:, [ax0, ax1]]
         try:
-            hull = xy[ConvexHull(xy).vertices]
+            return np.asarray(xy[ConvexHull(xy).vertices])
         except (QhullError, ValueError):  # a flat box: its outline is a segment
-            hull = xy[[int(np.argmin(xy[:, 0])), int(np.argmax(xy[:, 0]))]]
-        ax.fill(hull[:, 0], hull[:, 1], fill=False, edgecolor="tab:blue", linewidth=1.0)
-        ax.text(float(n.centroid[ax0]), float(n.centroid[ax1]), f"{n.label} {n.node_id}", fontsize=6,
-                color="navy", ha="center")
+            return np.asarray(xy[[int(np.argmin(xy[:, 0])), int(np.argmax(xy[:, 0]))]])
+
+    ids = {n.node_id for n in numbered}
+    for n in nodes:
+        if n.node_id not in ids:
+            h = hull_of(n)
+            ax.fill(h[:, 0], h[:, 1], fill=False, edgecolor="0.45", linewidth=0.7, linestyle="--")
+    for n in numbered:
+        h = hull_of(n)
+        ax.fill(h[:, 0], h[:, 1], fill=False, edgecolor=colour[n.label], linewidth=2.0)
+    if numbered:
+        anchors = np.array([box_center(n)[[ax0, ax1]] for n in numbered])
+        lo, hi = ax.get_xlim(), ax.get_ylim()
+        span = max(hi[1] - hi[0], lo[1] - lo[0], 1e-6)
+        spots = spread_labels(anchors, 0.035 * span)
+        for k, (n, a, t) in enumerate(zip(numbered, anchors, spots, strict=True), start=1):
+            if np.linalg.norm(t - a) > 0:
+                ax.plot([a[0], t[0]], [a[1], t[1]], color=colour[n.label], linewidth=0.8)
+            ax.text(float(t[0]), float(t[1]), str(k), fontsize=10, fontweight="bold", ha="center", va="center",
+                    color="black", bbox={"boxstyle": "round,pad=0.2", "fc": "white", "ec": colour[n.label],
+                                         "lw": 1.5, "alpha": 0.9})
     ax.set_xlabel(f"world {names[ax0]} (m)")
     ax.set_ylabel(f"world {names[ax1]} (m)")
     ax.set_aspect("equal")
-    ax.set_title("\n".join(textwrap.wrap(title, 90)), fontsize=9)
+    ax.set_title("\n".join(textwrap.wrap(title, 90)), fontsize=10)
     if len(map_points):
-        ax.legend(loc="upper right", fontsize=7)
+        ax.legend(loc="upper right", fontsize=8)
+    lx.axis("off")
+    head = ("labelled nodes" if labelled else "nodes (class-agnostic, every one 'object')")
+    lines: list[tuple[str, Any, str]] = [(f"#  {head}", "black", "bold")]
+    lines += [(f"{k:>2}  {n.label[:18]:<18} {n.label_confidence:4.2f}  {n.node_id[:10]:<10} "
+               f"{0 if n.points is None else len(n.points):>5} pts", colour[n.label], "normal")
+              for k, n in enumerate(numbered[:max_listed], start=1)]
+    if len(numbered) > max_listed:
+        lines.append((f"+ {len(numbered) - max_listed} more (replay.md)", "black", "normal"))
+    if labelled and len(nodes) > len(numbered):
+        lines.append((f"grey dashed: {len(nodes) - len(numbered)} class-agnostic", "0.35", "normal"))
+        lines.append(("'object' nodes (geometry only)", "0.35", "normal"))
+    if not numbered:
+        lines.append(("no nodes", "black", "normal"))
+    for i, (text, c, weight) in enumerate(lines):
+        lx.text(0.0, 1.0 - i * 0.024, text, transform=lx.transAxes, fontsize=9, family="monospace", color=c,
+                fontweight=weight, va="top")
     fig.tight_layout()
-    fig.savefig(path, dpi=130)
+    fig.savefig(path, dpi=110)
     plt.close(fig)
 
 
@@ -835,10 +978,10 @@ def write_rerun(path: Path, reference: np.ndarray, ref_colors: np.ndarray, repla
             rec.log(f"world/{name}/keyframes", rr.Points3D([T[:3, 3] for T in res.keyframe_poses.values()],
                                                             colors=[color], radii=0.03), static=True)
         if res.nodes:
-            centers = [(n.corners.max(0) + n.corners.min(0)) / 2 for n in res.nodes]
+            centers = [box_center(n) for n in res.nodes]
             rec.log(f"world/{name}/nodes", rr.Boxes3D(
                 centers=centers,
-                sizes=[_box_size(n) for n in res.nodes],
+                sizes=[box_size(n) for n in res.nodes],
                 rotation_axis_angles=[rr.RotationAxisAngle(axis=(0, 0, 1), angle=_box_yaw(n)) for n in res.nodes],
                 labels=[f"{n.label} {n.node_id}" for n in res.nodes], colors=[color]), static=True)
     rec.flush()
@@ -851,11 +994,6 @@ def _box_yaw(n: NodeCloud) -> float:
     return math.atan2(edge[1], edge[0])
 
 
-def _box_size(n: NodeCloud) -> list[float]:
-    c = n.corners
-    return [float(np.linalg.norm(c[4] - c[0])), float(np.linalg.norm(c[2] - c[0])), float(np.linalg.norm(c[1] - c[0]))]
-
-
 def scored(result: MapResult, reference: np.ndarray, recorded: dict[int, np.ndarray]
            ) -> tuple[dict[str, Any], list[dict[str, Any]], list[dict[str, Any]]]:
     """A run's map, node and keyframe-pose figures against the reference; its per-node rows; its duplicates."""
@@ -865,8 +1003,10 @@ def scored(result: MapResult, reference: np.ndarray, recorded: dict[int, np.ndar
     figs["accuracy_by_range"] = accuracy_by_range(result.points, nearest_m(result.points, tree), cams)
     rows, summary = node_scores(result.nodes, tree)
     figs.update(summary)
-    dups = duplicate_pairs(result.nodes)
+    dups, over = label_duplicates(result.nodes)
     figs["duplicates"] = float(len(dups))
+    figs["duplicates_over"] = over
+    figs["labelled_nodes"] = float(sum(n.label != UNLABELLED for n in result.nodes))
     figs["labels"] = labels_count(result.nodes)
     pe = pose_errors(recorded, result.keyframe_poses)
     figs.update(keyframes=float(pe["n"]), pose_trans_cm_median=pe["trans_cm_median"],
@@ -919,6 +1059,7 @@ def run(setup: ReplaySetup, stop: threading.Event | None = None, seq: seqs.Seque
         "rate_hz": setup.rate_hz, "declared": None if accuracy is None else {"trans_m": accuracy.trans_m,
                                                                             "rot_deg": accuracy.rot_deg},
         "launch": str(setup.launch), "perception": replay.figures["mapper_settings"].get("perception", "default"),
+        "perception_option": setup.perception,
         "geometry": replay.figures["mapper_settings"].get("geometry", "default"),
         "reference": {"voxel_m": voxel_m, "sdf_trunc_m": 4 * voxel_m, "points": len(reference),
                       "valid_depth_m": list(seq.meta.valid_depth_m)},
@@ -954,7 +1095,9 @@ def _append_notes(md: Path, res: dict[str, Any], up: tuple[int, int]) -> None:
     notes = [
         f"Sequence `{res['folder']}`, {res['frames']} frames played once at {res['rate_hz']:g} Hz; pose accuracy "
         + (f"declared ({decl['trans_m']} m, {decl['rot_deg']} deg per axis)." if decl else "undeclared."),
-        f"Mapper: geometry {res['geometry']}, 2D perception {res['perception']} (launch file `{res['launch']}`); "
+        f"Mapper: geometry {res['geometry']}, 2D perception {perception_text(res['perception'])} (launch file "
+        f"`{res['launch']}`" + (f", `--perception {res['perception_option']}`" if res.get("perception_option") else "")
+        + "); "
         f"settled: {f['settled']} after {f['wall_s']:.0f} s of playing; graph version {f['graph_version']}.",
         f"Reference: TSDF of the recorded depth inside {res['reference']['valid_depth_m']} m with the recorded poses, "
         f"voxel {100 * res['reference']['voxel_m']:.1f} cm, {res['reference']['points']} surface points. The map is "
@@ -965,8 +1108,7 @@ def _append_notes(md: Path, res: dict[str, Any], up: tuple[int, int]) -> None:
         f"(`work/result`), {f['keyframe_results_seen']} seen ({int(f['keyframe_results_rejected'])} results rejected "
         f"by the mapper); keyframes done in the mapper itself ({int(f['keyframes_done_locally'])}) are not on the "
         "wire.",
-        "Labels: classical 2D perception labels every node `object`, so 'same-label pairs' counts every pair of "
-        "nodes under 0.5 m apart, duplicates or neighbours." if set(r["labels"]) == {"object"} else "",
+        labels_note(res),
         f"Top-down view: world {'xyz'[up[0]]} taken as up (the axis nearest to the opposite of the cameras' mean "
         "image-down direction).",
     ]
@@ -978,10 +1120,53 @@ def _append_notes(md: Path, res: dict[str, Any], up: tuple[int, int]) -> None:
              markdown_table([{"range (m)": b["range_m"], "map points": b["points"],
                               "median accuracy": _fmt(b["accuracy_median_m"], "cm")} for b in r["accuracy_by_range"]])]
     text += ["## Nodes (replay)", "",
-             markdown_table(res["replay_nodes"][:60], ["node_id", "label", "scored_by", "points", "within",
-                                                       "centroid_m"])]
+             "Labelled nodes first, then by points. `judged on`: a class-agnostic `object` node is scored by "
+             "geometry only (its points against the reference), a labelled one also by its class (judge it on "
+             "`replay.png` and the frames). `within`: share of its points within 10 cm of the reference.", "",
+             markdown_table(node_table(res["replay_nodes"])[:60])]
     with md.open("a") as fh:
         fh.write("\n".join(text) + "\n")
+
+
+def perception_text(perception: Any) -> str:
+    """``segmenter / embedder`` of a mapper's ``perception`` settings (the default when it has none)."""
+    if not isinstance(perception, dict):
+        return str(perception)
+    seg, emb = perception.get("segmenter", "classical"), perception.get("embedder", "classical")
+    return seg if seg == emb else f"{seg} / {emb}"
+
+
+def labels_note(res: dict[str, Any]) -> str:
+    """What the labels of a run mean for its scores: class-agnostic (every pair under 0.5 m counts), real classes
+    (pairs among the labelled nodes only), or a closed-set perception that found none of its classes."""
+    r = res["replay"]
+    seg = res["perception"].get("segmenter", "classical") if isinstance(res["perception"], dict) else ""
+    if r["labelled_nodes"] > 0:
+        return (f"Labels: {int(r['labelled_nodes'])} of {int(r['nodes'])} nodes carry a class; same-label pairs are "
+                f"counted over those only, the class-agnostic `{UNLABELLED}` nodes are scored by geometry only.")
+    if seg == "detector":
+        return (f"Labels: the detector saw nothing it knows (none of its classes in any keyframe, or no labelled "
+                f"node kept): every node is `{UNLABELLED}`, scored by geometry only; same-label pairs count every "
+                "pair under 0.5 m apart.")
+    return (f"Labels: {seg or 'this'} 2D perception labels every node `{UNLABELLED}` (class-agnostic, scored by "
+            "geometry only), so 'same-label pairs' counts every pair of nodes under 0.5 m apart, duplicates or "
+            "neighbours.")
+
+
+def _conf(v: float) -> str:
+    return "-" if not math.isfinite(v) else f"{v:.2f}"
+
+
+def node_table(rows: Sequence[dict[str, Any]]) -> list[dict[str, str]]:
+    """The per-node Markdown rows: labelled nodes first (most points first), then the class-agnostic ones."""
+    def xyz(v: Sequence[float]) -> str:
+        return ", ".join(f"{x:.2f}" for x in v)
+
+    ordered = sorted(rows, key=lambda r: (r["label"] == UNLABELLED, r["label"], -r["points"]))
+    return [{"node": r["node_id"], "label": r["label"], "confidence": _conf(r.get("label_confidence", math.nan)),
+             "judged on": r.get("judged_on", "geometry only"), "box centre (m)": xyz(r.get("box_center_m", [])),
+             "box size (m)": xyz(r.get("box_size_m", [])), "points": str(r["points"]),
+             "within 10 cm": _fmt(r["within"], "%"), "scored by": r["scored_by"]} for r in ordered]
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -1011,14 +1196,20 @@ def main(argv: list[str] | None = None) -> int:
                    help="launch file of the stack (one router, one mapper, one edge-camera with a recorded source)")
     p.add_argument("--no-in-process", dest="in_process", action="store_false",
                    help="skip the in-process comparison run")
+    p.add_argument("--perception", choices=sorted(PERCEPTIONS), default=None,
+                   help="the mapper's 2D segmenter + embedder: classical (class-agnostic 'object' nodes, no weights) "
+                   "or detector (the bundled offline SSD, 24 classes; weights from make install); default: the "
+                   "launch file's (classical in deploy/launch/replay.toml)")
     a = p.parse_args(argv)
     if a.rate <= 0:
         p.error("--rate must be > 0")
     from protocol.runtime import install_stop_handlers
 
     setup = ReplaySetup(sequence=a.sequence, launch=a.launch, rate_hz=a.rate, declared=a.declared,
-                        timeout_s=a.timeout_s, settle_s=a.settle_s, in_process=a.in_process, out=a.out)
+                        timeout_s=a.timeout_s, settle_s=a.settle_s, in_process=a.in_process, out=a.out,
+                        perception=a.perception)
     try:
+        check_perception(setup.perception)
         seq = load_checked(setup)
         run(setup, install_stop_handlers(), seq)
     except (SequenceError, ValueError, RuntimeError) as e:

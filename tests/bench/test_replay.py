@@ -102,7 +102,112 @@ class TestNodes:
         assert np.allclose(c.min(0), [0.9, 1.8, 0.0]) and np.allclose(c.max(0), [1.1, 2.2, 1.0])
         n = NodeCloud("n", "x", np.zeros(3), c)
         assert replay._box_yaw(n) == pytest.approx(math.pi / 2)
-        assert np.allclose(replay._box_size(n), [0.4, 0.2, 1.0])
+        assert np.allclose(replay.box_size(n), [0.4, 0.2, 1.0])
+        assert np.allclose(replay.box_center(n), [1.0, 2.0, 0.5])
+
+
+def labelled(node_id: str, label: str, centroid: tuple[float, float, float], n_points: int = 0,
+             confidence: float = 0.8) -> NodeCloud:
+    pts = np.tile(np.asarray(centroid, float), (n_points, 1)) if n_points else None
+    return NodeCloud(node_id, label, np.asarray(centroid, float),
+                     replay.box_corners(centroid, (0.2, 0.4, 0.6), 0.0), pts, confidence)
+
+
+class TestLabels:
+    def test_with_real_labels_pairs_are_counted_over_the_labelled_nodes_only(self) -> None:
+        nodes = [labelled("m1", "Computer monitor", (0, 0, 0)), labelled("m2", "Computer monitor", (0.2, 0, 0)),
+                 labelled("o1", "object", (0, 0.1, 0)), labelled("o2", "object", (0.1, 0.1, 0))]
+        pairs, over = replay.label_duplicates(nodes)
+        assert over == "labelled nodes" and [(p["a"], p["b"]) for p in pairs] == [("m1", "m2")]
+        assert replay.has_labels(nodes)
+
+    def test_class_agnostic_nodes_count_every_close_pair(self) -> None:
+        nodes = [labelled("o1", "object", (0, 0, 0)), labelled("o2", "object", (0.3, 0, 0))]
+        pairs, over = replay.label_duplicates(nodes)
+        assert over.startswith("all nodes") and len(pairs) == 1 and not replay.has_labels(nodes)
+        assert replay.label_duplicates([]) == ([], "all nodes (class-agnostic)")
+
+    def test_node_rows_carry_label_confidence_box_and_what_they_are_judged_on(self) -> None:
+        nodes = [labelled("c", "Chair", (1.0, 2.0, 0.3), n_points=4, confidence=0.65),
+                 labelled("o", "object", (0.0, 0.0, 0.0), n_points=2)]
+        rows, _ = replay.node_scores(nodes, np.array([[1.0, 2.0, 0.3], [0.0, 0.0, 0.0]]))
+        c, o = rows
+        assert c["label_confidence"] == 0.65 and c["judged_on"] == "label + geometry"
+        assert c["box_center_m"] == [1.0, 2.0, 0.3] and c["box_size_m"] == [0.2, 0.4, 0.6] and c["box_yaw_deg"] == 0.0
+        assert o["judged_on"] == "geometry only" and c["within"] == o["within"] == 1.0
+        table = replay.node_table(list(reversed(rows)))
+        assert [r["node"] for r in table] == ["c", "o"]  # labelled first
+        assert table[0]["box centre (m)"] == "1.00, 2.00, 0.30" and table[0]["confidence"] == "0.65"
+
+    def test_only_class_agnostic_rows_are_geometry_only_when_there_are_no_labels(self) -> None:
+        rows, _ = replay.node_scores([labelled("o", "object", (0, 0, 0))], plane(0.1))
+        assert rows[0]["judged_on"] == "geometry only"
+
+    def test_the_notes_say_when_the_detector_saw_nothing_it_knows(self) -> None:
+        res = {"replay": {"labelled_nodes": 0.0, "nodes": 3.0},
+               "perception": {"segmenter": "detector", "embedder": "detector"}}
+        assert "saw nothing it knows" in replay.labels_note(res)
+        res["perception"] = {"segmenter": "classical", "embedder": "classical"}
+        assert "class-agnostic" in replay.labels_note(res)
+        res["replay"] = {"labelled_nodes": 2.0, "nodes": 3.0}
+        assert "2 of 3 nodes carry a class" in replay.labels_note(res)
+
+
+class TestTopDownLabels:
+    def test_labelled_nodes_are_numbered_by_label_then_size(self) -> None:
+        nodes = [labelled("a", "Mug", (0, 0, 0), 5), labelled("b", "Chair", (1, 0, 0), 3),
+                 labelled("c", "Mug", (2, 0, 0), 50), labelled("d", "object", (3, 0, 0), 500)]
+        assert [n.node_id for n in replay.numbered_nodes(nodes)] == ["b", "c", "a"]
+        agnostic = [labelled("x", "object", (0, 0, 0), 1), labelled("y", "object", (1, 0, 0), 9)]
+        assert [n.node_id for n in replay.numbered_nodes(agnostic)] == ["y", "x"]
+        assert replay.numbered_nodes([]) == []
+
+    def test_labels_keep_apart_and_free_ones_stay_on_their_anchor(self) -> None:
+        anchors = np.array([[0.0, 0.0], [0.01, 0.0], [0.0, 0.01], [5.0, 5.0]])
+        spots = replay.spread_labels(anchors, 0.5)
+        assert spots.shape == (4, 2)
+        assert np.array_equal(spots[0], anchors[0]) and np.array_equal(spots[3], anchors[3])
+        d = np.linalg.norm(spots[:, None] - spots[None], axis=-1)[np.triu_indices(4, 1)]
+        assert d.min() >= 0.5 - 1e-9
+        assert replay.spread_labels(np.zeros((0, 2)), 0.1).shape == (0, 2)
+
+    def test_the_top_down_view_draws_labels_and_agnostic_boxes(self, tmp_path: Path) -> None:
+        nodes = [labelled("a", "Mug", (0, 0, 0), 5), labelled("d", "object", (1, 0, 0), 5)]
+        out = tmp_path / "v.png"
+        replay.plot_top_down(out, plane(0.1), np.full((121, 3), 128, np.uint8), np.zeros((0, 3)), nodes, (2, 1), "t")
+        assert out.stat().st_size > 0
+
+
+class TestPerception:
+    def test_the_choice_sets_segmenter_and_embedder_and_keeps_options_of_an_unchanged_backend(self) -> None:
+        current = {"segmenter": "detector", "segmenter_options": {"tile_grid": 0}, "embedder": "classical",
+                   "embedder_options": {"bins": 8}}
+        out = replay.perception_settings(current, "detector")
+        assert out == {"segmenter": "detector", "segmenter_options": {"tile_grid": 0}, "embedder": "detector"}
+        assert replay.perception_settings({}, "classical") == {"segmenter": "classical", "embedder": "classical"}
+        with pytest.raises(ValueError, match="one of"):
+            replay.perception_settings({}, "sam2")
+
+    def test_the_stack_and_the_in_process_mapper_get_the_same_perception(self, tmp_path: Path) -> None:
+        launch, _, mapper = replay.replay_launch(replay.DEFAULT_LAUNCH, tmp_path, 1.0, None, "tcp/127.0.0.1:1",
+                                                 tmp_path, perception="detector")
+        m = next(p for p in launch.process if p.command == "mapper").settings
+        assert m is not None and m["perception"] == mapper["perception"] == {"segmenter": "detector",
+                                                                             "embedder": "detector"}
+        _, _, default = replay.replay_launch(replay.DEFAULT_LAUNCH, tmp_path, 1.0, None, "tcp/127.0.0.1:1", tmp_path)
+        assert default["perception"] == {"segmenter": "classical", "embedder": "classical"}
+
+    def test_a_missing_detector_model_is_one_line_and_starts_nothing(
+            self, tmp_path: Path, monkeypatch: pytest.MonkeyPatch, capsys: pytest.CaptureFixture[str]) -> None:
+        import mapper.perception.detector as det
+
+        monkeypatch.setattr(det, "bundled_model", lambda: tmp_path / "absent.tflite")
+        folder = with_depth(tmp_path / "s")
+        assert replay.main(["--sequence", str(folder), "--perception", "detector", "--out", str(tmp_path / "o")]) == 1
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and "--perception detector" in err[0] and "absent.tflite" in err[0]
+        assert not (tmp_path / "o").exists()
+        replay.check_perception(None)  # the launch file's: nothing to check here
 
 
 class TestCompare:
