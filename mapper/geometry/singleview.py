@@ -629,6 +629,14 @@ def depth_to_world(depth_m: F32, K: F64, T_world_cam: F64) -> F32:
 # Free space seen by other calibrated cameras
 
 
+def _on_grid(mask: np.ndarray, h: int, w: int) -> NDArray[np.bool_]:
+    """``mask`` as an (h, w) boolean mask (nearest-neighbour resize when it is at another resolution)."""
+    m = np.asarray(mask, bool)
+    if m.shape == (h, w):
+        return m
+    return cv2.resize(m.astype(np.uint8), (w, h), interpolation=cv2.INTER_NEAREST).astype(bool)
+
+
 @dataclass(frozen=True)
 class SeenView:
     """What one calibrated camera saw, kept small to check other cameras' coarse placements against:
@@ -655,6 +663,10 @@ class SeenView:
         nothing; with no floor-standing object nothing counts as floor."""
         h, w = image.shape[:2]
         sh = max(1, round(h * width / w))
+        # Masks may come at another resolution than the image (a segmenter working at half size): bring them
+        # to the image's grid first.
+        masks = [_on_grid(m, h, w) for m in masks]
+        floor_masks = [_on_grid(m, h, w) for m in floor_masks]
         owner = np.full((h, w), -1, np.int16)
         for i, m in enumerate(masks):
             owner[m & (owner < 0)] = i

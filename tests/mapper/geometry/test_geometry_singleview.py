@@ -194,6 +194,23 @@ def test_another_camera_moves_a_misplaced_object_to_where_it_saw_it() -> None:
     assert np.allclose(next(iter(far_again.nodes.values())).points, pts)
 
 
+def test_seen_view_takes_masks_at_another_resolution_than_the_image() -> None:
+    """A segmenter may work at half size (the classical one does): the view is built as from full-size masks."""
+    import cv2
+
+    cam_b = look_at([0.3, 4.8, 2.5], [3.0, 2.0, 0.3])
+    crate, chair = box(3.0, 2.2, 0.0, 0.5, 0.5, 1.0), box(2.0, 2.6, 0.0, 0.45, 0.45, 0.9)
+    masks = [silhouette(crate, cam_b), silhouette(chair, cam_b) & ~silhouette(crate, cam_b)]
+    half = [cv2.resize(m.astype(np.uint8), (m.shape[1] // 2, m.shape[0] // 2),
+                       interpolation=cv2.INTER_NEAREST).astype(bool) for m in masks]
+    full_back = [cv2.resize(m.astype(np.uint8), (m.shape[1] * 2, m.shape[0] * 2),
+                            interpolation=cv2.INTER_NEAREST).astype(bool) for m in half]
+    desc = [label_descriptor("crate"), label_descriptor("chair")]
+    a = SeenView.build(_room_image(cam_b), half, desc, K, cam_b, floor_masks=[half[1]])
+    b = SeenView.build(_room_image(cam_b), full_back, desc, K, cam_b, floor_masks=[full_back[1]])
+    assert np.array_equal(a.owner, b.owner) and np.array_equal(a.floor, b.floor) and (a.owner >= 0).any()
+
+
 def test_relocation_needs_agreement() -> None:
     seen_nothing = SeenView(K, CAM, np.full((2, 2), -1, np.int16), np.zeros((2, 2), bool),
                             np.zeros((0, 4), np.float32))
