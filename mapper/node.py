@@ -73,7 +73,8 @@ class MapperNode(Process):
         if config.workers.enabled and config.geometry.backend not in ORACLE_RECONSTRUCTORS:  # jobs carry no ORACLE:
             # ORACLE 2D perception (the simulator's semantic camera) then stays in the mapper, after the job.
             perception = runs_perception(config) and not self.intake.needs_oracle
-            self.offloader = Offloader(config.workers, config, self.keys, self.counters, perception)
+            self.offloader = Offloader(config.workers, config, self.keys, self.counters, perception,
+                                       bad_input=self.intake.bad_input)
             self.core.offload = self.offloader.offload
 
     # -- persistence -----------------------------------------------------------------------------

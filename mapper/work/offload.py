@@ -33,6 +33,7 @@ from mapper.work.latency import StageTimes
 from protocol.codec import DecodeError, decode, encode
 from protocol.keys import Keys
 from protocol.messages import WorkAck, WorkJob, WorkResult
+from protocol.ratelog import RateLimitedLog
 from protocol.transport import Counters, message_encoding
 
 if TYPE_CHECKING:
@@ -69,8 +70,10 @@ class Offloader:
     """Keyframe jobs for workers; see the module doc. Thread-safe where Zenoh calls in."""
 
     def __init__(self, config: OffloadConfig, core_config: MapperCoreConfig, keys: Keys, counters: Counters,
-                 perception: bool) -> None:
+                 perception: bool, bad_input: RateLimitedLog | None = None) -> None:
         self.config, self.core_config, self.keys, self.counters = config, core_config, keys, counters
+        # What workers send reaches the log rate-limited and cleaned (a flood of junk acks is one line a period).
+        self.bad_input = bad_input or RateLimitedLog(log)
         self.perception = perception
         self.dispatcher = Dispatcher(config.dispatch())
         self._lock = threading.Lock()  # the dispatcher (liveliness callbacks) and the JPEG store (queries)
@@ -248,7 +251,7 @@ class Offloader:
             ack = decode(data, WorkAck)
         except DecodeError as e:
             self.counters.add("work_undecodable")
-            log.warning("undecodable work ack: %s", e)
+            self.bad_input.warning("work_undecodable", "undecodable work ack: %s", e)
             return
         with self._lock:
             self.dispatcher.ack(ack.job_id, ack.worker_id, ack.attempt, now)
@@ -258,12 +261,13 @@ class Offloader:
             res = decode(data, WorkResult)
         except DecodeError as e:
             self.counters.add("work_undecodable")
-            log.warning("undecodable work result: %s", e)
+            self.bad_input.warning("work_undecodable", "undecodable work result: %s", e)
             return []
         p = self._pending.get(res.job_id)
         if not res.ok:
             self.counters.add("work_failures")
-            log.info("worker %s could not do %s: %s", res.worker_id, res.job_id, res.error)
+            self.bad_input.warning("work_failures", "worker %s could not do %s: %s", res.worker_id, res.job_id,
+                                   res.error)
             with self._lock:
                 self.dispatcher.failed(res.job_id, res.worker_id, now)
             return []
@@ -279,13 +283,14 @@ class Offloader:
             except ResultRejected as e:
                 problem = e.reason
                 self.counters.add(e.reason)
-                log.warning("rejected the result of %s from worker %s: %s", res.job_id, res.worker_id, e)
+                self.bad_input.warning("work_rejected", "rejected the result of %s from worker %s: %s", res.job_id,
+                                       res.worker_id, e)
         with self._lock:
             outcome = self.dispatcher.result(res.job_id, res.worker_id, now, problem)
             if outcome is Outcome.REJECTED and self.dispatcher.workers.get(res.worker_id, None) is not None \
                     and self.dispatcher.workers[res.worker_id].quarantined:
-                log.warning("worker %s quarantined after %d bad results", res.worker_id,
-                            self.dispatcher.workers[res.worker_id].bad_results)
+                self.bad_input.warning("worker_quarantined", "worker %s quarantined after %d bad results",
+                                       res.worker_id, self.dispatcher.workers[res.worker_id].bad_results)
         if outcome is not Outcome.ACCEPTED or p is None:
             return []
         del self._pending[res.job_id]

@@ -31,6 +31,7 @@ from protocol.jpeg import JpegError, decode_jpeg
 from protocol.keys import Keys
 from protocol.messages import WorkAck, WorkFrame, WorkJob, WorkResult
 from protocol.node import Node, Process
+from protocol.ratelog import RateLimitedLog
 from protocol.runtime import release_free_heap
 from protocol.transport import Counters, decode_message_sample
 
@@ -79,6 +80,7 @@ class WorkerNode(Process):
         self.config = config
         self.keys = Keys(config.site, config.key_prefix)
         self.counters = Counters()
+        self.bad_input = RateLimitedLog(log)  # what mappers send reaches the log rate-limited and cleaned
         self._jobs: collections.deque[WorkJob] = collections.deque()
         self._cond = threading.Condition()
         self._images = LruCache(max(1, config.image_cache))
@@ -98,7 +100,7 @@ class WorkerNode(Process):
             job = decode_message_sample(sample, WorkJob)
         except DecodeError as e:
             self.counters.add("job_errors")
-            log.warning("bad job sample on %s: %s", sample.key_expr, e)
+            self.bad_input.warning("job_errors", "bad job sample on %s: %s", sample.key_expr, e)
             return
         with self._cond:
             busy = len(self._jobs) >= self.config.queue_depth
@@ -166,7 +168,8 @@ class WorkerNode(Process):
             result = encode_products(products, job, self.config.id, {"fetch": fetch_s})
         except Exception as e:  # noqa: BLE001 - one bad job must never stop the worker
             self.counters.add("jobs_failed")
-            log.warning("job %s (attempt %d) failed: %s: %s", job.job_id, job.attempt, type(e).__name__, e)
+            self.bad_input.warning("jobs_failed", "job %s (attempt %d) failed: %s: %s", job.job_id, job.attempt,
+                                   type(e).__name__, e)
             return self._failure(job, f"{type(e).__name__}: {e}")
         dt = time.perf_counter() - t0
         self.job_times_s.append(dt)

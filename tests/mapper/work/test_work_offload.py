@@ -353,3 +353,21 @@ def test_a_result_in_is_finished_before_the_next_frame_of_a_batch() -> None:
     node.outbox.periodic = lambda force=False: None  # type: ignore[method-assign]  # no session here
     node._step(timeout_s=0.0)
     assert events == ["frame r0", "frame r1", "jobs", "frame r2", "jobs"]
+
+
+def test_junk_work_messages_reach_the_log_rate_limited_and_cleaned(caplog: pytest.LogCaptureFixture) -> None:
+    """985 junk acks and results (NUL bytes and all) are counted one by one, logged once a period, never raw."""
+    import logging
+
+    o, _, counters = offloader()
+    junk = b"ARG1\x00\x00junk\x00" + bytes(range(32))
+    with caplog.at_level(logging.WARNING):
+        for i in range(985):
+            if i % 2:
+                o._on_ack(junk, time.monotonic())
+            else:
+                o._on_result(junk, time.monotonic())
+    assert counters.get("work_undecodable") == 985
+    lines = [r.getMessage() for r in caplog.records]
+    assert 1 <= len(lines) <= 3, lines
+    assert all("\x00" not in ln and ln.isprintable() for ln in lines)
