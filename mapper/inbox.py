@@ -53,10 +53,12 @@ def needs_oracle(config: MapperConfig) -> bool:
             or p.embedder in ORACLE_BACKENDS)
 
 
-def oracle_data(msg: OracleFrame) -> OracleData:
-    """Decode an OracleFrame's PNGs (raises JpegError on corrupt images)."""
-    depth = png_to_depth(msg.depth_png) if msg.depth_png is not None else None
-    ids = decode_u16_png(msg.ids_png).astype(np.int32) if msg.ids_png is not None else None
+def oracle_data(msg: OracleFrame, frame_size: tuple[int, int] | None = None) -> OracleData:
+    """Decode an OracleFrame's PNGs (raises JpegError on corrupt images, and with ``frame_size`` (width, height)
+    on images of another size than their frame, before any pixel is decoded)."""
+    depth = png_to_depth(msg.depth_png, frame_size) if msg.depth_png is not None else None
+    ids = (decode_u16_png(msg.ids_png, expected_size=frame_size).astype(np.int32)
+           if msg.ids_png is not None else None)
     if depth is None:
         depth = np.zeros(ids.shape if ids is not None else (1, 1), dtype=np.float32)
     labels: dict[int, str] = {}
@@ -274,7 +276,7 @@ class FrameIntake:
             self.refuse("frames_bad_covariance", "ignored the pose covariance of %s#%d: %s", h.source_id, h.seq, e)
             accuracy = {}
         try:
-            od = oracle_data(oracle) if oracle is not None else None
+            od = oracle_data(oracle, (h.width, h.height)) if oracle is not None else None
             return View(
                 image=rgb,
                 source_id=h.source_id,

@@ -31,17 +31,21 @@ def png_size(data: bytes) -> tuple[int, int]:
     return int.from_bytes(data[16:20], "big"), int.from_bytes(data[20:24], "big")
 
 
-def decode_u16_png(data: bytes, max_pixels: int = MAX_PIXELS) -> np.ndarray:
-    """Decode a 16-bit PNG; raises ``JpegError`` (the image error type) when corrupt or too large.
+def decode_u16_png(data: bytes, max_pixels: int = MAX_PIXELS, expected_size: tuple[int, int] | None = None
+                   ) -> np.ndarray:
+    """Decode a 16-bit PNG; raises ``JpegError`` (the image error type) when corrupt, too large or, with
+    ``expected_size`` (width, height), of another size.
 
-    The size is read from the header first, so a small file claiming a huge image is refused
-    before any pixel memory is allocated.
+    The size is read from the header first, so a small file claiming a huge image (or one that does not
+    belong to its frame) is refused before any pixel memory is allocated.
     """
     if not isinstance(data, (bytes, bytearray)) or not data:
         raise JpegError("empty PNG")
     width, height = png_size(bytes(data))
     if width == 0 or height == 0 or width * height > max_pixels:
         raise JpegError(f"PNG of {width}x{height} is empty or exceeds {max_pixels} pixels")
+    if expected_size is not None and (width, height) != tuple(expected_size):
+        raise JpegError(f"PNG of {width}x{height} does not match its {expected_size[0]}x{expected_size[1]} frame")
     try:
         img = cv2.imdecode(np.frombuffer(data, np.uint8), cv2.IMREAD_UNCHANGED)
     except cv2.error as e:
@@ -57,9 +61,9 @@ def depth_to_png(depth_m: np.ndarray) -> bytes:
     return encode_u16_png(np.clip(np.round(d * 1000.0), 0, 65535).astype(np.uint16))
 
 
-def png_to_depth(data: bytes) -> np.ndarray:
-    """Millimetre PNG back to float32 metres (0 = none)."""
-    return decode_u16_png(data).astype(np.float32) / 1000.0
+def png_to_depth(data: bytes, expected_size: tuple[int, int] | None = None) -> np.ndarray:
+    """Millimetre PNG back to float32 metres (0 = none); ``expected_size`` as in :func:`decode_u16_png`."""
+    return decode_u16_png(data, expected_size=expected_size).astype(np.float32) / 1000.0
 
 
 def ids_to_png(instance_ids: np.ndarray) -> bytes:

@@ -95,3 +95,35 @@ def test_drift_between_two_views_widens_their_between_factor() -> None:
     assert _drift_variance(a, b, slice(3, 6)) == pytest.approx(np.radians(0.3) ** 2 - np.radians(0.1) ** 2)
     assert _drift_variance(a, b, slice(0, 3)) == pytest.approx(0.02**2 - 0.01**2)
     assert _drift_variance(a, View(img, "r"), slice(0, 3)) == 0.0
+
+
+def test_oracle_images_of_another_size_than_their_frame_are_refused_unread() -> None:
+    """A small PNG claiming 6000x6000 (or any size but the frame's) is refused from its header; the frame is
+    counted and dropped, and a matching one still goes through."""
+    import struct
+    import zlib
+
+    from protocol.messages import OracleFrame
+    from protocol.oracle import depth_to_png
+
+    def claiming(w: int, h: int) -> bytes:  # a valid PNG header claiming w x h, 16-bit grey, and no real data
+        ihdr = struct.pack(">IIBBBBB", w, h, 16, 0, 0, 0, 0)
+        chunk = b"IHDR" + ihdr
+        return (b"\x89PNG\r\n\x1a\n" + struct.pack(">I", len(ihdr)) + chunk
+                + struct.pack(">I", zlib.crc32(chunk) & 0xFFFFFFFF) + b"\x00" * 64)
+
+    intake = _intake()
+    rgb = np.zeros((H, W, 3), np.uint8)
+    hdr = FrameHeader(source_id="cam1", source_kind="fixed", seq=0, stamp_ns=1, width=W, height=H)
+    frame = decode_frame_bytes(intake.keys.frame("fixed", "cam1"), encode(hdr), encode_jpeg(rgb, 90))
+    pose = np.eye(4).tolist()
+    bomb = OracleFrame(source_id="cam1", seq=0, stamp_ns=1, T_world_cam_true=pose, depth_png=claiming(6000, 6000))
+    assert intake.view(frame, rgb, bomb) is None
+    assert intake.counters.get("decode_errors") == 1
+    good = OracleFrame(source_id="cam1", seq=0, stamp_ns=1, T_world_cam_true=pose,
+                       depth_png=depth_to_png(np.ones((H, W), np.float32)))
+    v = intake.view(frame, rgb, good)
+    assert v is not None and v.oracle is not None and v.oracle.depth_m.shape == (H, W)
+    half = OracleFrame(source_id="cam1", seq=0, stamp_ns=1, T_world_cam_true=pose,
+                       depth_png=depth_to_png(np.ones((H // 2, W // 2), np.float32)))
+    assert intake.view(frame, rgb, half) is None and intake.counters.get("decode_errors") == 2
