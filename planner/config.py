@@ -207,6 +207,12 @@ class PlannerNodeConfig(_Model):
         description="after a robot arrives, wait up to this long for a graph version that covers its arrival frame "
         "(RobotState.last_frame_seq against the graph's frames) before planning its next goal; 0: do not wait",
     )
+    unannounced_expire_s: float = Field(
+        default=30.0, gt=0.0,
+        description="a robot with no liveliness token (status robots_unannounced) is forgotten once it has sent no "
+        "state for this long (counter robots_expired): an id that put a state once gets no goals for ever; robots "
+        "with a token are forgotten when it goes away",
+    )
     status_period_s: float = Field(default=1.0, gt=0.0, description="status publication period")
     release_heap_after_plan: bool = Field(
         default=True,

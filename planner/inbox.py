@@ -12,6 +12,7 @@ from __future__ import annotations
 import collections
 import logging
 import threading
+import time
 from typing import TYPE_CHECKING, TypeVar
 
 from planner.config import PlannerNodeConfig
@@ -56,6 +57,8 @@ class PlannerInbox:
         self.viewpoints: dict[str, ViewpointSet] = {}
         self.pending: dict[str, Pending] = {}
         self._gone: set[str] = set()  # robots whose liveliness token went away (until it comes back)
+        self._alive: set[str] = set()  # robots whose liveliness token is there now
+        self._heard: dict[str, float] = {}  # robot -> when its newest state arrived (monotonic s)
 
     @property
     def graph(self) -> GraphSnapshot:
@@ -151,6 +154,27 @@ class PlannerInbox:
         got = self._robot_message(sample, RobotState, "state")
         if got is not None:
             self._hold(self.states, *got, gone="states_of_gone_robots")
+            with self._lock:
+                if got[0] in self.states:
+                    self._heard[got[0]] = time.monotonic()
+
+    def unannounced(self) -> list[str]:
+        """Robots the planner holds a state of that have no liveliness token."""
+        with self._lock:
+            return [rid for rid in self.states if rid not in self._alive]
+
+    def expire_unannounced(self, now_s: float) -> list[str]:
+        """Forget the robots without a liveliness token that sent no state for ``unannounced_expire_s`` (a
+        phantom id must not take goals, and planning time, from real robots for ever); returns them."""
+        limit = self.config.unannounced_expire_s
+        with self._lock:
+            stale = [rid for rid in self.states
+                     if rid not in self._alive and now_s - self._heard.get(rid, now_s) > limit]
+        for rid in stale:
+            self.forget_robot(rid, gone=False)
+            self.counters.add("robots_expired")
+            log.warning("robot %s has no liveliness token and sent no state for %.0f s: forgotten", rid, limit)
+        return stale
 
     def on_viewpoints(self, sample: zenoh.Sample) -> None:
         got = self._robot_message(sample, ViewpointSet, "viewpoints")
@@ -169,23 +193,30 @@ class PlannerInbox:
         if role != ROBOT_ROLE:
             return
         if str(sample.kind).endswith("DELETE"):
+            with self._lock:
+                self._alive.discard(rid)
             self.forget_robot(rid)
         else:
             with self._lock:
                 self._gone.discard(rid)
+                if len(self._alive) < MAX_ROBOTS:
+                    self._alive.add(rid)
             self.counters.add("robots_joined")
             log.info("robot %s is alive", rid)
 
-    def forget_robot(self, rid: str) -> None:
+    def forget_robot(self, rid: str, gone: bool = True) -> None:
+        """Forget everything of robot ``rid``; ``gone``: its token went away, so its samples still on their way
+        are ignored until it is back (an expired robot without a token is taken again when it speaks)."""
         with self._lock:
-            if len(self._gone) < MAX_ROBOTS:
+            if gone and len(self._gone) < MAX_ROBOTS:
                 self._gone.add(rid)  # its last samples may still be on their way: ignored until it is back
+            self._heard.pop(rid, None)
             known = self.states.pop(rid, None) is not None
             self.viewpoints.pop(rid, None)
             self.pending.pop(rid, None)
             self.fusion_wait.forget(rid)
             self.planner.release(rid)
-        if known:
+        if known and gone:
             self.counters.add("robots_lost")
             log.warning("robot %s went away (liveliness); planning for the remaining robots", rid)
         self._wake.set()

@@ -71,6 +71,7 @@ class PlannerNode(PlannerInbox, Process):
         """Follow the graph, plan for the robots that need it, publish; returns the goals sent."""
         now_s = time.monotonic() if now_s is None else now_s
         self._follow_graph()
+        self.expire_unannounced(time.monotonic())
         robots = self.robots_to_plan(now_s)
         if not robots:
             return []
@@ -116,7 +117,8 @@ class PlannerNode(PlannerInbox, Process):
         """Status extras: the robots and the graph followed, and the sizes that must stay bounded (a soak samples
         them): remembered views (``max_history``), points of the held map, blacklisted viewpoints."""
         pm = self.point_map
-        return {"robots": len(self.states), "graph_nodes": len(self.graph.nodes), "graph_version": self.graph.version,
+        return {"robots": len(self.states), "robots_unannounced": len(self.unannounced()),
+                "graph_nodes": len(self.graph.nodes), "graph_version": self.graph.version,
                 "history_views": len(self.planner.history),
                 "point_map_points": 0 if pm is None else int(pm.points.shape[0]),
                 "blacklisted_viewpoints": sum(len(b) for b in list(self.planner.blacklist.values()))}
