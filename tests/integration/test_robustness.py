@@ -449,8 +449,9 @@ def test_mapper_counts_hostile_frames_oracles_and_queries_and_keeps_its_graph(st
         {"depth_png": png_claiming(20000, 20000)},  # IHDR lies; libpng refuses it before allocating
         {"ids_png": None, "depth_png": b""},
     ]
-    misfit_oracles = [  # a decodable depth PNG of the wrong size: the keyframe fails in the core (keyframe_errors)
+    misfit_oracles = [  # decodable PNGs of another size than their frame: refused from the header (decode_errors)
         {"depth_png": depth_to_png(np.ones((INTR.height + 1, INTR.width), np.float32))},
+        {"ids_png": ids_to_png(np.ones((INTR.height // 2, INTR.width // 2), np.int32))},
     ]
     for i, upd in enumerate(bad_oracles + misfit_oracles):
         src = f"evil_o{i}"
@@ -472,8 +473,8 @@ def test_mapper_counts_hostile_frames_oracles_and_queries_and_keeps_its_graph(st
         assert replies and all(r.err is not None for r in replies), params
 
     expected = {
-        "header_errors": len(bad_header), "decode_errors": len(bad_images) + 1 + len(bad_oracles),
-        "keyframe_errors": len(misfit_oracles), "oracle_errors": len(bad_oracle_msgs),
+        "header_errors": len(bad_header), "decode_errors": len(bad_images) + 1 + len(bad_oracles) + len(misfit_oracles),
+        "keyframe_errors": 0, "oracle_errors": len(bad_oracle_msgs),
         "query_errors": len(BAD_QUERIES),
     }
     grew = peer.wait_counts(MAPPER, base, expected, proc=stack.procs[MAPPER])
