@@ -219,8 +219,10 @@ class BundleResult:
     """Observations of held-out tracks both errors are measured on."""
 
 
-def _obs_errors(Ks: list[F64], T_world_cam: list[F64], X_world: F64, oc: I64, op: I64, uv: F64) -> tuple[F64, F64]:
-    """Reprojection error (px) and camera z of every observation; vectorised over observations."""
+def observation_errors(Ks: list[F64], T_world_cam: list[F64], X_world: F64, oc: I64, op: I64, uv: F64
+                       ) -> tuple[F64, F64]:
+    """Reprojection error (px) and camera z of every observation (camera ``oc[k]`` sees point ``op[k]`` of
+    ``X_world`` at ``uv[k]``); vectorised over observations."""
     T_cw = np.stack([np.linalg.inv(T) for T in T_world_cam]) if T_world_cam else np.zeros((0, 4, 4))
     Kst = np.stack(Ks) if Ks else np.zeros((0, 3, 3))
     p = np.einsum("nij,nj->ni", T_cw[oc, :3, :3], X_world[op]) + T_cw[oc, :3, 3]
@@ -263,7 +265,7 @@ def holdout_error_px(Ks: list[F64], T_world_cam: list[F64], oc: I64, op: I64, uv
     counts as off by 100 px. Returns (median, observations measured); (NaN, 0) when there are none."""
     order = np.argsort(op, kind="stable")
     oc, op, uv = oc[order], op[order], uv[order]
-    ids, start, count = np.unique(op, return_index=True, return_counts=True)
+    _, start, count = np.unique(op, return_index=True, return_counts=True)
     Ps = np.stack([projection_matrix(K, T) for K, T in zip(Ks, T_world_cam, strict=True)]) if Ks else None
     errs: list[F64] = []
     for n in np.unique(count[count >= 2]).tolist():
@@ -276,7 +278,7 @@ def holdout_error_px(Ks: list[F64], T_world_cam: list[F64], oc: I64, op: I64, uv
             continue
         rows, X = rows[ok], X[ok]
         flat = rows.reshape(-1)
-        e, z = _obs_errors(Ks, T_world_cam, np.repeat(X, n, axis=0), oc[flat], np.arange(len(flat)), uv[flat])
+        e, z = observation_errors(Ks, T_world_cam, np.repeat(X, n, axis=0), oc[flat], np.arange(len(flat)), uv[flat])
         errs.append(np.where((z > 0) & np.isfinite(e), e, 100.0))
     if not errs:
         return float("nan"), 0
@@ -367,7 +369,7 @@ def bundle_adjust(
     op = np.asarray(prob.obs_pt, np.int64)
     ouv = np.asarray(prob.obs_uv, np.float64).reshape(-1, 2)
 
-    err0, z0 = _obs_errors(prob.Ks, T_prior, pts0, oc, op, ouv)
+    err0, z0 = observation_errors(prob.Ks, T_prior, pts0, oc, op, ouv)
     rms0 = _rms(err0, z0)
 
     # Points seen by one camera only, or not finite, add nothing but an unobservable depth: leave them out.
@@ -448,7 +450,7 @@ def bundle_adjust(
     m_est = gtsam.noiseModel.mEstimator
     try:
         T_first, pts_first, _, n_it = solve(in_graph_obs, m_est.Cauchy.Create(huber_px / sigma_px))
-        err1, z1 = _obs_errors(prob.Ks, T_first, pts_first, oc, op, ouv)
+        err1, z1 = observation_errors(prob.Ks, T_first, pts_first, oc, op, ouv)
         keep_obs = in_graph_obs & (err1 <= outlier_px) & (z1 > 0)
         if keep_obs.sum() < min_inliers:
             return keep_priors("few_inliers", n_iterations=n_it)
@@ -482,7 +484,7 @@ def bundle_adjust(
     for i in fixed_ids.tolist():
         T_ref[i] = T_prior[i].copy()  # exact, not merely to rounding
 
-    err, z = _obs_errors(prob.Ks, T_ref, pts, oc, op, ouv)
+    err, z = observation_errors(prob.Ks, T_ref, pts, oc, op, ouv)
     inl = keep_obs & (err < 3.0 * huber_px) & (z > 0)
     if inl.sum() < min_inliers:
         return keep_priors("few_inliers", 1.0 / s, n_it)

@@ -539,17 +539,11 @@ class MvsReconstructor:
         (a larger change is a degenerate solve, not a measurement). That excess is taken out: camera
         centres and points are scaled about a surveyed camera's centre or else the anchored cameras' centroid
         (rotations and every reprojection unchanged); two surveyed cameras pin the scale themselves."""
-        ok = res.inlier_obs & np.isfinite(prob.points_world[prob.obs_pt]).all(axis=1)
-        if ok.sum() < 10:
-            return 1.0
-        z_prior = np.zeros(len(ok))
-        z_ref = np.zeros(len(ok))
-        for k, (K, T0, T1) in enumerate(zip(prob.Ks, prob.T_world_cam, res.T_world_cam, strict=True)):
-            sel = ok & (prob.obs_cam == k)
-            if sel.any():
-                z_prior[sel] = bundle.reproject(K, T0, prob.points_world[prob.obs_pt[sel]])[1]
-                z_ref[sel] = bundle.reproject(K, T1, res.points_world[prob.obs_pt[sel]])[1]
-        good = ok & (z_prior > 0) & (z_ref > 0)
+        obs = (prob.obs_cam, prob.obs_pt, prob.obs_uv)
+        with np.errstate(invalid="ignore"):
+            _, z_prior = bundle.observation_errors(prob.Ks, prob.T_world_cam, prob.points_world, *obs)
+            _, z_ref = bundle.observation_errors(prob.Ks, res.T_world_cam, res.points_world, *obs)
+        good = res.inlier_obs & np.isfinite(z_prior) & np.isfinite(z_ref) & (z_prior > 0) & (z_ref > 0)
         if good.sum() < 10:
             return 1.0
         ratio = float(np.median(z_ref[good] / z_prior[good]))
