@@ -8,6 +8,8 @@ A sequence is a folder::
     camera-intrinsics.txt             the 3x3 K in its first three rows
     meta.json                         what the folder's README says, as data (:class:`SequenceMeta`)
 
+The frames, poses and K are read with the edge camera's ``recorded`` source's readers
+(``edge_camera.sources.recorded``), so the bench and a replayed camera play the same frames.
 Sequences of ``../shared/data`` packaged before ``meta.json`` existed are described by a file of the same
 fields in ``bench/sequence_meta/<folder name>.json``; a folder with neither is refused with one line naming
 the missing file.
@@ -29,9 +31,11 @@ import cv2
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
+from edge_camera.sources.base import SourceConfigError
+from edge_camera.sources.recorded import list_color_images, read_intrinsics_matrix, read_pose
 from mapper.geometry.contract import View
 from protocol.messages import FrameHeader, Intrinsics
-from protocol.poses import PoseAccuracy, PoseError, check_pose, covariance_from_accuracy
+from protocol.poses import PoseAccuracy, covariance_from_accuracy
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
 DATA_ROOT = REPO_ROOT / ".." / "shared" / "data"
@@ -138,25 +142,24 @@ def load(folder: Path, start: int = 0, stop: int | None = None) -> Sequence:
     folder = Path(folder)
     meta = read_meta(folder)
     kpath = folder / meta.intrinsics_file
-    try:
-        K = np.loadtxt(kpath)[:3, :3]
-    except (OSError, ValueError, IndexError) as e:
+    try:  # the layout is read as the edge camera's recorded source reads it, so both play the same frames
+        K = read_intrinsics_matrix(kpath)
+    except SourceConfigError as e:
         raise SequenceError(f"{kpath}: missing or not a 3x3 matrix: {e}") from None
-    if K.shape != (3, 3) or not np.all(np.isfinite(K)) or K[0, 0] <= 0 or K[1, 1] <= 0:
-        raise SequenceError(f"{kpath}: not a pinhole matrix K")
-    colours = sorted((folder / "frames").glob("frame-*.color.*"))
+    frames_dir = folder / "frames"
+    colours = list_color_images(frames_dir) if frames_dir.is_dir() else []
     if not colours:
-        raise SequenceError(f"{folder / 'frames'}: no frame-NNNNNN.color.* images")
+        raise SequenceError(f"{frames_dir}: no frame-NNNNNN.color.* images")
     frames, projected = [], 0
     lo, hi = meta.valid_depth_m
     for i, p in enumerate(colours[start:stop], start=start):
         stem = p.name.split(".color.")[0]
         pose_file = p.parent / f"{stem}.pose.txt"
+        if not pose_file.is_file():
+            raise SequenceError(f"{pose_file}: missing")
         try:
-            chk = check_pose(np.loadtxt(pose_file), source=str(pose_file))
-        except OSError:
-            raise SequenceError(f"{pose_file}: missing") from None
-        except (ValueError, PoseError) as e:
+            chk = read_pose(pose_file)
+        except ValueError as e:  # PoseError included
             raise SequenceError(f"{pose_file}: not a 4x4 pose: {e}") from None
         projected += int(chk.projected)
         bgr = _image(p, cv2.IMREAD_COLOR)

@@ -49,7 +49,7 @@ from pydantic import Field, model_validator
 from edge_camera.pose_accuracy import declared_covariance
 from edge_camera.sources.base import Grab, SourceBase, SourceConfig, SourceConfigError, SourceError
 from protocol.messages import Intrinsics
-from protocol.poses import check_pose
+from protocol.poses import PoseCheck, check_pose
 
 log = logging.getLogger(__name__)
 
@@ -138,15 +138,16 @@ def read_meta(path: Path) -> dict[str, Any]:
     return meta
 
 
-def read_pose(path: Path) -> np.ndarray:
-    """The checked 4x4 pose in ``path``; ``ValueError`` (PoseError or a parse error) naming it when unusable."""
+def read_pose(path: Path) -> PoseCheck:
+    """The checked 4x4 pose in ``path`` (``.T``; ``.projected`` when its rotation was projected onto SO(3));
+    ``ValueError`` (PoseError or a parse error) naming it when unusable."""
     try:
         T = np.loadtxt(path, dtype=np.float64, ndmin=2)
     except OSError as e:
         raise ValueError(f"cannot read pose file {path}: {e.strerror or e}") from None
     except ValueError as e:
         raise ValueError(f"pose file {path} is not a matrix of numbers: {e}") from None
-    return check_pose(T, source=f"pose file {path}").T
+    return check_pose(T, source=f"pose file {path}")
 
 
 def list_color_images(frames_dir: Path) -> list[Path]:
@@ -190,7 +191,7 @@ class RecordedSequence(SourceBase):
         for image in chosen:
             pose_path = image.with_name(image.name.split(".", 1)[0] + ".pose.txt")
             try:
-                self.frames.append(RecordedFrame(image, read_pose(pose_path)))
+                self.frames.append(RecordedFrame(image, read_pose(pose_path).T))
             except ValueError as e:  # PoseError included
                 self._skip(f"skipping frame {image.name}: {e}")
         if not self.frames:
