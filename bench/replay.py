@@ -51,6 +51,7 @@ import numpy as np
 
 from bench import sequences as seqs
 from bench.sequences import RecordedFrame, SequenceError
+from bench.system import GraphWatch
 from protocol.poses import PoseAccuracy, rotation_angle_deg
 
 REPO_ROOT = Path(__file__).resolve().parents[1]
@@ -387,61 +388,21 @@ def map_in_process(frames: Sequence[RecordedFrame], declared: PoseAccuracy | Non
 
 
 # --- the stack -----------------------------------------------------------------------------------
-class StackWatch:
-    """One client session's view of the replay: graph deltas (count, newest version, latency), Status of the mapper
-    and the camera, the camera's frames (seq, pose, capture stamp), keyframe results' poses and the newest point map."""
+class StackWatch(GraphWatch):
+    """One client session's view of the replay: what ``bench.system.GraphWatch`` follows (graph deltas: count,
+    newest version, latency; Status of the mapper and the camera), and the camera's frames (seq, pose, capture
+    stamp), keyframe results' poses and the newest point map."""
 
     def __init__(self, session: Any, keys: Any, camera_id: str) -> None:
+        super().__init__(session, keys)
         self.keys, self.camera_id = keys, camera_id
-        self._lock = threading.Lock()
-        self.deltas = 0
-        self.version = 0
-        self.last_change_t = time.monotonic()
-        self.latencies_ms: list[float] = []
-        self.mapper: dict[str, float] = {}
-        self.camera: dict[str, float] = {}
-        self.camera_error: str | None = None
         self.frames: dict[int, np.ndarray] = {}  # seq -> T_world_cam of the header
         self.last_frame_t = 0.0
         self.results: dict[int, np.ndarray] = {}  # seq -> the worker's pose of that keyframe
         self.point_map: Any = None
-        self._subs = [session.declare_subscriber(keys.graph_delta, self._on_delta),
-                      session.declare_subscriber(keys.all_status, self._on_status),
-                      session.declare_subscriber(keys.cam_frame(camera_id), self._on_frame),
-                      session.declare_subscriber(keys.all_work_results, self._on_result),
-                      session.declare_subscriber(keys.map_points, self._on_map)]
-
-    def _on_delta(self, sample: Any) -> None:
-        from bench.system import delta_latency_ms
-        from protocol.codec import DecodeError, decode
-        from protocol.messages import GraphDelta
-
-        now = time.time_ns()
-        try:
-            d = decode(sample.payload.to_bytes(), GraphDelta)
-        except DecodeError:
-            return
-        with self._lock:
-            self.deltas += 1
-            self.version = max(self.version, d.version)
-            self.last_change_t = time.monotonic()
-            if (ms := delta_latency_ms(d, now)) is not None:
-                self.latencies_ms.append(ms)
-
-    def _on_status(self, sample: Any) -> None:
-        from protocol.codec import DecodeError, decode
-        from protocol.messages import Status
-
-        try:
-            st = decode(sample.payload.to_bytes(), Status)
-        except DecodeError:
-            return
-        with self._lock:
-            if st.role == "mapper":
-                self.mapper = dict(st.counters)
-            elif st.role == "edge-camera" and st.node_id == self.camera_id:
-                self.camera = dict(st.counters)
-                self.camera_error = st.last_error
+        self._subs += [session.declare_subscriber(keys.cam_frame(camera_id), self._on_frame),
+                       session.declare_subscriber(keys.all_work_results, self._on_result),
+                       session.declare_subscriber(keys.map_points, self._on_map)]
 
     def _on_frame(self, sample: Any) -> None:
         from protocol.codec import DecodeError
@@ -484,15 +445,13 @@ class StackWatch:
 
     def view(self) -> dict[str, Any]:
         """A consistent copy of what was seen so far."""
+        camera = f"edge-camera/{self.camera_id}"
         with self._lock:
             return {"deltas": self.deltas, "version": self.version, "last_change_t": self.last_change_t,
-                    "latencies_ms": list(self.latencies_ms), "mapper": dict(self.mapper),
-                    "camera": dict(self.camera), "camera_error": self.camera_error, "frames": dict(self.frames),
-                    "last_frame_t": self.last_frame_t, "results": dict(self.results), "point_map": self.point_map}
-
-    def close(self) -> None:
-        for s in self._subs:
-            s.undeclare()
+                    "latencies_ms": list(self.latencies_ms), "mapper": dict(self.status),
+                    "camera": dict(self.others.get(camera, {})), "camera_error": self.other_errors.get(camera),
+                    "frames": dict(self.frames), "last_frame_t": self.last_frame_t, "results": dict(self.results),
+                    "point_map": self.point_map}
 
 
 def frame_index_of(poses_by_seq: dict[int, np.ndarray], frames: Sequence[RecordedFrame]) -> dict[int, int]:

@@ -247,16 +247,20 @@ def delta_latency_ms(delta: GraphDelta, now_ns: int) -> float | None:
 
 
 class GraphWatch:
-    """Delta latencies and the mapper's Status counters."""
+    """Delta latencies, the graph's newest version and when it last changed, and the Status counters of the
+    mapper, its workers and the other processes (with their last error)."""
 
     def __init__(self, session: Any, keys: Keys) -> None:
         self._lock = threading.Lock()
         self.latencies_ms: list[float] = []
         self.deltas = 0
+        self.version = 0
+        self.last_change_t = time.monotonic()
         self.status: dict[str, float] = {}
         self.status_pid: int | None = None
         self.workers: dict[str, dict[str, float]] = {}  # worker id -> its latest Status counters
         self.others: dict[str, dict[str, float]] = {}  # "<role>/<id>" of other roles -> its latest Status counters
+        self.other_errors: dict[str, str | None] = {}  # the same -> its Status's last_error
         self._subs = [session.declare_subscriber(keys.graph_delta, self._on_delta),
                       session.declare_subscriber(keys.all_status, self._on_status)]
 
@@ -268,6 +272,8 @@ class GraphWatch:
             return
         with self._lock:
             self.deltas += 1
+            self.version = max(self.version, d.version)
+            self.last_change_t = time.monotonic()
             if (ms := delta_latency_ms(d, now)) is not None:
                 self.latencies_ms.append(ms)
 
@@ -283,6 +289,7 @@ class GraphWatch:
                 self.workers[st.node_id] = dict(st.counters)
             elif (name := f"{st.role}/{st.node_id}") in self.others or len(self.others) < 64:
                 self.others[name] = dict(st.counters)
+                self.other_errors[name] = st.last_error
 
     def take(self) -> tuple[list[float], int, dict[str, float]]:
         with self._lock:
