@@ -19,20 +19,22 @@ import sys
 import time
 from typing import Any
 
+from protocol import exits
 from protocol.codec import DecodeError, decode, encode
 from protocol.keys import Keys
 from protocol.messages import GoalStatus, NbvGoal
-from protocol.session import ZenohUnavailable, clean_error, open_session
+from protocol.session import ZenohConfigError, ZenohUnavailable, open_session
 from protocol.tomlconfig import add_consumer_flags, consumer_values
 
-EXIT_ACCEPTED, EXIT_REFUSED, EXIT_USAGE, EXIT_NO_ANSWER = 0, 1, 2, 4
+EXIT_ACCEPTED, EXIT_REFUSED, EXIT_USAGE, EXIT_NO_ANSWER = exits.OK, exits.FAILED, exits.USAGE, exits.UNREACHABLE
 
 EPILOG = """examples:
   argus goal --robot robot0 --x 2.0 --y 1.5 --yaw-deg 90
   argus goal --robot robot0 --x 2 --y 1.5 --connect tcp/127.0.0.1:7447 --json
 
-exit status: 0 accepted, 1 refused (the reason is printed), 2 bad arguments, 4 no answer within --timeout
-(is the robot agent running, on this site?)."""
+exit status: 0 accepted, 1 refused (the reason is printed), 2 bad arguments (a bad endpoint or value),
+4 no answer: no router at --connect, or no answer from the robot within --timeout (is its agent running,
+on this site?)."""
 
 
 def make_goal(robot_id: str, x: float, y: float, yaw_rad: float, goal_id: str | None = None) -> NbvGoal:
@@ -102,18 +104,21 @@ def main(argv: list[str] | None = None) -> int:
         keys = Keys(site)
         goal = make_goal(a.robot, a.x, a.y, yaw, a.goal_id)
         keys.robot_goal(goal.robot_id)
-    except ValueError as e:
-        print(f"argus goal: {e}", file=sys.stderr)
+    except ValueError as e:  # pydantic's ValidationError included: one line per field, no URL
+        print(f"argus goal: {exits.one_line(e)}", file=sys.stderr)
         return EXIT_USAGE
     try:
         with open_session(settings) as session:
             status = send_goal(session, keys, goal, a.timeout)
+    except ZenohConfigError as e:
+        print(f"argus goal: {exits.one_line(e)}", file=sys.stderr)
+        return EXIT_USAGE
     except ZenohUnavailable as e:
         print(f"argus goal: {e}", file=sys.stderr)
         return EXIT_NO_ANSWER
     except Exception as e:  # noqa: BLE001 - anything else: a message, not a traceback
-        print(f"argus goal: {type(e).__name__}: {clean_error(e)}", file=sys.stderr)
-        return EXIT_NO_ANSWER
+        print(f"argus goal: {type(e).__name__}: {exits.one_line(e)}", file=sys.stderr)
+        return exits.FAILED
     if status is None:
         print(f"argus goal: no answer from robot {goal.robot_id!r} on site {site!r} within {a.timeout:g} s "
               f"(is its robot agent running and connected to {', '.join(settings.connect)}?)", file=sys.stderr)

@@ -25,16 +25,38 @@ import time
 from collections.abc import Iterable
 from typing import Any
 
+from protocol import exits
 from protocol.codec import DecodeError, decode, peek_kind
 from protocol.keys import Keys
 from protocol.messages import GraphDelta, GraphEdge, GraphNode, GraphSnapshot
 from protocol.query import GraphQuery
-from protocol.session import ZenohUnavailable, open_session
+from protocol.session import ZenohConfigError, ZenohUnavailable, open_session
 from protocol.tomlconfig import add_consumer_flags, consumer_values
 
 
 class QueryError(RuntimeError):
-    """No usable answer (nobody answered, or only undecodable replies)."""
+    """No usable answer: nobody answered (``exit_code`` 4), only error replies or undecodable ones (1),
+    or the mapper refused the query's values (2)."""
+
+    def __init__(self, message: str, exit_code: int = exits.UNREACHABLE) -> None:
+        super().__init__(message)
+        self.exit_code = exit_code
+
+
+class NodeNotFound(QueryError):
+    """The node id asked for is not in the graph (exit status 3)."""
+
+    def __init__(self, message: str) -> None:
+        super().__init__(message, exits.NOT_FOUND)
+
+
+def _refusal(errors: list[str], where: str) -> QueryError:
+    """The QueryError for a query answered with error replies only (docs/WIRE.md, "Error replies")."""
+    why = "; ".join(errors)
+    if any(e.startswith("not_found:") for e in errors):
+        return NodeNotFound(why)
+    code = exits.USAGE if any(e.startswith("bad_query:") for e in errors) else exits.FAILED
+    return QueryError(f"{why} (on {where})", code)
 
 
 def _reply_payloads(replies: Iterable[Any]) -> tuple[list[bytes], list[str]]:
@@ -81,11 +103,35 @@ def get_nodes(session: Any, keys: Keys, query: GraphQuery, timeout_s: float = 5.
         except DecodeError:
             bad += 1
     if not payloads:
-        why = "; ".join(errors) if errors else "no answer"
-        raise QueryError(f"{why} on {keys.graph_nodes} (is a mapper running?)")
+        if errors:
+            raise _refusal(errors, keys.graph_nodes)
+        raise QueryError(f"no answer on {keys.graph_nodes} within {timeout_s:g} s (is a mapper running?)")
     if bad == len(payloads):
-        raise QueryError(f"{bad} undecodable replies on {keys.graph_nodes}")
-    return sorted(nodes.values(), key=lambda n: n.node_id)
+        raise QueryError(f"{bad} undecodable replies on {keys.graph_nodes}", exits.FAILED)
+    found = sorted(nodes.values(), key=lambda n: n.node_id)
+    if query.id is not None and not found:
+        raise NodeNotFound(f"node {query.id!r} is not in the graph")
+    return found
+
+
+def get_node(session: Any, keys: Keys, node_id: str, timeout_s: float = 5.0) -> GraphNode:
+    """One node by id: a ``get`` on ``graph/node/<id>``. Raises :class:`NodeNotFound` when the mapper answers
+    ``not_found`` (or its node selection holds no such node), :class:`QueryError` when nobody answered."""
+    import zenoh
+
+    key = keys.graph_node(node_id)
+    payloads, errors = _reply_payloads(
+        session.get(key, timeout=timeout_s, consolidation=zenoh.ConsolidationMode.NONE))
+    for data in payloads:
+        try:
+            return decode(data, GraphNode)
+        except DecodeError:
+            continue
+    if errors:
+        raise _refusal(errors, key)
+    if payloads:
+        raise QueryError(f"{len(payloads)} undecodable replies on {key}", exits.FAILED)
+    raise QueryError(f"no answer on {key} within {timeout_s:g} s (is a mapper running?)")
 
 
 def get_snapshot(session: Any, keys: Keys, timeout_s: float = 5.0) -> GraphSnapshot:
@@ -103,8 +149,11 @@ def get_snapshot(session: Any, keys: Keys, timeout_s: float = 5.0) -> GraphSnaps
         if best is None or snap.version > best.version:
             best = snap
     if best is None:
-        why = "; ".join(errors) if errors else "no decodable answer"
-        raise QueryError(f"{why} on {keys.graph_snapshot} (is a mapper running?)")
+        if errors:
+            raise _refusal(errors, keys.graph_snapshot)
+        if payloads:
+            raise QueryError(f"{len(payloads)} undecodable replies on {keys.graph_snapshot}", exits.FAILED)
+        raise QueryError(f"no answer on {keys.graph_snapshot} within {timeout_s:g} s (is a mapper running?)")
     return best
 
 
@@ -233,12 +282,21 @@ def _silence_stdout() -> None:
     os.close(devnull)
 
 
-def main(argv: list[str] | None = None) -> int:
+EPILOG = """examples:
+  argus query nodes --label chair --near 1,2,0 --radius 2
+  argus query nodes --id n12 --json
+  argus query snapshot --json > graph.json
+  argus query watch --count 5
+
+exit status: 0 answered, 2 bad arguments (a bad endpoint or query value), 3 node not found (--id),
+4 no answer (no router at --connect, or no mapper on --site within --timeout), 1 any other failure."""
+
+
+def parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(
         prog="argus query",
         description="Query or watch the live scene graph (any number of consumers, from any machine).",
-        epilog="examples: argus query nodes --label chair --near 1,2,0 --radius 2 | "
-        "argus query snapshot --json | argus query watch",
+        epilog=EPILOG, formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     add_consumer_flags(p)
     p.add_argument("--timeout", type=float, default=5.0, help="seconds to wait for answers")
@@ -247,7 +305,7 @@ def main(argv: list[str] | None = None) -> int:
     pn.add_argument("--label", default=None, help="label substring, case-insensitive (e.g. chair)")
     pn.add_argument("--near", default=None, help="x,y,z centre in metres (world frame)")
     pn.add_argument("--radius", type=float, default=None, help="radius around --near in metres (default 1)")
-    pn.add_argument("--id", default=None, help="one node id")
+    pn.add_argument("--id", default=None, help="one node id (exit status 3 when the graph has no such node)")
     pn.add_argument("--since-version", type=int, default=None, help="only nodes changed after this version")
     pn.add_argument("--json", action="store_true", help="JSON list of nodes")
     ps = sub.add_parser("snapshot", help="the whole latest graph")
@@ -256,24 +314,32 @@ def main(argv: list[str] | None = None) -> int:
     pw.add_argument("--json", action="store_true", help="one JSON delta per line")
     pw.add_argument("--count", type=int, default=None, help="exit after this many deltas")
     pw.add_argument("--idle-timeout", type=float, default=None, help="exit 1 after this long without a delta")
-    a = p.parse_args(argv)
+    return p
 
+
+def _parse_near(text: str) -> tuple[float, float, float]:
+    try:
+        xyz = [float(v) for v in text.split(",")]
+    except ValueError:
+        raise ValueError(f"--near: {text!r} is not x,y,z in metres") from None
+    if len(xyz) != 3:
+        raise ValueError(f"--near: {text!r} is not x,y,z in metres")
+    return xyz[0], xyz[1], xyz[2]
+
+
+def main(argv: list[str] | None = None) -> int:
+    a = parser().parse_args(argv)
     try:
         settings, site = consumer_values(a)
         keys = Keys(site)
         query = None
         if a.what == "nodes":
-            near = None
-            if a.near is not None:
-                xyz = [float(v) for v in a.near.split(",")]
-                if len(xyz) != 3:
-                    raise ValueError("--near needs x,y,z")
-                near = (xyz[0], xyz[1], xyz[2])
+            near = _parse_near(a.near) if a.near is not None else None
             query = GraphQuery(label=a.label, near=near, radius=a.radius, id=a.id,
                                since_version=a.since_version)
-    except ValueError as e:
-        print(f"argus query: {e}", file=sys.stderr)
-        return 2
+    except ValueError as e:  # pydantic's ValidationError included: one line per field, no URL
+        print(f"argus query: {exits.one_line(e)}", file=sys.stderr)
+        return exits.USAGE
 
     from protocol.runtime import install_stop_handlers
 
@@ -288,14 +354,19 @@ def main(argv: list[str] | None = None) -> int:
             return run_watch(session, keys, a.json, stop, a.count, a.idle_timeout)
     except BrokenPipeError:  # the reader went away (argus query ... | head): not an error
         _silence_stdout()
-        return 0
-    except (QueryError, ZenohUnavailable) as e:
+        return exits.OK
+    except QueryError as e:
         print(f"argus query: {e}", file=sys.stderr)
-        return 1
-    except Exception as e:  # noqa: BLE001 - e.g. no router reachable: a message, not a traceback
-        print(f"argus query: {type(e).__name__}: {e}", file=sys.stderr)
-        return 1
-
+        return e.exit_code
+    except ZenohConfigError as e:
+        print(f"argus query: {exits.one_line(e)}", file=sys.stderr)
+        return exits.USAGE
+    except ZenohUnavailable as e:
+        print(f"argus query: {e}", file=sys.stderr)
+        return exits.UNREACHABLE
+    except Exception as e:  # noqa: BLE001 - anything else: a message, not a traceback
+        print(f"argus query: {type(e).__name__}: {exits.one_line(e)}", file=sys.stderr)
+        return exits.FAILED
 
 if __name__ == "__main__":
     sys.exit(main())

@@ -1,6 +1,10 @@
 """Graph queries the mapper answers: ``graph/snapshot``, ``graph/nodes?label=..;near=..;radius=..;id=..;
 since_version=..``, ``graph/node/<id>`` and wildcards such as ``graph/**`` (msgpack envelopes), and the same
-keys below ``graph/json/`` (JSON objects). A bad query gets an error reply, never a crash."""
+keys below ``graph/json/`` (JSON objects). A bad query gets an error reply, never a crash.
+
+Error replies (Zenoh ``reply_err``, encoding ``text/plain``) are one UTF-8 line ``<code>: <detail>``; codes:
+``not_found`` (``graph/node/<id>`` of a node the graph does not hold) and ``bad_query`` (a parameter that does
+not parse or is out of range). docs/WIRE.md, "Error replies", is the contract."""
 
 from __future__ import annotations
 
@@ -17,6 +21,19 @@ from protocol.transport import Counters, message_encoding
 
 if TYPE_CHECKING:
     import zenoh
+
+
+class NotFound(LookupError):
+    """What the query names does not exist: answered with a ``not_found`` error reply."""
+
+
+def error_reply_text(e: Exception) -> str:
+    """The one-line ``<code>: <detail>`` payload of the error reply to a query that raised ``e``."""
+    from protocol.exits import one_line
+
+    if isinstance(e, NotFound):
+        return f"not_found: {e}"
+    return f"bad_query: {one_line(e)}"
 
 
 class GraphQueries:
@@ -36,13 +53,22 @@ class GraphQueries:
     def _guarded_answer(self, query: zenoh.Query, json_view: bool) -> None:
         try:
             self._answer(query, json_view)
+        except NotFound as e:
+            self.counters.add("queries_not_found")
+            self._reply_err(query, error_reply_text(e))
         except Exception as e:  # noqa: BLE001 - a bad query gets an error reply, never a crash
             self.refuse("query_errors", "bad query %s?%s: %s: %s", query.key_expr, query.parameters,
                          type(e).__name__, e)
-            try:
-                query.reply_err(f"{type(e).__name__}: {e}")
-            except Exception:  # noqa: BLE001 - the querier may be gone
-                pass
+            self._reply_err(query, error_reply_text(e))
+
+    @staticmethod
+    def _reply_err(query: zenoh.Query, text: str) -> None:
+        import zenoh
+
+        try:
+            query.reply_err(text, encoding=zenoh.Encoding.TEXT_PLAIN)
+        except Exception:  # noqa: BLE001 - the querier may be gone
+            pass
 
     def _answer(self, query: zenoh.Query, json_view: bool = False) -> None:
         """Reply with msgpack envelopes, or (``json_view``, keys under ``graph/json/``) with JSON objects."""
@@ -82,7 +108,11 @@ class GraphQueries:
         except ValueError:
             node_id = None
         if node_id is not None:
-            return [(key, n) for n in self.core.query(GraphQuery(id=node_id))]
+            found: list[tuple[str, Message]] = [(key, n) for n in self.core.query(GraphQuery(id=node_id))]
+            if not found:
+                raise NotFound(f"node {node_id} is not in the graph (version {self.core.version}, "
+                               f"epoch {self.core.epoch!r})")
+            return found
         # A wildcard such as graph/**: answer with everything it covers, each under its own key.
         asked = zenoh.KeyExpr(key)
         out: list[tuple[str, Message]] = []

@@ -27,7 +27,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 if TYPE_CHECKING:
     import zenoh
@@ -36,6 +36,7 @@ DEFAULT_ENDPOINT = "tcp/127.0.0.1:7447"
 DEFAULT_SITE = "default"
 ENV_CONNECT = "ARGUS_CONNECT"
 ENV_SITE = "ARGUS_SITE"
+_ENDPOINT = re.compile(r"^[A-Za-z0-9][A-Za-z0-9_-]*/\S+$")
 
 
 def default_endpoints() -> list[str]:
@@ -156,6 +157,14 @@ class ZenohSettings(BaseModel):
         "logs a warning. Off: such a listen endpoint is refused",
     )
 
+    @field_validator("connect", "listen")
+    @classmethod
+    def _endpoints(cls, v: list[str]) -> list[str]:
+        for ep in v:
+            if not _ENDPOINT.match(ep):
+                raise ValueError(f"{ep!r} is not a Zenoh endpoint (<protocol>/<address>, e.g. {DEFAULT_ENDPOINT})")
+        return v
+
     @model_validator(mode="after")
     def _listen_is_safe(self) -> ZenohSettings:
         if self.mode != "client" and not self.insecure and exposed_plaintext(self.listen):
@@ -186,13 +195,12 @@ class ZenohUnavailable(RuntimeError):
     """A Zenoh session could not be opened; the message is one line, fit for a user."""
 
 
-_RUST_LOCATION = re.compile(r"\s+at\s+\S+\.rs:\d+\.?")
-
-
 def clean_error(e: BaseException) -> str:
-    """One line of ``e`` without the Rust source location zenoh appends (``at /root/.cargo/...rs:447.``)."""
-    text = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
-    return _RUST_LOCATION.sub("", text).strip()
+    """One line of ``e`` without the Rust source location zenoh appends (``at /root/.cargo/...rs:447.``) or
+    its debug wrapping (``Json5Err(Message { msg: ... })``)."""
+    from protocol.exits import one_line
+
+    return one_line(e)
 
 
 def describe_endpoints(settings: ZenohSettings) -> str:

@@ -159,7 +159,7 @@ def test_cli_takes_endpoint_and_site_from_the_environment(router: str, holder: F
     p = Proc(["query", "--site", "elsewhere", "--timeout", "1", "snapshot"], env={"ARGUS_CONNECT": router,
                                                                                  "ARGUS_SITE": SITE})
     procs.append(p)
-    assert p.wait(30) == 1, p.output  # the flag wins over the environment: no graph on that site
+    assert p.wait(30) == 4, p.output  # the flag wins over the environment: no graph on that site
 
 
 def test_env_defaults_for_every_process_config(monkeypatch: pytest.MonkeyPatch) -> None:
@@ -195,14 +195,57 @@ def test_watch_exits_cleanly_on_ctrl_c(router: str, procs: list[Proc]) -> None:
 def test_cli_without_mapper_fails_cleanly(router: str, procs: list[Proc]) -> None:
     p = Proc(["query", "--connect", router, "--site", "nobody", "--timeout", "1", "snapshot"])
     procs.append(p)
-    assert p.wait(30) == 1
+    assert p.wait(30) == 4  # no answer: the same status as no router (protocol/exits.py)
     assert "is a mapper running?" in p.output and "Traceback" not in p.output
 
 
-def test_cli_bad_arguments() -> None:
+def test_cli_missing_node_is_not_found_with_its_own_status(router: str, holder: FakeGraphHolder,
+                                                           procs: list[Proc]) -> None:
+    p = Proc(["query", "--connect", router, "--site", SITE, "nodes", "--id", "n999999"])
+    procs.append(p)
+    assert p.wait(30) == 3, p.output
+    assert "node 'n999999' is not in the graph" in p.output and "0 node(s)" not in p.output
+    p = Proc(["query", "--connect", router, "--site", SITE, "nodes", "--id", "n1"])
+    procs.append(p)
+    assert p.wait(30) == 0 and "1 node(s)" in p.output, p.output
+
+
+@pytest.mark.integration
+def test_unreachable_router_is_status_4_for_query_and_goal(capsys: pytest.CaptureFixture[str]) -> None:
+    from deploy.goal import main as goal_main
+    from deploy.query import main as query_main
+    from tests.support.procs import endpoint, free_port
+
+    nobody = endpoint(free_port())
+    assert query_main(["--connect", nobody, "--timeout", "1", "snapshot"]) == 4
+    assert goal_main(["--connect", nobody, "--robot", "r", "--x", "1", "--y", "2", "--timeout", "1"]) == 4
+    err = capsys.readouterr().err.splitlines()
+    assert len(err) == 2 and all("cannot open a Zenoh session" in line for line in err), err
+
+
+@pytest.mark.parametrize(("argv", "line"), [
+    (["--connect", "foo", "snapshot"], "argus query: connect: 'foo' is not a Zenoh endpoint"),
+    (["nodes", "--radius", "-1", "--near", "1,2,0"], "argus query: radius: Input should be greater than 0"),
+    (["nodes", "--near", "1,2"], "argus query: --near: '1,2' is not x,y,z in metres"),
+    (["nodes", "--near", "1,x,2"], "argus query: --near: '1,x,2' is not x,y,z in metres"),
+])
+def test_cli_bad_arguments_are_one_line_and_status_2(argv: list[str], line: str,
+                                                     capsys: pytest.CaptureFixture[str]) -> None:
     from deploy.query import main
 
-    assert main(["nodes", "--near", "1,2"]) == 2
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert err.splitlines() == [err.strip()] and err.startswith(line), err
+    assert "pydantic" not in err and "Json5Err" not in err and "http" not in err
+
+
+def test_goal_bad_endpoint_is_one_line_and_status_2(capsys: pytest.CaptureFixture[str]) -> None:
+    from deploy.goal import main
+
+    assert main(["--connect", "foo", "--robot", "r", "--x", "1", "--y", "2"]) == 2
+    err = capsys.readouterr().err
+    assert err.strip() == ("argus goal: connect: 'foo' is not a Zenoh endpoint (<protocol>/<address>, "
+                           "e.g. tcp/127.0.0.1:7447)")
 
 
 def test_formatting() -> None:

@@ -251,7 +251,7 @@ class FakeQuery:
     def reply(self, key: str, payload: Any, encoding: Any = None) -> None:
         self.replies.append((key, payload, str(encoding)))
 
-    def reply_err(self, payload: str) -> None:
+    def reply_err(self, payload: str, encoding: Any = None) -> None:
         self.errors.append(payload)
 
 
@@ -302,6 +302,23 @@ def test_json_view_refuses_bad_selectors_and_never_answers_msgpack_wildcards(map
     assert {r[2] for r in q.replies} == {"application/msgpack;argus/graph_snapshot/1.2",
                                         "application/msgpack;argus/graph_node/1.0"}
     assert decode(q.replies[0][1], GraphSnapshot).version == 7
+
+
+def test_a_missing_node_is_a_not_found_error_reply_and_a_bad_value_a_bad_query_one(mapper_node) -> None:  # noqa: ANN001
+    """docs/WIRE.md, "Error replies": one line ``<code>: <detail>``; a node selection that selects nothing is an
+    empty snapshot, not an error."""
+    k = mapper_node.keys
+    for key in (k.graph_node("n999999"), k.graph_json(k.graph_node("n999999"))):
+        q = FakeQuery(key)
+        (mapper_node.queries.on_json_query if "/json/" in key else mapper_node.queries.on_query)(q)
+        assert q.replies == [] and len(q.errors) == 1, key
+        assert q.errors[0].startswith("not_found: node n999999 is not in the graph (version 7"), q.errors
+    q = FakeQuery(k.graph_nodes, "near=1,2,0;radius=-1")
+    mapper_node.queries.on_query(q)
+    assert q.replies == [] and q.errors == ["bad_query: radius: Input should be greater than 0"]
+    q = FakeQuery(k.graph_nodes, "id=n999999")
+    mapper_node.queries.on_query(q)
+    assert q.errors == [] and decode(q.replies[0][1], GraphSnapshot).nodes == []
 
 
 # --- goal payloads ---------------------------------------------------------------------------------
