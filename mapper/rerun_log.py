@@ -87,6 +87,39 @@ def _color(label: str) -> tuple[int, int, int]:
     return int(rgb[0]), int(rgb[1]), int(rgb[2])
 
 
+class PointParts:
+    """Which voxels of a growing point map a recording does not hold yet (pure bookkeeping, no Rerun).
+
+    ``take(keys)`` returns the mask of ``keys`` (int64 voxel keys) to log as the next part, and whether to clear
+    the parts logged so far first: every ``max_parts`` parts the whole map is logged afresh, which also drops
+    voxels the map has since evicted. Shared by the mapper's own recording and ``argus demo``'s.
+    """
+
+    def __init__(self, max_parts: int) -> None:
+        self.max_parts = max_parts
+        self.logged = np.zeros(0, dtype=np.int64)  # voxel keys already in the recording (sorted)
+        self.parts = 0
+
+    def take(self, keys: np.ndarray) -> tuple[np.ndarray, bool]:
+        """(mask of the keys to log now, whether to clear the earlier parts first); an all-False mask: nothing."""
+        keys = np.asarray(keys, dtype=np.int64)
+        new = ~np.isin(keys, self.logged)
+        if not new.any():
+            return new, False
+        refresh = self.parts >= self.max_parts
+        if refresh:
+            self.logged, self.parts = np.zeros(0, dtype=np.int64), 0
+            new[:] = True
+        self.logged = np.union1d(self.logged, keys[new])
+        self.parts += 1
+        return new, refresh
+
+    @property
+    def part_name(self) -> str:
+        """The entity name of the part :meth:`take` just handed out."""
+        return f"part{self.parts - 1}"
+
+
 class RerunLogger:
     """Logs the mapper's state after each keyframe."""
 
@@ -123,8 +156,7 @@ class RerunLogger:
         self.rec.set_sinks(*sinks)
         self.rec.log("world", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
         self.step = 0
-        self._logged_keys = np.zeros(0, dtype=np.int64)  # voxel keys already in the recording (sorted)
-        self._parts = 0
+        self._points = PointParts(cfg.point_parts)
 
     def _log_points(self, core: MapperCore) -> None:
         """Log the voxels not logged before as one more part; every ``point_parts`` parts, the whole map."""
@@ -132,16 +164,13 @@ class RerunLogger:
         with core.lock:
             vox = core.voxels
             keys, pts, cols, voxel_m = vox.keys.copy(), vox.points(), vox.colors(), vox.voxel_m
-        new = ~np.isin(keys, self._logged_keys, assume_unique=True)
+        new, refresh = self._points.take(keys)
         if not new.any():
             return
-        if self._parts >= self.cfg.point_parts:  # afresh: also drops voxels the map has since evicted
+        if refresh:
             rec.log("world/points", rr.Clear(recursive=True))
-            self._logged_keys, self._parts = np.zeros(0, dtype=np.int64), 0
-            new[:] = True
-        rec.log(f"world/points/part{self._parts}", rr.Points3D(pts[new], colors=cols[new], radii=voxel_m / 3))
-        self._logged_keys = np.union1d(self._logged_keys, keys[new])
-        self._parts += 1
+        rec.log(f"world/points/{self._points.part_name}",
+                rr.Points3D(pts[new], colors=cols[new], radii=voxel_m / 3))
 
     def log(self, core: MapperCore) -> None:
         rr, rec = self._rr, self.rec
@@ -158,6 +187,7 @@ class RerunLogger:
                     rotation_axis_angles=[rr.RotationAxisAngle(axis=(0, 0, 1), angle=n.box.yaw_rad) for n in nodes],
                     labels=[f"{n.label} ({n.node_id})" for n in nodes],
                     colors=[_color(n.label) for n in nodes],
+                    show_labels=True,  # the viewer hides labels of a batch with many instances otherwise
                 ),
             )
             centre = {n.node_id: n.centroid for n in nodes}
