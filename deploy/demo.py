@@ -18,6 +18,7 @@ Example::
 from __future__ import annotations
 
 import argparse
+import importlib.util
 import json
 import math
 import socket
@@ -51,6 +52,8 @@ class DemoConfig(BaseModel):
     time_limit_s: float = Field(default=570.0, gt=0, description="stop here even if the steps are not done")
     health_timeout_s: float = Field(default=240.0, gt=0, description="give up when the stack is not up by then")
     free_port: bool = Field(default=True, description="run the router on a free loopback port, not the file's")
+    port: int | None = Field(default=None, ge=1, le=65535,
+                             description="run the router on this loopback port (instead of a free or the file's one)")
     score_period_s: float = Field(default=4.0, gt=0, description="seconds between graph scorings")
     settle_s: float = Field(
         default=8.0, ge=0, description="after the last step, wait until no graph delta came for this long..."
@@ -69,7 +72,9 @@ def free_endpoint() -> str:
 def prepare_launch(config: DemoConfig) -> LaunchFile:
     """The demo's launch file with the step budget and (optionally) a free router port applied."""
     launch = load_launch(config.launch)
-    if config.free_port:
+    if config.port is not None:
+        launch = with_endpoint(launch, f"tcp/127.0.0.1:{config.port}")
+    elif config.free_port:
         launch = with_endpoint(launch, free_endpoint())
     procs = []
     for p in launch.process:
@@ -178,7 +183,7 @@ class Monitor:
 class Recorder:
     """Writes the run to a Rerun ``.rrd`` file (graph boxes, edges, point map, cameras, metrics)."""
 
-    def __init__(self, path: Path) -> None:
+    def __init__(self, path: Path, max_parts: int = 32) -> None:
         import rerun as rr
 
         self.rr = rr
@@ -187,6 +192,10 @@ class Recorder:
         path.parent.mkdir(parents=True, exist_ok=True)
         self.rec.save(str(path))
         self.rec.log("world", rr.ViewCoordinates.RIGHT_HAND_Z_UP, static=True)
+        from mapper.rerun_log import PointParts
+
+        # The point map arrives whole at every scoring period; the recording gets only the voxels it lacks.
+        self.points = PointParts(max_parts)
 
     def _time(self, step: int, wall_s: float) -> None:
         self.rec.set_time("step", sequence=step)
@@ -201,7 +210,7 @@ class Recorder:
             half = np.array([n.box.yaw_rad / 2.0 for n in snap.nodes])
             quats = np.stack([np.zeros_like(half), np.zeros_like(half), np.sin(half), np.cos(half)], axis=1)
             self.rec.log("world/objects", rr.Boxes3D(centers=centers, sizes=sizes, quaternions=quats,
-                                                     labels=[n.label for n in snap.nodes]))
+                                                     labels=[n.label for n in snap.nodes], show_labels=True))
         else:
             self.rec.log("world/objects", rr.Clear(recursive=False))
         pos = {n.node_id: n.centroid for n in snap.nodes}
@@ -227,9 +236,7 @@ class Recorder:
         rr = self.rr
         self._time(step, wall_s)
         if pm is not None and len(pm.points):
-            pts = np.asarray(pm.points, dtype=np.float32)
-            colors = np.asarray(pm.colors) if pm.colors is not None and len(pm.colors) == len(pts) else None
-            self.rec.log("world/points", rr.Points3D(pts, colors=colors, radii=pm.voxel_m / 2))
+            self.log_points(pm)
         for rid, xy in traj.items():
             if len(xy) >= 2:
                 self.rec.log(f"world/robots/{rid}/path", rr.LineStrips3D([[(x, y, 0.02) for x, y in xy]],
@@ -244,6 +251,21 @@ class Recorder:
                 self.rec.log(base, rr.Pinhole(image_from_camera=K, resolution=[header.width, header.height],
                                               image_plane_distance=0.3))
             self.rec.log(base, rr.EncodedImage(contents=jpeg, media_type="image/jpeg"))
+
+    def log_points(self, pm: PointMap) -> None:
+        """Log the voxels of ``pm`` the recording does not hold yet, as one more part of ``world/points``."""
+        from mapper.fusion import voxel_keys
+
+        rr = self.rr
+        pts = np.asarray(pm.points, dtype=np.float32)
+        new, refresh = self.points.take(voxel_keys(pts, pm.voxel_m))
+        if not new.any():
+            return
+        if refresh:
+            self.rec.log("world/points", rr.Clear(recursive=True))
+        colors = np.asarray(pm.colors)[new] if pm.colors is not None and len(pm.colors) == len(pts) else None
+        self.rec.log(f"world/points/{self.points.part_name}", rr.Points3D(pts[new], colors=colors,
+                                                                          radii=pm.voxel_m / 2))
 
     def close(self) -> None:
         self.rec.flush()
@@ -268,12 +290,25 @@ def format_table(rows: list[tuple[str, str]]) -> str:
     return "\n".join(out)
 
 
+SERVER_NEEDS = ("torch", "gtsam", "open3d", "scipy", "rerun")
+"""What the demo's processes (mapper, planner, simulator) and its recording import: checked before anything starts."""
+
+
+def require_server_install() -> None:
+    """Raise ModuleNotFoundError naming the first server dependency this install lacks (``argus`` turns it into
+    its one-line "needs the server install"), without importing any of them."""
+    for name in SERVER_NEEDS:
+        if importlib.util.find_spec(name) is None:
+            raise ModuleNotFoundError(f"No module named {name!r}", name=name)
+
+
 def run(config: DemoConfig) -> int:
     """Run the demo; returns 0 when the steps were done and the graph is non-empty."""
     from deploy.query import QueryError, get_snapshot
     from protocol.runtime import install_stop_handlers
     from protocol.session import ZenohSettings, open_session
 
+    require_server_install()
     t0 = time.monotonic()
     launch = prepare_launch(config)
     mode = perception_label(launch)
@@ -468,7 +503,8 @@ def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(
         prog="argus demo",
         description="Run the whole distributed system on the embedded simulated world and score it live.",
-        epilog="example: argus demo --steps 30 --rrd demo.rrd   (then: rerun demo.rrd)",
+        epilog="examples: argus demo --steps 30 --rrd demo.rrd   (then: rerun demo.rrd) | "
+        "argus demo --port 7447   (then, from another shell: argus query snapshot)",
     )
     p.add_argument("--launch", type=Path, default=DEFAULT_LAUNCH, help="launch file (default: deploy/launch/demo.toml)")
     p.add_argument("--steps", type=int, default=30, help="exploration steps")
@@ -477,17 +513,22 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--json", type=Path, default=Path("demo_result.json"), help="final figures as JSON")
     p.add_argument("--log-dir", type=Path, default=Path("demo_logs"), help="per-process log files")
     p.add_argument("--time-limit", type=float, default=570.0, help="seconds before stopping regardless")
-    p.add_argument("--keep-port", action="store_true", help="use the launch file's router port, not a free one")
+    port = p.add_mutually_exclusive_group()
+    port.add_argument("--port", type=int, default=None,
+                      help="run the router on tcp/127.0.0.1:PORT (default: a free port, printed at start)")
+    port.add_argument("--keep-port", action="store_true", help="use the launch file's router port, not a free one")
     p.add_argument("--verbose", action="store_true", help="print every process's log lines")
     a = p.parse_args(argv)
     try:
         config = DemoConfig(launch=a.launch, steps=a.steps, rrd=None if a.no_rrd else a.rrd, result_json=a.json,
                             log_dir=a.log_dir, time_limit_s=a.time_limit, free_port=not a.keep_port,
-                            verbose=a.verbose)
-        return run(config)
-    except ValueError as e:
-        print(f"argus demo: {e}", file=sys.stderr)
-        return 2
+                            port=a.port, verbose=a.verbose)
+    except ValueError as e:  # pydantic's ValidationError included: one line per field
+        from protocol.exits import USAGE, one_line
+
+        print(f"argus demo: {one_line(e)}", file=sys.stderr)
+        return USAGE
+    return run(config)
 
 
 if __name__ == "__main__":

@@ -135,7 +135,7 @@ def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(
         prog="argus bench robot",
         description="Robot agent per-frame cost and fast-simulation exploration time.",
-        epilog="example: python -m robot_agent.bench --frames 30 --bodies kinematic,sim --explore-steps 30",
+        epilog="example: argus bench robot --frames 30 --bodies kinematic,sim --explore-steps 30",
     )
     p.add_argument("--frames", type=int, default=30)
     p.add_argument("--bodies", default="kinematic,sim", help="comma list of kinematic, sim")

@@ -29,7 +29,7 @@ BLOCKER = textwrap.dedent(f"""
     class Block(importlib.abc.MetaPathFinder):
         def find_spec(self, name, path=None, target=None):
             if name.split(".")[0] in BLOCKED:
-                raise ModuleNotFoundError(f"{{name}} is not part of the edge install")
+                raise ModuleNotFoundError(f"{{name}} is not part of the edge install", name=name)
             return None
 
     sys.meta_path.insert(0, Block())
@@ -53,7 +53,31 @@ def test_edge_commands_need_only_the_core_install(command: list[str]) -> None:
 
 def test_the_blocker_does_block_server_packages() -> None:
     r = _edge("mapper", "--help")
-    assert r.returncode == 3 and "not available in this install" in r.stderr
+    assert r.returncode == 5 and "not available in this install" in r.stderr
+
+
+# The wheel in a clean venv: every Argus package is there, the server's third-party packages are not.
+THIRD_PARTY = [m for m in SERVER_ONLY if m not in ("mapper", "planner", "sim", "bench")]
+WHEEL_BLOCKER = BLOCKER.replace(f"BLOCKED = {SERVER_ONLY!r}", f"BLOCKED = {THIRD_PARTY!r}")
+
+
+@pytest.mark.parametrize("command", [["mapper"], ["demo", "--no-rrd", "--steps", "1"], ["planner"], ["worker"],
+                                     ["eval", "--quick"], ["sim", "render", "--out", "sim_out"]])
+def test_server_commands_in_the_edge_install_say_so_in_one_line(command: list[str], tmp_path: Path) -> None:
+    assert WHEEL_BLOCKER != BLOCKER
+    r = subprocess.run([sys.executable, "-c", WHEEL_BLOCKER, *command], cwd=REPO, capture_output=True, text=True,
+                       timeout=60)
+    assert r.returncode == 5, r.stdout + r.stderr
+    lines = r.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith(f"argus {command[0]}: needs the server install (missing module")
+    assert "Traceback" not in r.stdout + r.stderr and "[up]" not in r.stdout  # nothing was started
+
+
+def test_version() -> None:
+    from importlib.metadata import version
+
+    r = _edge("--version")
+    assert r.returncode == 0 and r.stdout.strip() == f"argus {version('argus-scenegraph')}", r.stdout + r.stderr
 
 
 def test_edge_camera_streams_with_the_core_install(tmp_path: Path, router: str) -> None:
@@ -121,3 +145,11 @@ def test_the_wheel_holds_the_packages_and_runs_the_edge_commands_alone(tmp_path:
         r = subprocess.run([sys.executable, "-c", code, *command], cwd=tmp_path, capture_output=True, text=True,
                            timeout=60)
         assert r.returncode == 0, r.stdout + r.stderr
+
+
+def test_make_wheel_needs_no_server_install() -> None:
+    """``make wheel`` builds in a small environment of its own: it never runs ``make install`` (torch, open3d)."""
+    r = subprocess.run(["make", "-n", "-B", "wheel"], cwd=REPO, capture_output=True, text=True, timeout=60)
+    assert r.returncode == 0, r.stderr
+    assert "torch" not in r.stdout and "[server" not in r.stdout and ".venv/bin" not in r.stdout, r.stdout
+    assert "pip wheel" in r.stdout and "--no-deps" in r.stdout
