@@ -5,7 +5,8 @@ of a Zenoh 1.x router config (``default_permission: "deny"``). What each role ma
 
     edge-camera C   put cam/C/{frame,oracle}, status/edge-camera/C; token alive/edge-camera/C
     robot-agent R   put robot/R/{frame,oracle,state,viewpoints}, status/robot-agent/R; token alive/..;
-                    receive robot/R/goal; answer queries on robot/R/viewpoints
+                    receive robot/R/goal, answer it on robot/R/goal/status{,/json}; answer queries on
+                    robot/R/viewpoints
     mapper          put/delete graph/**, map/**, its status; token; receive every cam/robot frame
                     and oracle; answer queries on graph/**; keyframe jobs: put work/job/*, receive
                     work/{ack,result}/*, answer work/keyframe/*/*, watch alive/worker/*; and the worker's
@@ -13,7 +14,8 @@ of a Zenoh 1.x router config (``default_permission: "deny"``). What each role ma
     worker W        receive work/job/W; put work/{ack,result}/W, status/worker/W; token alive/worker/W;
                     query work/keyframe/*/* (source keyframes from the mapper's store)
     planner         put robot/*/goal, its status; token; receive graph/{snapshot,delta}, map/points,
-                    robot/*/{state,viewpoints}; query graph/snapshot, robot/*/viewpoints; watch alive/**
+                    robot/*/{state,viewpoints,goal/status{,/json}}; query graph/snapshot, robot/*/viewpoints;
+                    watch alive/** (``argus goal`` on a secure site logs in as the planner)
     consumer        receive and query graph/** (read only)
     monitor         watch alive/** and receive status/** (the launcher's health view; read only)
 
@@ -83,7 +85,8 @@ def grants(p: Principal, keys: Keys) -> list[Grant]:
         return [_in("put", keys.cam_frame(i), keys.oracle("fixed", i)), *presence]
     if p.role == "robot-agent":
         return [
-            _in("put", keys.robot_frame(i), keys.oracle("robot", i), keys.robot_state(i), keys.robot_viewpoints(i)),
+            _in("put", keys.robot_frame(i), keys.oracle("robot", i), keys.robot_state(i), keys.robot_viewpoints(i),
+                keys.robot_goal_status(i), keys.robot_goal_status_json(i)),
             *presence,
             _in("declare_subscriber", keys.robot_goal(i)), _out("put", keys.robot_goal(i)),
             # The planner asks robot/*/viewpoints, and Zenoh checks the query's own (wildcard) key: each
@@ -107,7 +110,7 @@ def grants(p: Principal, keys: Keys) -> list[Grant]:
         return [*_worker(keys, i), learn_subs]
     if p.role == "planner":
         reads = (keys.graph_snapshot, keys.graph_delta, keys.map_points, keys.all_robot_states,
-                 keys.all_robot_viewpoints)
+                 keys.all_robot_viewpoints, f"{keys.all_robot_goals}/status", f"{keys.all_robot_goals}/status/json")
         asks = (keys.graph_snapshot, keys.all_robot_viewpoints)
         return [
             _in("put", f"{r}/robot/*/goal"), *presence,

@@ -28,7 +28,7 @@ import zenoh
 from deploy.acl import Principal
 from deploy.secure import SecuritySpec, make_ca, make_cert, principals
 from deploy.up import LaunchFile, Stack, load_launch
-from protocol.codec import encode
+from protocol.codec import decode, encode
 from protocol.keys import Keys
 from protocol.messages import NbvGoal
 from protocol.session import ZenohSettings, ZenohUnavailable, open_session
@@ -312,6 +312,40 @@ def test_generated_router_over_tls_lets_a_camera_do_only_its_part(tmp_path: Path
         assert frames.count(b"forged frame") == 0 and goals.count(b"rogue goal") == 0
         for sub in subs:
             sub.undeclare()
+
+
+def test_goal_answers_reach_argus_goal_over_tls(tmp_path: Path, procs: list[Proc]) -> None:
+    """``argus goal`` on a secure site (the planner's login) gets the robot's answer; a camera cannot forge one
+    (issue 37 item 6: the ACL had no rule for robot/<id>/goal/status, so every answer was dropped)."""
+    from deploy.goal import make_goal, send_goal
+    from deploy.secure import prepare
+    from protocol.messages import GoalStatus
+
+    port = free_port()
+    launch = LaunchFile.model_validate_json(json.dumps(_toml(_launch_text(port))))
+    site = prepare(launch, SHIPPED.parent, launch.security or SecuritySpec(), ["router"], tmp_path / "s")
+    procs.append(Proc(["router", "--config", str(site.router_file), "--listen", launch.endpoint], cwd=tmp_path))
+    wait_for(lambda: _port_open(port), 20, what="the TLS router")
+    s, k = Site(site.dir, launch.endpoint, Keys("home")), Keys("home")
+    with s.session("robot0") as robot, s.session("cam_kitchen") as cam, s.session("planner") as planner:
+        answers = robot.declare_publisher(k.robot_goal_status("robot0"))
+        forged = cam.declare_publisher(k.robot_goal_status("robot0"))
+
+        def answer(sample: zenoh.Sample) -> None:  # the robot agent's answer, as robot_agent.control gives it
+            goal = decode(sample.payload.to_bytes(), NbvGoal)
+            forged.put(encode(GoalStatus(goal_id=goal.goal_id, robot_id="robot0", accepted=False,
+                                         reason="forged by a camera", stamp_ns=1, received=1)))
+            answers.put(encode(GoalStatus(goal_id=goal.goal_id, robot_id="robot0", accepted=True, stamp_ns=2,
+                                          received=1)))
+
+        sub = robot.declare_subscriber(k.robot_goal("robot0"), answer)
+        goal_pub = planner.declare_publisher(k.robot_goal("robot0"))
+        _told_of_subscriber(goal_pub, "planner")
+        goal_pub.undeclare()
+        status = send_goal(planner, k, make_goal("robot0", 1.0, 2.0, 0.0), timeout_s=10.0)
+        sub.undeclare()
+    assert status is not None, "no answer from the robot over TLS"
+    assert status.accepted and status.reason != "forged by a camera"
 
 
 def _port_open(port: int) -> bool:
