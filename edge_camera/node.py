@@ -23,6 +23,16 @@ from protocol.transport import Counters, StatusReporter
 
 log = logging.getLogger("argus.edge_camera")
 ROLE = "edge-camera"
+STILL_FAILING_LOG_S = 60.0
+"""While a source keeps failing, one line says so at most this often (the first failure is logged at once)."""
+
+
+def quiet_opencv() -> None:
+    """Stop OpenCV's own ``[ WARN ]`` lines (one per failed open of a device or stream, on stderr, interleaved with
+    Argus's log): the camera's own warning says the same. OpenCV errors still print."""
+    import cv2
+
+    cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_ERROR)
 
 
 class EdgeCamera(Process):
@@ -36,6 +46,9 @@ class EdgeCamera(Process):
         self.source: FrameSource = create_source(config.source)
         self.counters = Counters()
         self.source_open = False
+        self._failing_since: float | None = None  # monotonic time of the first failure of the current streak
+        self._failures = 0
+        self._last_fault_log = 0.0
         self.node = Node(config.zenoh, self.keys, ROLE, config.id, counters=self.counters,
                          status_period_s=config.status_period_s, reconnect=config.reconnect, logger=log)
 
@@ -51,7 +64,8 @@ class EdgeCamera(Process):
         node.on_exit(self._stopped)
         reporter = node.status(extra=lambda: {
             "frames_dropped": self.counters.get("publish_errors") + getattr(self.source, "superseded", 0)})
-        log.info("edge camera %s publishing on %s", cid, self.keys.cam_frame(cid))
+        quiet_opencv()
+        log.info("edge camera %s: opening its %s source", cid, self.config.source.type)
         self._loop(node.stop, publisher, reporter)
 
     def _stopped(self) -> None:
@@ -68,7 +82,16 @@ class EdgeCamera(Process):
 
     def _fault(self, reporter: StatusReporter, what: str, backoff: Backoff, stop: threading.Event) -> None:
         wait = backoff.next_wait_s()
-        log.warning("%s; retrying in %.1f s", what, wait)
+        now = time.monotonic()
+        self._failures += 1
+        if self._failing_since is None:
+            self._failing_since, self._last_fault_log = now, now
+            log.warning("%s; retrying in %.1f s, then with back-off up to %.0f s until it works (status: degraded)",
+                        what, wait, self.config.reconnect.max_s)
+        elif now - self._last_fault_log >= STILL_FAILING_LOG_S:
+            self._last_fault_log = now
+            log.warning("%s; still failing after %d attempts in %.0f s, retrying", what, self._failures,
+                        now - self._failing_since)
         reporter.last_error = what
         reporter.state = "degraded"
         self._close_source()
@@ -92,6 +115,9 @@ class EdgeCamera(Process):
                 if opened_once:
                     self.counters.add("reconnects")
                     log.info("source reopened")
+                else:
+                    cid = self.config.id
+                    log.info("edge camera %s: source open; publishing on %s", cid, self.keys.cam_frame(cid))
                 opened_once = True
                 reporter.state = "ok"
             rate = min(self.config.publish.max_rate_hz, getattr(self.source, "rate_hz", None) or float("inf"))
@@ -113,6 +139,7 @@ class EdgeCamera(Process):
                 continue
             grab_ms = (time.perf_counter() - t0) * 1e3
             backoff.reset()
+            self._failing_since, self._failures = None, 0  # a frame: the fault streak is over
             try:
                 done = publisher.publish(grab, grab_ms)
             except Exception as e:  # noqa: BLE001 - a bad frame or a closed link: count it, carry on

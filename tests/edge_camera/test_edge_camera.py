@@ -151,6 +151,38 @@ def test_folder_emptied_mid_stream_reconnects_and_stays_up(tmp_path, router, pro
     assert proc.alive()
 
 
+def test_dead_device_never_says_publishing_and_opencv_stays_quiet(tmp_path, router, procs, listener_factory):
+    """Issue 38: "publishing on ..." was logged before the source had opened, and a dead device's retries mixed
+    OpenCV's own [ WARN ] lines into the log."""
+    cfg = write_config(tmp_path / "cam.toml", router, 'type = "opencv"\ndevice = 63\n')
+    lst = listener_factory(router, "cam_t")
+    proc = Proc(["edge-camera", "--config", str(cfg)])
+    procs.append(proc)
+    wait_for(lambda: any(s.counters.get("reconnect_attempts", 0) >= 3 for s in list(lst.statuses)), timeout=30,
+             what=f"three failed opens:\n{proc.output}")
+    proc.signal()
+    assert proc.wait(timeout=15) == 0
+    out = proc.output
+    assert "publishing on" not in out and "[ WARN" not in out and "VIDEOIO" not in out, out
+    assert out.count("source open failed: cannot open camera device 63") == 1, out  # then one line a minute
+    assert any(s.state == "degraded" for s in lst.statuses)
+
+
+def test_publishing_is_logged_once_the_source_is_open(tmp_path, router, procs, listener_factory):
+    folder = tmp_path / "late"
+    cfg = write_config(tmp_path / "cam.toml", router, f'type = "folder"\npath = "{folder}"\nrate_hz = 20.0\n')
+    lst = listener_factory(router, "cam_t")
+    proc = Proc(["edge-camera", "--config", str(cfg)])
+    procs.append(proc)
+    wait_for(lambda: "source open failed" in proc.output, timeout=30, what=f"a failed open:\n{proc.output}")
+    assert "publishing on" not in proc.output
+    write_images(folder, 2)
+    wait_for(lambda: lst.n_frames() >= 1, timeout=30, what=f"frames once the folder exists:\n{proc.output}")
+    lines = proc.output.splitlines()
+    (at,) = [i for i, line in enumerate(lines) if "source open; publishing on argus/default/cam/cam_t/frame" in line]
+    assert any("source open failed" in line for line in lines[:at])
+
+
 @pytest.mark.parametrize(
     ("source", "extra", "message"),
     [
