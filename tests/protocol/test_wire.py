@@ -5,6 +5,7 @@ their rate limit, and ``argus goal`` against a real robot agent."""
 from __future__ import annotations
 
 import json
+import re
 import time
 from typing import Any
 
@@ -485,3 +486,31 @@ def test_argus_goal_prints_the_robots_answer(router: str, procs: list[Proc]) -> 
     assert encodings[keys.robot_goal_status_json("rg")] == {"application/json;argus/goal_status/1.0"}
     assert encodings[keys.robot_state("rg")] == {"application/msgpack;argus/robot_state/1.1"}
     assert encodings[keys.status("robot-agent", "rg")] == {"application/msgpack;argus/status/1.0"}
+
+
+# --- prose of WIRE.md that code must keep true ------------------------------------------------------
+def test_status_periods_and_counters_in_wire_md_are_the_codes() -> None:
+    """WIRE.md, "Status": the periods are the configs' defaults, and every counter it names is one a process
+    of that role publishes (its name is a string in that role's package)."""
+    from edge_camera.config import EdgeCameraConfig
+    from mapper.config import MapperConfig
+    from mapper.work.config import WorkerConfig
+    from planner.config import PlannerNodeConfig
+    from robot_agent.config import RobotAgentConfig
+
+    text = wire.WIRE_MD.read_text(encoding="utf-8")
+    assert "**1 s** for `mapper`, `planner` and `worker`, **2 s** for `edge-camera` and\n`robot-agent`" in text
+    def period(cfg: Any) -> float:
+        return float(cfg.model_fields["status_period_s"].default)
+
+    assert period(MapperConfig) == period(PlannerNodeConfig) == period(WorkerConfig) == 1
+    assert period(EdgeCameraConfig) == period(RobotAgentConfig) == 2
+    section = text[text.index("### Status"):text.index("### What receivers accept")]
+    packages = {"edge-camera": ["edge_camera"], "robot-agent": ["robot_agent"], "mapper": ["mapper", "protocol"],
+                "planner": ["planner"], "worker": ["mapper/work"]}
+    root = wire.WIRE_MD.parents[1]
+    for role, dirs in packages.items():
+        (row,) = [line for line in section.splitlines() if line.startswith(f"| `{role}` |")]
+        source = "".join(p.read_text(encoding="utf-8") for d in dirs for p in (root / d).rglob("*.py"))
+        for name in re.findall(r"`([a-z_0-9]+)`", row.split("|")[2]):
+            assert f'"{name}"' in source or f"'{name}'" in source or f"{name}=" in source, (role, name)

@@ -27,7 +27,7 @@ from tests.support.procs import Proc, wait_for
 SITE = "wire"
 ROBOT = "robot0"
 EXAMPLE = re.compile(r"```python\n# example: ([\w-]+)\n(.*?)```", re.S)
-MSGPACK_SCRIPT = ["preamble", "snapshot", "node", "deltas", "goal"]
+MSGPACK_SCRIPT = ["preamble", "snapshot", "node", "follow", "goal"]
 JSON_SCRIPT = ["json-preamble", "json-snapshot", "json-goal"]
 STDLIB = set(sys.stdlib_module_names)
 
