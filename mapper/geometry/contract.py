@@ -153,12 +153,15 @@ def compose(recon: FactoredReconstruction, T_world_first: F64) -> ComposedGeomet
     m = float(recon.metric_scale)
     T_first_cam = np.array(recon.T_first_cam, dtype=np.float64, copy=True)
     T_first_cam[:, :3, 3] *= m
-    T_world_cam = np.einsum("ij,njk->nik", T_wf, T_first_cam)
+    T_world_cam = T_wf @ T_first_cam
     depth_ray = recon.depth_along_ray.astype(np.float64) * m
     points_cam = recon.ray_dirs.astype(np.float64) * depth_ray[..., None]
     R = T_world_cam[:, :3, :3]
     t = T_world_cam[:, :3, 3]
-    points_world = np.einsum("nij,nhwj->nhwi", R, points_cam) + t[:, None, None, :]
+    n, h, w = depth_ray.shape
+    # One BLAS product per view (numpy's einsum here was ~60 ms per 320x240 view, a tenth of a keyframe).
+    points_world = np.matmul(points_cam.reshape(n, h * w, 3), R.transpose(0, 2, 1)).reshape(n, h, w, 3)
+    points_world += t[:, None, None, :]
     return ComposedGeometry(
         points_world=points_world.astype(np.float32),
         depth_m=points_cam[..., 2].astype(np.float32),

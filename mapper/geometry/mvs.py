@@ -693,12 +693,12 @@ class MvsReconstructor:
     def _sweep(
         self, r: int, prep: list[_Prepared], poses: list[F64 | None], pts: np.ndarray,
         grays: dict[tuple[int, int, int], torch.Tensor], sw: int, sh: int,
-    ) -> tuple[np.ndarray, np.ndarray, list[int]]:
+    ) -> tuple[np.ndarray, list[int]]:
         c = self.config
         seen = self._seen_depths(r, prep, poses, pts)
         srcs = self._select_sources(r, prep, poses, seen)
         if not srcs:
-            return np.zeros((sh, sw), np.float32), np.zeros((sh, sw), np.float32), []
+            return np.zeros((sh, sw), np.float32), []
         for s in [r, *srcs]:
             if (s, sw, sh) not in grays:
                 grays[(s, sw, sh)] = _resize_gray(prep[s].view.image, sw, sh)
@@ -709,12 +709,12 @@ class MvsReconstructor:
         params = planesweep.SweepParams(
             c.n_planes, c.census_radius, c.census_stride, c.sgm_p1, c.sgm_p2, c.best_k_sources
         )
-        depth, margin = planesweep.plane_sweep_depth(
+        depth = planesweep.plane_sweep_depth(
             grays[(r, sw, sh)], [grays[(s, sw, sh)] for s in srcs], K_r,
             [prep[s].intr.scaled(sw, sh).K() for s in srcs],
             [invert(poses[s]) @ T_r for s in srcs], lo, hi, params,  # type: ignore[arg-type]
         )
-        return depth.numpy().astype(np.float32), margin.numpy().astype(np.float32), srcs
+        return depth.numpy().astype(np.float32), srcs
 
     def reconstruct(self, views: Sequence[View], targets: Sequence[int] | None = None) -> FactoredReconstruction:
         if not views:
@@ -748,7 +748,6 @@ class MvsReconstructor:
         sw = c.sweep_width
         grays: dict[tuple[int, int, int], torch.Tensor] = {}  # (view, width, height) -> grey image
         depth_lo: dict[int, np.ndarray] = {}
-        margin_lo: dict[int, np.ndarray] = {}
         sources: dict[int, list[int]] = {}
         shapes = {}
         for i in range(n):
@@ -757,7 +756,7 @@ class MvsReconstructor:
         for r in target_list:
             if poses[r] is None:
                 continue
-            depth_lo[r], margin_lo[r], sources[r] = self._sweep(r, prep, poses, pts, grays, *shapes[r])
+            depth_lo[r], sources[r] = self._sweep(r, prep, poses, pts, grays, *shapes[r])
         # Neighbour depth maps for the consistency check: this call's, else cached, else swept now.
         neigh_depth: dict[int, tuple[np.ndarray, F64]] = {}
         for r in list(depth_lo):
@@ -775,7 +774,7 @@ class MvsReconstructor:
                         break
                     if s in depth_lo or s in neigh_depth:
                         continue
-                    d, _, _ = self._sweep(s, prep, poses, pts, grays, *shapes[s])
+                    d, _ = self._sweep(s, prep, poses, pts, grays, *shapes[s])
                     neigh_depth[s] = (d, prep[s].intr.scaled(*shapes[s]).K())
                     have += 1
         info["t_dense_s"] = time.perf_counter() - t_dense

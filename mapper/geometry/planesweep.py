@@ -149,7 +149,7 @@ def sweep_cost(
         warped, inside = warp_planes(src, K_ref, K_s, T, depths, h, w)
         c = _census_cost(warped, ref_bits, params.census_radius, params.census_stride)
         # Outside the source image there is no evidence: a pessimistic cost lets other sources decide.
-        c = torch.where(inside, c, torch.full_like(c, 0.6))
+        c.masked_fill_(~inside, 0.6)
         if best1 is None:
             best1 = c
         elif best2 is None:
@@ -209,32 +209,22 @@ def _sgm_aggregate_torch(cost: torch.Tensor, p1: float, p2x: torch.Tensor, p2y: 
     return total
 
 
-def winner_depth(agg: torch.Tensor, inv_depths: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-    """Winner-take-all plane with a parabola fit between planes: depth (H, W) and the cost margin (H, W)
-    between the best plane and the best plane at least 2 planes away (larger = more distinctive)."""
+def winner_depth(agg: torch.Tensor, inv_depths: torch.Tensor) -> torch.Tensor:
+    """Winner-take-all plane with a parabola fit between planes: depth (H, W), 0 where the winner is a range end."""
     d_n = agg.shape[0]
     idx = agg.argmin(dim=0)
-    i0 = idx.clamp(1, d_n - 2)
-    c0 = agg.gather(0, i0.unsqueeze(0) - 1)[0]
-    c1 = agg.gather(0, i0.unsqueeze(0))[0]
-    c2 = agg.gather(0, i0.unsqueeze(0) + 1)[0]
+    i0 = idx.clamp(1, d_n - 2).unsqueeze(0)
+    c0 = agg.gather(0, i0 - 1)[0]
+    c1 = agg.gather(0, i0)[0]
+    c2 = agg.gather(0, i0 + 1)[0]
     denom = c0 - 2 * c1 + c2
     offset = torch.where(denom > 1e-6, 0.5 * (c0 - c2) / denom.clamp(min=1e-6), torch.zeros_like(c1))
     offset = offset.clamp(-0.5, 0.5)
     edge = (idx == 0) | (idx == d_n - 1)
-    pos = torch.where(edge, idx.to(agg.dtype), i0.to(agg.dtype) + offset)
+    pos = torch.where(edge, idx.to(agg.dtype), i0[0].to(agg.dtype) + offset)
     step = inv_depths[1] - inv_depths[0]
-    inv = inv_depths[0] + pos * step
-    depth = 1.0 / inv.clamp(min=1e-6)
-    # Best cost at least 2 planes away from the winner: mask the winner and its two neighbours.
-    masked = agg.clone()
-    big = torch.full_like(idx, 1e9, dtype=agg.dtype).unsqueeze(0)
-    for off in (-1, 0, 1):
-        masked.scatter_(0, (idx + off).clamp(0, d_n - 1).unsqueeze(0), big)
-    second = masked.min(dim=0).values
-    margin = second - agg.gather(0, idx.unsqueeze(0))[0]
-    depth = torch.where(edge, torch.zeros_like(depth), depth)
-    return depth, margin
+    depth = 1.0 / (inv_depths[0] + pos * step).clamp(min=1e-6)
+    return torch.where(edge, torch.zeros_like(depth), depth)
 
 
 def plane_sweep_depth(
@@ -246,8 +236,8 @@ def plane_sweep_depth(
     depth_min_m: float,
     depth_max_m: float,
     params: SweepParams,
-) -> tuple[torch.Tensor, torch.Tensor]:
-    """Depth (H, W) in metres (0 where the winner sits on the range boundary) and its cost margin."""
+) -> torch.Tensor:
+    """Depth (H, W) in metres (0 where the winner sits on the range boundary)."""
     inv = torch.linspace(1.0 / depth_max_m, 1.0 / depth_min_m, params.n_planes)
     depths = 1.0 / inv
     cost = sweep_cost(ref_gray, src_grays, K_ref, K_srcs, T_src_ref, depths, params)
