@@ -1,6 +1,6 @@
 # Two commands do everything on a fresh machine:
 #   make demo   install into .venv and run the whole stack on the embedded simulated world
-#   make test   install into .venv, lint, type-check, and run the fast test tier
+#   make test   install into .venv, lint, type-check, build the docs, and run the fast test tier
 SHELL := /bin/bash
 PYTHON ?= python3
 VENV := .venv
@@ -8,7 +8,7 @@ PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed-$(shell sha1sum pyproject.toml | cut -c1-12)
 export PYTHONUNBUFFERED := 1
 
-.PHONY: install demo test test-all lint typecheck bench wheel clean
+.PHONY: install demo test test-all lint typecheck docs docs-site bench wheel clean
 
 # mypy-clean: every package
 TYPED := protocol edge_camera robot_agent mapper planner deploy sim bench
@@ -41,10 +41,20 @@ lint: install
 typecheck: install
 	$(VENV)/bin/mypy $(TYPED)
 
-test: install lint typecheck
+# the documentation site (MkDocs, offline, into site/): fails on a warning, a broken link or a stale generated page
+docs: install
+	$(PY) -m deploy.clidoc --check
+	$(PY) -m protocol.wire --check
+	$(MAKE) --no-print-directory docs-site
+
+# the build alone (about 1 s); make test's pytest checks the generated pages (tests/test_docs.py, test_wire.py)
+docs-site: install
+	NO_MKDOCS_2_WARNING=1 $(VENV)/bin/mkdocs build --strict -q
+
+test: install lint typecheck docs-site
 	$(PY) -m pytest -q -x --durations=10
 
-test-all: install lint typecheck
+test-all: install lint typecheck docs-site
 	$(PY) -m pytest -q -m '' --durations=20
 
 bench: install
@@ -60,4 +70,4 @@ wheel:
 	@ls dist/argus_scenegraph-*.whl
 
 clean:
-	rm -rf $(VENV) build dist *.egg-info
+	rm -rf $(VENV) build dist site *.egg-info

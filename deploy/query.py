@@ -19,10 +19,12 @@ import json
 import math
 import os
 import queue
+import shutil
 import sys
 import threading
 import time
 from collections.abc import Iterable
+from pathlib import Path
 from typing import Any
 
 from protocol import exits
@@ -270,9 +272,23 @@ def run_watch(
     return 0
 
 
+def argus_command() -> str:
+    """How to run this install's ``argus`` from the current shell: ``argus`` when the PATH finds this one, else
+    its path (``.venv/bin/argus`` after ``make install`` without ``source .venv/bin/activate``)."""
+    here = Path(sys.executable).with_name("argus")
+    if not here.exists():
+        return "argus"
+    found = shutil.which("argus")
+    if found is not None and Path(found).resolve() == here.resolve():
+        return "argus"
+    rel = os.path.relpath(here)
+    return rel if not rel.startswith("..") else str(here)
+
+
 def query_hint(endpoint: str, site: str) -> str:
-    """The exact ``argus query`` line that reads the graph of the stack on ``endpoint`` / ``site``."""
-    return f"argus query --connect {endpoint} --site {site} snapshot"
+    """The exact ``argus query`` line that reads the graph of the stack on ``endpoint`` / ``site``, runnable as
+    printed from the current directory."""
+    return f"{argus_command()} query --connect {endpoint} --site {site} snapshot"
 
 
 def _silence_stdout() -> None:

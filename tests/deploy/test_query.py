@@ -352,3 +352,21 @@ def test_watch_into_a_reader_that_closes_early_exits_quietly(router: str) -> Non
             p.wait()
     assert "BrokenPipe" not in err and "Traceback" not in err, err
     assert code == 0, err
+
+
+def test_the_printed_query_line_runs_without_the_venv_on_path(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Issue 38: ``argus up`` printed ``argus query ...``, which failed after ``make install`` without
+    ``source .venv/bin/activate``; it now names this install's argus unless the PATH finds that one."""
+    import sys
+
+    from deploy.query import argus_command, query_hint
+
+    here = Path(sys.executable).with_name("argus")
+    if not here.exists():
+        pytest.skip("no argus script beside this interpreter")
+    monkeypatch.setenv("PATH", "/usr/bin:/bin")
+    cmd = argus_command()
+    assert cmd != "argus" and Path(cmd).resolve() == here.resolve()
+    assert query_hint("tcp/127.0.0.1:7447", "s") == f"{cmd} query --connect tcp/127.0.0.1:7447 --site s snapshot"
+    monkeypatch.setenv("PATH", f"{here.parent}:/usr/bin:/bin")
+    assert argus_command() == "argus"
