@@ -19,7 +19,7 @@ Example::
 
     argus eval --quick --out eval_out            # small subset, CI smoke test (< 5 min on 2 cores)
     argus eval static --scenes 3 --out eval_out
-    argus eval --out eval_full                    # everything (see README for its wall time)
+    argus eval --out eval_full                    # everything (docs/benchmarks.md has its wall time)
 """
 
 from __future__ import annotations

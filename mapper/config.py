@@ -198,7 +198,7 @@ class SingleViewConfig(BaseModel):
         default=False,
         description="also for views whose pose is only a prior (a robot's odometry). Off by default: on the static "
         "sim walks the first frames' placements duplicated later stereo nodes (F1 0.687 -> 0.664); on, the RGB-only "
-        "active loop's ASP recall@30 rose from 0.21 to 0.44 (README figures)",
+        "active loop's ASP recall@30 rose from 0.21 to 0.44 (docs/benchmarks.md)",
     )
     fill_depthless: bool = Field(
         default=True,
@@ -370,7 +370,7 @@ class MapperConfig(MapperCoreConfig):
     state_dir: Path | None = Field(
         default=None,
         description="persist the graph and the version lease here; a restart resumes it and never reuses a "
-        "version or node id (README: graph versions, epochs and mapper restarts)",
+        "version or node id (docs/consumers.md: graph versions, epochs and mapper restarts)",
     )
     save_period_s: float = Field(default=5.0, ge=0.0, description="at most one save per period (0: each update)")
     ring_depth: int = Field(default=2, ge=1, le=64, description="frames buffered per source (newest kept)")

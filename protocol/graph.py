@@ -59,7 +59,7 @@ RESYNC_AFTER = 3
 class GraphFollower:
     """Follows the live graph from snapshots and deltas, whatever the mapper or the network does.
 
-    The rule (also in the README, "Graph continuity"):
+    The rule (also in docs/consumers.md, "Graph versions, epochs and mapper restarts", and docs/WIRE.md):
 
     1. A snapshot is adopted when its epoch differs from the followed graph's (a new mapper life) or when
        its version is at least the followed one's.

@@ -3,7 +3,7 @@
 Slow tier. Each test skips with the reason when its extra is absent (pip install -e '.[sam]', '.[clip]',
 '.[da3]', '.[mapanything]'). Images are real frames from ../shared/data (skipped when absent).
 MapAnything's image encoder is DINOv2 loaded through torch.hub: it needs the hub code cached once
-(TORCH_HOME with hub/facebookresearch_dinov2_main; see README "Model backends").
+(TORCH_HOME with hub/facebookresearch_dinov2_main; see docs/backends.md).
 """
 
 from __future__ import annotations
