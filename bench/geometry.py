@@ -234,6 +234,19 @@ def markdown(report: dict[str, Any]) -> str:
                 f"{_fmt(s['median_pose_rot_deg_before'], 2)} / {_fmt(s['median_pose_rot_deg_after'], 2)} | "
                 f"{_fmt(s['median_pose_trans_cm_before'], 2)} / {_fmt(s['median_pose_trans_cm_after'], 2)} |"
             )
+    stage_rows = [s for block in ("sim", "real", "video") if report.get(block) for s in report[block]["depth"]
+                  if s.get("median_cpu_stage_s")]
+    if stage_rows:
+        stages = list(stage_rows[0]["median_cpu_stage_s"])
+        lines += ["", "## Where a keyframe's CPU goes (median CPU seconds per stage)", "",
+                  "features: SIFT of views not yet cached; matching: ratio test, epipolar and prior checks of new "
+                  "pairs; poses: tracks, bundle adjustment, held-out check; sweep: plane sweep of the target and of "
+                  "neighbours without a depth map; consistency: multi-view check and texture gate; upsample: "
+                  "edge-aware upsampling to the output size; other: the rest of the call.", "",
+                  "| scenario | " + " | ".join(stages) + " |", "|---|" + "---|" * len(stages)]
+        for s in stage_rows:
+            lines.append(f"| {s['scenario']} | "
+                         + " | ".join(_fmt(s["median_cpu_stage_s"].get(k), 3) for k in stages) + " |")
     if report.get("video"):
         worst = worst_rows(report["video"]["depth"])
         if worst:

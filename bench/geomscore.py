@@ -43,6 +43,8 @@ class ScenarioResult:
             "median_scale": _median(x.get("scale", float("nan")) for x in f),
             "median_t_poses_s": _median(x.get("t_poses_s", float("nan")) for x in f),
             "median_t_dense_s": _median(x.get("t_dense_s", float("nan")) for x in f),
+            "median_cpu_stage_s": {k: _median(x.get("cpu_stage_s", {}).get(k) for x in f)
+                                   for k in dict.fromkeys(k for x in f for k in x.get("cpu_stage_s", {}))},
             "median_pose_rot_deg_before": _median(x.get("rot_deg_before", float("nan")) for x in f),
             "median_pose_rot_deg_after": _median(x.get("rot_deg_after", float("nan")) for x in f),
             "median_pose_trans_cm_before": _median(x.get("trans_cm_before", float("nan")) for x in f),

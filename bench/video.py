@@ -95,6 +95,7 @@ def _record(result: ScenarioResult, label: str, k: int, frame: Frame, prior: np.
         "cpu_seconds": float(recon.info.get("cpu_total_s", math.nan)),
         "t_poses_s": float(recon.info.get("t_poses_s", math.nan)),
         "t_dense_s": float(recon.info.get("t_dense_s", math.nan)),
+        "cpu_stage_s": dict(recon.info.get("cpu_stage_s", {})),
         "n_sources": len(recon.info.get("sources", {}).get(i, [])),
         "rot_deg_before": rot_before,
         "rot_deg_after": rotation_angle_deg(T, frame.T_true),

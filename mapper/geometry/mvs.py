@@ -241,6 +241,29 @@ def compute_threads(n: int) -> Iterator[None]:
         cv2.setNumThreads(cv_before)
 
 
+class StageClock:
+    """CPU seconds (this process, all threads) spent per named stage of one reconstruction: ``with clock("sweep"):``
+    adds the block's CPU time to that stage. ``seconds()`` gives them with ``other`` for what no stage covered."""
+
+    STAGES = ("features", "matching", "poses", "sweep", "consistency", "upsample")
+
+    def __init__(self) -> None:
+        self.start = time.process_time()
+        self.spent = dict.fromkeys(self.STAGES, 0.0)
+
+    @contextmanager
+    def __call__(self, stage: str) -> Iterator[None]:
+        t = time.process_time()
+        try:
+            yield
+        finally:
+            self.spent[stage] += time.process_time() - t
+
+    def seconds(self) -> dict[str, float]:
+        total = time.process_time() - self.start
+        return {**self.spent, "other": max(0.0, total - sum(self.spent.values())), "total": total}
+
+
 class MvsReconstructor:
     """Classical RGB-only reconstruction: pose refinement then plane-sweep depth (see module docstring)."""
 
@@ -349,12 +372,16 @@ class MvsReconstructor:
                 pairs.append((i, j))
         return pairs
 
-    def refine_poses(self, prep: list[_Prepared], info: dict[str, Any]) -> tuple[list[F64 | None], np.ndarray]:
+    def refine_poses(self, prep: list[_Prepared], info: dict[str, Any], clock: StageClock | None = None
+                     ) -> tuple[list[F64 | None], np.ndarray]:
         """Bundle-adjust the priors; register unposed views. Returns poses (None = failed) and sparse
-        world points with their observing views (for depth ranges): (P, 3) points, list per point."""
+        world points with their observing views (for depth ranges): (P, 3) points, list per point.
+        ``clock``: where the matching's CPU time is counted (the rest is the caller's "poses")."""
+        clock = clock or StageClock()
         t0 = time.perf_counter()
         n = len(prep)
-        pair_m = {p: self._verified_matches(prep[p[0]], prep[p[1]]) for p in self._pairs(prep)}
+        with clock("matching"):
+            pair_m = {p: self._verified_matches(prep[p[0]], prep[p[1]]) for p in self._pairs(prep)}
         info["pair_matches"] = {f"{i}-{j}": int(len(m)) for (i, j), m in pair_m.items()}
         posed = [i for i in range(n) if prep[i].T_prior is not None]
         poses: list[F64 | None] = [p.T_prior for p in prep]
@@ -726,14 +753,19 @@ class MvsReconstructor:
         t_start = time.perf_counter()
         cpu_start = time.process_time()
         c = self.config
+        clock = StageClock()
         info: dict[str, Any] = {"backend": self.name}
-        prep = self._prepare(views)
+        with clock("features"):
+            prep = self._prepare(views)
         if all(p.T_prior is None for p in prep):
             raise ValueError(
                 "no view has a pose prior or calibration: the metric frame is undefined "
                 "(give one view a pose, or use mapper.geometry.register.two_view_pose with a known baseline)"
             )
-        poses, pts = self.refine_poses(prep, info)
+        t_m = clock.spent["matching"]
+        with clock("poses"):
+            poses, pts = self.refine_poses(prep, info, clock)
+        clock.spent["poses"] -= clock.spent["matching"] - t_m  # the matching inside it is its own stage
         n = len(views)
         target_list = list(range(n)) if targets is None else sorted(set(targets))
         for t in target_list:
@@ -756,7 +788,8 @@ class MvsReconstructor:
         for r in target_list:
             if poses[r] is None:
                 continue
-            depth_lo[r], sources[r] = self._sweep(r, prep, poses, pts, grays, *shapes[r])
+            with clock("sweep"):
+                depth_lo[r], sources[r] = self._sweep(r, prep, poses, pts, grays, *shapes[r])
         # Neighbour depth maps for the consistency check: this call's, else cached, else swept now.
         neigh_depth: dict[int, tuple[np.ndarray, F64]] = {}
         for r in list(depth_lo):
@@ -774,7 +807,8 @@ class MvsReconstructor:
                         break
                     if s in depth_lo or s in neigh_depth:
                         continue
-                    d, _ = self._sweep(s, prep, poses, pts, grays, *shapes[s])
+                    with clock("sweep"):
+                        d, _ = self._sweep(s, prep, poses, pts, grays, *shapes[s])
                     neigh_depth[s] = (d, prep[s].intr.scaled(*shapes[s]).K())
                     have += 1
         info["t_dense_s"] = time.perf_counter() - t_dense
@@ -797,22 +831,24 @@ class MvsReconstructor:
                     nbs.append((depth_lo[s], prep[s].intr.scaled(*shapes[s]).K(), poses[s]))
                 elif s in neigh_depth:
                     nbs.append((neigh_depth[s][0], neigh_depth[s][1], poses[s]))
-            cnt = planesweep.consistency_count(
-                d, K_lo, cast(F64, poses[i]), cast(Any, nbs),
-                c.consistency_tol, c.consistency_px, c.consistency_search_px,
-            )
-            need = max(1, min(c.consistency_views, len(nbs)))
-            conf = np.clip(cnt / need, 0.0, 1.0).astype(np.float32)
-            tex = local_std(grays[(i, *shapes[i])], c.census_radius).numpy()
-            # Where the image is flat the cost has no minimum of its own: SGM fills it from the edges, and
-            # neighbours may agree on the same guess, so consistency alone is not enough there.
-            conf *= np.clip(2.0 * tex / max(c.min_texture, 1e-6) - 1.0, 0.0, 1.0)
-            conf[d <= 0] = 0.0
+            with clock("consistency"):
+                cnt = planesweep.consistency_count(
+                    d, K_lo, cast(F64, poses[i]), cast(Any, nbs),
+                    c.consistency_tol, c.consistency_px, c.consistency_search_px,
+                )
+                need = max(1, min(c.consistency_views, len(nbs)))
+                conf = np.clip(cnt / need, 0.0, 1.0).astype(np.float32)
+                tex = local_std(grays[(i, *shapes[i])], c.census_radius).numpy()
+                # Where the image is flat the cost has no minimum of its own: SGM fills it from the edges, and
+                # neighbours may agree on the same guess, so consistency alone is not enough there.
+                conf *= np.clip(2.0 * tex / max(c.min_texture, 1e-6) - 1.0, 0.0, 1.0)
+                conf[d <= 0] = 0.0
             self._depth.put(prep[i].view.key, (d, K_lo))
-            dh, ch = planesweep.joint_bilateral_upsample(
-                torch.from_numpy(d), torch.from_numpy(conf),
-                _resize_rgb(views[i].image, *shapes[i]), _resize_rgb(views[i].image, ow, oh),
-            )
+            with clock("upsample"):
+                dh, ch = planesweep.joint_bilateral_upsample(
+                    torch.from_numpy(d), torch.from_numpy(conf),
+                    _resize_rgb(views[i].image, *shapes[i]), _resize_rgb(views[i].image, ow, oh),
+                )
             out_depth.append(dh.numpy().astype(np.float32))
             out_conf.append(ch.numpy().astype(np.float32))
         world: list[F64] = [cast(F64, poses[i]) if poses[i] is not None else T0 for i in range(n)]
@@ -820,6 +856,7 @@ class MvsReconstructor:
         info["T_world_cam"] = [None if p is None else np.asarray(p) for p in poses]
         info["t_total_s"] = time.perf_counter() - t_start
         info["cpu_total_s"] = time.process_time() - cpu_start
+        info["cpu_stage_s"] = clock.seconds()
         recon = factored_from_metric(out_depth, world, out_conf, out_intr, info=info)
         recon.info["T_world_first"] = world[0]
         return recon

@@ -74,6 +74,12 @@ class TestPlaneSweep:
         if flat_conf.any():
             assert np.median(np.abs(depth[flat_conf] - 2.0) / 2.0) < 0.05
         assert r.confidence[1:].max() == 0.0  # non-targets carry no depth
+        # Where the CPU went: every stage ran, and the stages with "other" add up to the call's CPU time.
+        st = r.info["cpu_stage_s"]
+        assert set(st) == {"features", "matching", "poses", "sweep", "consistency", "upsample", "other", "total"}
+        assert all(st[k] > 0 for k in ("features", "sweep", "consistency", "upsample"))
+        assert sum(v for k, v in st.items() if k != "total") == pytest.approx(st["total"], rel=1e-6)
+        assert st["total"] == pytest.approx(r.info["cpu_total_s"], rel=0.05, abs=0.02)
 
     def test_unposed_view_is_registered_inside_reconstruct(self) -> None:
         views = _plane_views(_texture(1200, 2))
