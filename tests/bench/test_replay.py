@@ -375,3 +375,18 @@ def test_a_failed_process_is_named_by_its_last_lines() -> None:
     assert replay._failure(lines, ["mapper"]) == ("argus mapper: invalid configuration in m.toml: / "
                                                   "geometry.backend: unknown reconstructor 'nope'")
     assert replay._failure(lines, ["camera"]) == "(no output)"
+
+
+def test_the_map_is_also_scored_over_voxels_several_keyframes_saw() -> None:
+    """A stray voxel one keyframe made (1 observation) counts in the published map's figures, not in the
+    confirmed ones; with no counts there are no confirmed figures."""
+    ref = plane(step_m=0.05)
+    pts = np.concatenate([ref, [[0.5, 0.5, 1.0]]])
+    counts = np.concatenate([np.full(len(ref), 3), [1]])
+    result = replay.MapResult(pts, [], {}, {}, counts)
+    figs, _, _ = replay.scored(result, ref, {})
+    assert figs["map_points"] == len(ref) + 1 and figs["accuracy_mean_m"] > 0
+    assert figs["confirmed_map_points"] == len(ref) and figs["confirmed_accuracy_mean_m"] == 0.0
+    assert figs["confirmed_completion_5cm"] == 1.0
+    no_counts, _, _ = replay.scored(replay.MapResult(pts, [], {}, {}), ref, {})
+    assert "confirmed_map_points" not in no_counts
