@@ -291,6 +291,47 @@ class PointMapConfig(BaseModel):
     max_depth_m: float = Field(default=8.0, gt=0.0, description="farther points are not mapped")
 
 
+class RoomsConfig(BaseModel):
+    """The room layer: rooms split from the map's floor grid, doorways, objects in rooms (mapper.rooms)."""
+
+    model_config = ConfigDict(extra="forbid")
+    enabled: bool = Field(default=True, description="build the room layer (rooms, in_room and connects edges)")
+    cell_m: float = Field(default=0.1, gt=0.0, le=1.0, description="floor grid cell, metres")
+    floor_band_m: float = Field(default=0.1, gt=0.0, description="points within this of the floor height are floor")
+    wall_band_m: tuple[float, float] = Field(
+        default=(1.2, 2.0),
+        description="heights above the floor whose points make walls (below a doorway's lintel, above most furniture)",
+    )
+    wall_min_points: int = Field(default=2, ge=1, description="voxels in the wall band that make a cell a wall")
+    camera_free_m: float = Field(default=0.3, ge=0.0, description="known-free radius around each camera position")
+    camera_max_height_m: float = Field(
+        default=1.8, gt=0.0, description="cameras higher than this above the floor (wall-mounted) free no space"
+    )
+    grow_m: float = Field(
+        default=1.0, ge=0.0, description="rooms take unseen cells inside their walls up to this far from known space"
+    )
+    close_m: float = Field(default=0.3, ge=0.0, description="gaps in observed floor up to this wide are filled")
+    marker_h_m: float = Field(
+        default=0.3, gt=0.0, description="a room's middle stands this far above the saddle to its neighbour (h-maxima)"
+    )
+    marker_min_m: float = Field(default=0.45, ge=0.0, description="a room's middle is at least this far from walls")
+    min_room_m2: float = Field(default=1.5, ge=0.0, description="smaller regions join their neighbour")
+    door_min_m: float = Field(default=0.4, ge=0.0, description="rooms touching along this much are connected")
+    merge_open_m: float = Field(
+        default=1.5, gt=0.0, description="two tracked rooms merge only across an opening this wide, seen open"
+    )
+    merge_floor_fraction: float = Field(
+        default=0.7, ge=0.0, le=1.0, description="... with observed floor along this fraction of it"
+    )
+    assign_max_m: float = Field(
+        default=0.6, ge=0.0, description="an object outside every room joins the nearest one within this distance"
+    )
+    max_cameras: int = Field(default=20_000, ge=1, description="camera positions kept as known-free space (bound)")
+    prior: Path | None = Field(
+        default=None, description="indoor prior JSON for room labels (default: the embedded protocol/data one)"
+    )
+
+
 class MapperCoreConfig(BaseModel):
     """The in-process mapping pipeline (no I/O)."""
 
@@ -320,6 +361,7 @@ class MapperCoreConfig(BaseModel):
         description="what peers may send: frame bytes and pixels, JPEG plausibility, decode budget, intrinsics, "
         "the site's box",
     )
+    rooms: RoomsConfig = Field(default_factory=RoomsConfig, description="the room layer over the objects")
     node_embeddings: bool = Field(default=True, description="publish each node's descriptor")
     torch_threads: int = Field(default=2, ge=1, le=64, description="torch CPU threads")
 

@@ -48,6 +48,7 @@ from mapper.perception.base import Detection, Embedder, Mask2D, Segmenter, ViewG
 from mapper.pointmap import VoxelMap
 from mapper.posegraph import Key, LoopCloser, node_move
 from mapper.relations import EdgeCache, compute_edges, refine_with_points
+from mapper.rooms import RoomLayer, RoomMapper, RoomParams
 from mapper.work.compute import KeyframeProducts, compute_keyframe
 from mapper.work.latency import StageTimes
 from protocol.messages import GraphDelta, GraphNode, GraphSnapshot, PointMap
@@ -69,6 +70,14 @@ class KeyframeResult:
     n_detections: int
     lift: LiftStats
     timings_s: dict[str, float] = field(default_factory=dict)
+
+
+def _room_mapper(cfg: MapperCoreConfig) -> RoomMapper:
+    from protocol.prior import load_prior
+
+    r = cfg.rooms
+    params = RoomParams(**{f: getattr(r, f) for f in RoomParams.__dataclass_fields__})
+    return RoomMapper(params, load_prior(r.prior), r.max_cameras)
 
 
 def typical_depth(depth_m: np.ndarray, confidence: np.ndarray, min_pixels: int = 50) -> float | None:
@@ -102,6 +111,8 @@ class MapperCore:
         self.objects = ObjectMap(cfg.fusion)
         self.store = GraphStore()
         self.voxels = VoxelMap(cfg.point_map.voxel_m, cfg.point_map.max_voxels)
+        self.rooms = _room_mapper(cfg) if cfg.rooms.enabled else None
+        self._rooms_lock = threading.Lock()
         self.selector = KeyframeSelector(cfg.keyframes)
         self.keyframes = KeyframeStore(cfg.keyframes)
         self.lock = threading.RLock()
@@ -480,6 +491,8 @@ class MapperCore:
         self._count("nodes_merged", res.merged_duplicates)
         self._count("nodes_pruned", res.pruned)
         self._add_points(view, vg)
+        if self.rooms is not None:
+            self.rooms.note_camera(T_world_cam[:3, 3])
         times["fusion"] = time.perf_counter() - t
         self.last = KeyframeResult(view, T_world_cam, vg, len(dets), lift, times)
         return res
@@ -601,6 +614,17 @@ class MapperCore:
         with self.lock:
             return self.store.query(q)
 
+    def update_rooms(self) -> RoomLayer | None:
+        """Rebuild the room layer from the current map and nodes (room ids carried over from the last call);
+        None when rooms are off. The map is copied under the graph lock; the rooms are built outside it."""
+        if self.rooms is None:
+            return None
+        with self._rooms_lock:
+            with self.lock:
+                pts = self.voxels.points()
+                nodes = [self.store.nodes[k] for k in sorted(self.store.nodes)]
+            return self.rooms.update(pts, nodes)
+
     def point_map(self, max_points: int | None = None) -> PointMap:
         with self.lock:
             return self.voxels.message(self.store.version, time.time_ns(), max_points)
@@ -614,6 +638,7 @@ class MapperCore:
                 "store": self.store.state(),
                 "objects": self.objects.state(),
                 "voxels": self.voxels.state(),
+                **({"rooms": self.rooms.state()} if self.rooms is not None else {}),
             }
 
     def load_state(self, state: dict[str, Any]) -> None:
@@ -625,6 +650,8 @@ class MapperCore:
                 self.store.load_state(state["store"])
                 self.objects.load_state(state["objects"])
                 self.voxels.load_state(state["voxels"])
+                if self.rooms is not None and "rooms" in state:  # older states have none: rooms start afresh
+                    self.rooms.load_state(state["rooms"])
             except (KeyError, TypeError) as e:
                 raise ValueError(f"malformed state: {e!r}") from None
 

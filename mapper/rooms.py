@@ -1,0 +1,589 @@
+"""Rooms from the mapper's own map (pure: no I/O, nothing from the simulator).
+
+From the point map, the cameras' positions and the object nodes, :func:`build_grid` makes a 2D grid of the
+floor (cell ``cell_m``): **wall** cells hold points in a band of heights above the floor that furniture
+rarely reaches and doorways leave open (default 1.2-2.0 m: below a door's lintel, above tables and beds);
+**free** cells are observed floor, the discs the cameras passed through and the footprints of objects
+standing on the floor, minus walls. :func:`segment` splits the free space into rooms the usual way: the
+filled free space's distance transform, one marker per h-maximum (a room's middle: a doorway is a saddle
+well below it), watershed (scikit-image). :class:`RoomTracker` keeps room ids across updates and finds
+doorways (where two rooms' cells touch), :func:`assign` puts objects in rooms and :func:`label_room` names a
+room from its objects with the embedded indoor prior (protocol.prior).
+
+The id rule (RoomTracker.update), written once here and tested:
+
+- A room of the new segmentation takes the id of the old room it overlaps most (in cells); so a room that
+  grows, or whose walls are seen better, keeps its id.
+- When one new region covers two or more old rooms, it is split back along the old rooms (a watershed from
+  their cells) unless the boundary between two of them is **seen open**: at least ``merge_open_m`` long (wider
+  than any doorway) and observed floor along at least ``merge_floor_fraction`` of it. Only then do they merge;
+  the merged room keeps the id of the one it overlaps most, the other id is retired.
+- When an old room's cells split into two regions (a wall was seen), the larger keeps the id.
+- Any other region gets a fresh id (``room<n>``, n counting up from 1, never reused in one tracker).
+
+Frames: the grid's cell ``(i, j)`` covers world ``x in [(i0 + i) * cell_m, (i0 + i + 1) * cell_m)`` and the
+same for y with ``j``; ``origin_ij = (i0, j0)`` are whole cells, so grids of different updates align.
+Single storey: the floor is the lowest dense level of the map.
+"""
+
+from __future__ import annotations
+
+import collections
+import dataclasses
+import functools
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import Any
+
+import cv2
+import numpy as np
+from scipy import ndimage
+
+from protocol.messages import GraphNode
+from protocol.prior import IndoorPrior
+
+UNKNOWN = "unknown"
+
+
+@dataclass(frozen=True)
+class RoomParams:
+    """Thresholds of room extraction (the mapper's ``[rooms]`` config mirrors these)."""
+
+    cell_m: float = 0.1
+    floor_band_m: float = 0.1  # points within this of the floor height are floor
+    wall_band_m: tuple[float, float] = (1.2, 2.0)  # heights above the floor whose points make walls
+    wall_min_points: int = 2  # voxels in the band that make a cell a wall
+    camera_free_m: float = 0.3  # radius of known-free space around each camera position
+    camera_max_height_m: float = 1.8  # cameras higher than this above the floor (wall-mounted) free no space
+    grow_m: float = 1.0  # rooms take unseen cells inside their walls up to this far from known space
+    close_m: float = 0.3  # gaps in observed floor up to this wide are filled (under furniture, sparse points)
+    marker_h_m: float = 0.3  # a room's middle stands this far above the saddle to its neighbour (h-maxima)
+    marker_min_m: float = 0.45  # ... and at least this far from any wall (narrower is a passage, not a room)
+    min_room_m2: float = 1.5  # smaller regions join their neighbour
+    door_min_m: float = 0.4  # two rooms touching along this much are connected (a doorway)
+    merge_open_m: float = 1.5  # the seen-open rule: an opening this wide between two rooms merges them
+    merge_floor_fraction: float = 0.7  # ... with observed floor along this much of it
+    assign_max_m: float = 0.6  # an object outside every room joins the nearest one within this distance
+
+
+@dataclass(frozen=True)
+class FloorGrid:
+    """One storey's 2D grid: ``wall``, observed ``floor`` and known ``free`` cells (bool, shape (nx, ny))."""
+
+    origin_ij: tuple[int, int]
+    cell_m: float
+    floor_z_m: float
+    wall: np.ndarray
+    floor: np.ndarray
+    free: np.ndarray
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        return (int(self.wall.shape[0]), int(self.wall.shape[1]))
+
+    def cells_of(self, xy: np.ndarray) -> np.ndarray:
+        """(N, 2) int grid indices of world points ``xy`` (N, 2) (may fall outside the grid)."""
+        return np.floor(np.asarray(xy, np.float64).reshape(-1, 2) / self.cell_m).astype(np.int64) - np.asarray(
+            self.origin_ij, np.int64)
+
+    def xy_of(self, ij: np.ndarray) -> np.ndarray:
+        """World xy of the centres of cells ``ij`` (N, 2)."""
+        return (np.asarray(ij, np.float64).reshape(-1, 2) + np.asarray(self.origin_ij) + 0.5) * self.cell_m
+
+
+@dataclass(frozen=True)
+class Footprint:
+    """An object's gravity-aligned box seen from above, and its bottom height (world, metres)."""
+
+    center_xy: tuple[float, float]
+    size_xy: tuple[float, float]
+    yaw_rad: float
+    z_min_m: float
+
+
+def estimate_floor_z(points_world: np.ndarray, bin_m: float = 0.04, search_m: float = 1.0) -> float | None:
+    """The floor height: the densest height bin within ``search_m`` above the lowest decile of the points
+    (robust to a few stray points below the floor). None for an empty map."""
+    z = np.asarray(points_world, np.float64).reshape(-1, 3)[:, 2]
+    z = z[np.isfinite(z)]
+    if len(z) == 0:
+        return None
+    lo = float(np.quantile(z, 0.02))
+    zz = z[(z >= lo - bin_m) & (z <= lo + search_m)]
+    hist, edges = np.histogram(zz, bins=max(1, int(math.ceil((search_m + bin_m) / bin_m))),
+                               range=(lo - bin_m, lo + search_m))
+    k = int(np.argmax(hist))
+    sel = zz[(zz >= edges[k]) & (zz <= edges[k + 1])]
+    return float(np.median(sel)) if len(sel) else float(0.5 * (edges[k] + edges[k + 1]))
+
+
+def build_grid(points_world: np.ndarray, cameras_world: np.ndarray, footprints: Sequence[Footprint],
+               params: RoomParams = RoomParams(), floor_z_m: float | None = None) -> FloorGrid | None:
+    """The floor grid from map points (N, 3), camera positions (M, 3) and object footprints (None: no map)."""
+    p = params
+    pts = np.asarray(points_world, np.float64).reshape(-1, 3)
+    pts = pts[np.all(np.isfinite(pts), axis=1)]
+    cams = np.asarray(cameras_world, np.float64).reshape(-1, 3)
+    fz = estimate_floor_z(pts) if floor_z_m is None else float(floor_z_m)
+    if fz is None:
+        return None
+    h = pts[:, 2] - fz
+    on_floor = np.abs(h) <= p.floor_band_m
+    in_wall = (h >= p.wall_band_m[0]) & (h <= p.wall_band_m[1])
+    cams = cams[(cams[:, 2] - fz > 0.0) & (cams[:, 2] - fz <= p.camera_max_height_m)]
+    used = np.concatenate([pts[on_floor | in_wall, :2], cams[:, :2]])
+    if len(used) == 0:
+        return None
+    c = p.cell_m
+    pad = int(math.ceil(p.camera_free_m / c)) + 2
+    lo = np.floor(used.min(0) / c).astype(np.int64) - pad
+    hi = np.floor(used.max(0) / c).astype(np.int64) + pad + 1
+    origin = (int(lo[0]), int(lo[1]))
+    shape = (int(hi[0] - lo[0]), int(hi[1] - lo[1]))
+
+    def counts(xy: np.ndarray) -> np.ndarray:
+        ij = np.floor(xy / c).astype(np.int64) - lo
+        ok = (ij[:, 0] >= 0) & (ij[:, 1] >= 0) & (ij[:, 0] < shape[0]) & (ij[:, 1] < shape[1])
+        flat = ij[ok, 0] * shape[1] + ij[ok, 1]
+        return np.bincount(flat, minlength=shape[0] * shape[1]).reshape(shape)
+
+    floor = counts(pts[on_floor, :2]) > 0
+    wall = counts(pts[in_wall, :2]) >= p.wall_min_points
+    foot = np.zeros(shape, np.uint8)
+    polys = []
+    for f in footprints:
+        if f.z_min_m - fz > 0.3:  # on something, or on a wall: says nothing about the floor
+            continue
+        cy, sy = math.cos(f.yaw_rad), math.sin(f.yaw_rad)
+        hx, hy = 0.5 * f.size_xy[0], 0.5 * f.size_xy[1]
+        corners = np.array([[hx, hy], [-hx, hy], [-hx, -hy], [hx, -hy]]) @ np.array([[cy, sy], [-sy, cy]])
+        ij = (corners + np.asarray(f.center_xy)) / c - lo  # continuous cell coordinates
+        polys.append(np.round(ij[:, ::-1] * 4).astype(np.int32))  # cv2 wants (col, row) = (j, i); 2 bits subpixel
+    if polys:
+        cv2.fillPoly(foot, polys, 1, lineType=cv2.LINE_8, shift=2)
+    footb = foot.astype(bool)
+    # Tall furniture standing in a room puts points in the wall band: inside its own footprint they are not a wall.
+    wall &= ~ndimage.binary_erosion(footb, iterations=1)
+    wall = ndimage.binary_closing(wall, structure=np.ones((3, 3), bool)) | wall
+    visited = np.zeros(shape, bool)
+    if len(cams):
+        r = int(round(p.camera_free_m / c))
+        disk = np.hypot(*np.mgrid[-r:r + 1, -r:r + 1]) <= r
+        ij = np.floor(cams[:, :2] / c).astype(np.int64) - lo
+        visited[ij[:, 0], ij[:, 1]] = True
+        visited = ndimage.binary_dilation(visited, structure=disk)
+    free = (floor | visited | footb) & ~wall
+    return FloorGrid(origin, c, fz, wall, floor, free)
+
+
+def _disk(r: int) -> np.ndarray:
+    return np.hypot(*np.mgrid[-r:r + 1, -r:r + 1]) <= r
+
+
+def room_space(grid: FloorGrid, params: RoomParams = RoomParams()) -> np.ndarray:
+    """The cells rooms may take: known free space with small gaps closed and enclosed holes filled, no walls."""
+    r = max(1, int(round(params.close_m / grid.cell_m)))
+    closed = ndimage.binary_closing(np.pad(grid.free, r), structure=_disk(r))[r:-r, r:-r]
+    return ndimage.binary_fill_holes(closed | grid.free) & ~grid.wall  # type: ignore[no-any-return]
+
+
+def segment(grid: FloorGrid, params: RoomParams = RoomParams()) -> np.ndarray:
+    """Room labels (int32, 0 = no room) of the grid's cells: distance transform + h-maxima markers + watershed;
+    regions under ``min_room_m2`` join the neighbour they touch most (or vanish when they touch none)."""
+    from skimage.morphology import h_maxima
+    from skimage.segmentation import watershed
+
+    space = room_space(grid, params)
+    if not space.any():
+        return np.zeros(grid.shape, np.int32)
+    dt = ndimage.distance_transform_edt(space) * grid.cell_m
+    q = np.round(dt / grid.cell_m * 4).astype(np.int32)  # quarter cells: h-maxima on integers is exact
+    peaks = h_maxima(q, max(1, int(round(params.marker_h_m / grid.cell_m * 4)))).astype(bool)
+    peaks &= dt >= params.marker_min_m
+    markers, n = ndimage.label(peaks, structure=np.ones((3, 3), bool))
+    if n == 0:  # nothing wide enough to be a room: the widest spot seeds one
+        markers = np.zeros(grid.shape, np.int32)
+        markers[np.unravel_index(int(np.argmax(dt)), dt.shape)] = 1
+    labels = watershed(-dt, markers, mask=space).astype(np.int32)
+    labels = _drop_small(labels, dt, space, params.min_room_m2 / grid.cell_m ** 2)
+    return _grow(labels, grid, space, params)
+
+
+def _grow(labels: np.ndarray, grid: FloorGrid, space: np.ndarray, params: RoomParams) -> np.ndarray:
+    """Rooms reach out to their walls: unseen cells inside the walls (enclosed by walls and known space, at most
+    ``grow_m`` from known space) join the nearest room."""
+    from skimage.segmentation import watershed
+
+    if params.grow_m <= 0 or not labels.any():
+        return labels
+    r = 2
+    shell = ndimage.binary_closing(np.pad(grid.wall | space, r), structure=_disk(r))[r:-r, r:-r]
+    inside = ndimage.binary_fill_holes(shell) & ~grid.wall
+    near = ndimage.distance_transform_edt(~space) * grid.cell_m <= params.grow_m
+    dist = ndimage.distance_transform_edt(labels == 0)
+    return watershed(dist, labels, mask=(inside & near) | (labels > 0)).astype(np.int32)
+
+
+def _drop_small(labels: np.ndarray, dt: np.ndarray, space: np.ndarray, min_cells: float) -> np.ndarray:
+    from skimage.segmentation import watershed
+
+    sizes = np.bincount(labels.ravel())
+    small = [k for k in range(1, len(sizes)) if 0 < sizes[k] < min_cells]
+    if not small:
+        return _compact(labels)
+    keep = labels.copy()
+    keep[np.isin(keep, small)] = 0
+    if not keep.any():
+        return np.zeros_like(labels)
+    # small regions flood from their big neighbours; one with none (an island of free space) is dropped
+    return _compact(watershed(-dt, keep, mask=labels > 0).astype(np.int32))
+
+
+def _compact(labels: np.ndarray) -> np.ndarray:
+    u = np.unique(labels)
+    u = u[u > 0]
+    lut = np.zeros(int(labels.max()) + 1, np.int32)
+    lut[u] = np.arange(1, len(u) + 1, dtype=np.int32)
+    return lut[labels]
+
+
+# --- rooms, doorways, ids ---------------------------------------------------------------------------
+@dataclass(frozen=True)
+class Room:
+    """One room of the floor: its id, outline, floor height, area and how much of it was seen."""
+
+    room_id: str
+    polygon_xy: np.ndarray  # (P, 2) world metres, the outline of its cells (counter-clockwise)
+    floor_z_m: float
+    area_m2: float
+    observed_fraction: float  # of its cells, those whose floor was seen or cameras passed through
+    centroid_xy: tuple[float, float]
+    label: str = UNKNOWN
+    label_confidence: float = 0.0
+
+
+@dataclass(frozen=True)
+class Doorway:
+    """Where two rooms' cells touch: the opening's middle (world xy) and its width."""
+
+    room_a: str
+    room_b: str
+    position_xy: tuple[float, float]
+    width_m: float
+
+
+@dataclass
+class RoomLayer:
+    """The rooms of one update: the grid, its room labels (index into ``rooms`` + 1) and the doorways."""
+
+    grid: FloorGrid | None
+    labels: np.ndarray
+    rooms: list[Room] = field(default_factory=list)
+    doorways: list[Doorway] = field(default_factory=list)
+
+    def room_of(self, xy: np.ndarray, max_m: float = RoomParams.assign_max_m) -> list[str | None]:
+        """The room id of each world point ``xy`` (N, 2): the room of its cell, else the nearest room cell within
+        ``max_m``, else None."""
+        xy = np.asarray(xy, np.float64).reshape(-1, 2)
+        if self.grid is None or not self.rooms or len(xy) == 0:
+            return [None] * len(xy)
+        g = self.grid
+        d, idx = ndimage.distance_transform_edt(self.labels == 0, return_indices=True)
+        ij = g.cells_of(xy)
+        inside = (ij[:, 0] >= 0) & (ij[:, 1] >= 0) & (ij[:, 0] < g.shape[0]) & (ij[:, 1] < g.shape[1])
+        out: list[str | None] = []
+        for (i, j), ok in zip(ij, inside, strict=True):
+            if not ok:
+                out.append(None)
+                continue
+            if d[i, j] * g.cell_m > max_m:
+                out.append(None)
+                continue
+            k = int(self.labels[idx[0, i, j], idx[1, i, j]])
+            out.append(self.rooms[k - 1].room_id if k > 0 else None)
+        return out
+
+    def room_by_id(self, room_id: str) -> Room | None:
+        return next((r for r in self.rooms if r.room_id == room_id), None)
+
+
+def _align(old: np.ndarray, old_origin: tuple[int, int], shape: tuple[int, int], origin: tuple[int, int]
+           ) -> np.ndarray:
+    """``old`` (a grid at ``old_origin``) cut and padded onto a grid of ``shape`` at ``origin`` (0 elsewhere)."""
+    out = np.zeros(shape, old.dtype)
+    di, dj = old_origin[0] - origin[0], old_origin[1] - origin[1]
+    i0, j0 = max(0, di), max(0, dj)
+    i1, j1 = min(shape[0], di + old.shape[0]), min(shape[1], dj + old.shape[1])
+    if i1 > i0 and j1 > j0:
+        out[i0:i1, j0:j1] = old[i0 - di:i1 - di, j0 - dj:j1 - dj]
+    return out
+
+
+def _touching(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Cells of mask ``a`` with a 4-neighbour in mask ``b``."""
+    nb = np.zeros_like(b)
+    nb[1:] |= b[:-1]
+    nb[:-1] |= b[1:]
+    nb[:, 1:] |= b[:, :-1]
+    nb[:, :-1] |= b[:, 1:]
+    return a & nb
+
+
+def _pair_boundaries(labels: np.ndarray) -> dict[tuple[int, int], np.ndarray]:
+    """For each pair of labels (a < b) that touch (4-neighbours), the (K, 2) midpoints (cell units) of the
+    touching cell pairs."""
+    out: dict[tuple[int, int], list[np.ndarray]] = {}
+    for axis in (0, 1):
+        a = labels[:-1, :] if axis == 0 else labels[:, :-1]
+        b = labels[1:, :] if axis == 0 else labels[:, 1:]
+        m = (a > 0) & (b > 0) & (a != b)
+        if not m.any():
+            continue
+        ii, jj = np.nonzero(m)
+        mid = np.stack([ii + (0.5 if axis == 0 else 0.0), jj + (0.5 if axis == 1 else 0.0)], 1)
+        la, lb = a[m], b[m]
+        lo, hi = np.minimum(la, lb), np.maximum(la, lb)
+        for key in set(zip(lo.tolist(), hi.tolist(), strict=True)):
+            sel = (lo == key[0]) & (hi == key[1])
+            out.setdefault(key, []).append(mid[sel])
+    return {k: np.concatenate(v) for k, v in out.items()}
+
+
+def _opening_m(mid: np.ndarray, cell_m: float) -> float:
+    """Length of a boundary given by its touching-pair midpoints (cells): its longer side's extent."""
+    if len(mid) == 0:
+        return 0.0
+    ext = mid.max(0) - mid.min(0)
+    return float((max(ext) + 1.0) * cell_m)
+
+
+class RoomTracker:
+    """Rooms with ids that stay stable as the map grows (the rule is in the module docstring)."""
+
+    def __init__(self, params: RoomParams = RoomParams()) -> None:
+        self.params = params
+        self._next = 1
+        self._ids: dict[int, str] = {}  # internal room number -> room id
+        self._numbers: np.ndarray | None = None  # last update's cells' room numbers (0 none)
+        self._origin: tuple[int, int] = (0, 0)
+        self.layer = RoomLayer(None, np.zeros((0, 0), np.int32))
+
+    def _fresh(self) -> int:
+        n = self._next
+        self._next += 1
+        self._ids[n] = f"room{n}"
+        return n
+
+    def update(self, grid: FloorGrid | None) -> RoomLayer:
+        """Segment ``grid`` and carry the ids over from the last update; returns (and keeps) the layer."""
+        p = self.params
+        if grid is None:
+            return self.layer
+        labels = segment(grid, p)
+        old = (np.zeros(grid.shape, np.int32) if self._numbers is None
+               else _align(self._numbers, self._origin, grid.shape, grid.origin_ij))
+        numbers = self._carry(labels, old, grid)
+        self._numbers, self._origin = numbers, grid.origin_ij
+        self.layer = self._layer(grid, numbers)
+        return self.layer
+
+    def _carry(self, labels: np.ndarray, old: np.ndarray, grid: FloorGrid) -> np.ndarray:
+        """Room numbers of the new cells: split regions that cover old rooms not seen open to each other,
+        then give each region the number it overlaps most (the larger overlap wins a contested number)."""
+        from skimage.segmentation import watershed
+
+        p = self.params
+        min_cells = max(4, int(0.5 / grid.cell_m ** 2))  # 0.5 m2 of an old room in a region counts
+        out = np.zeros_like(labels)
+        regions: list[tuple[np.ndarray, dict[int, int]]] = []
+        space = labels > 0
+        dt = ndimage.distance_transform_edt(space)
+        for k in range(1, int(labels.max()) + 1):
+            reg = labels == k
+            ov = np.bincount(old[reg], minlength=1)
+            olds = [int(n) for n in np.nonzero(ov)[0] if n > 0 and ov[n] >= min_cells]
+            if len(olds) <= 1:
+                regions.append((reg, {n: int(ov[n]) for n in olds}))
+                continue
+            marks = np.where(reg & np.isin(old, olds), old, 0)
+            split = watershed(-dt, marks, mask=reg).astype(np.int32)
+            groups = {n: n for n in olds}  # union-find over old numbers seen open to each other
+            root = functools.partial(_root, groups)
+            for (a, b), mid in _pair_boundaries(split).items():
+                cells = np.floor(mid).astype(np.int64)
+                seen = float(grid.floor[cells[:, 0], cells[:, 1]].mean()) if len(cells) else 0.0
+                if _opening_m(mid, grid.cell_m) >= p.merge_open_m and seen >= p.merge_floor_fraction:
+                    ra, rb = root(a), root(b)
+                    if ra != rb:
+                        big, small = (ra, rb) if ov[ra] >= ov[rb] else (rb, ra)
+                        groups[small] = big
+            for r in {root(n) for n in olds}:
+                members = [n for n in olds if root(n) == r]
+                part = reg & np.isin(split, members)
+                # keep the survivor's overlap as the sum of its members', so contests weigh the whole room
+                regions.append((part, {r: int(sum(ov[n] for n in members))}))
+            rest = reg & (split == 0)
+            if rest.any():
+                regions.append((rest, {}))
+        claims: dict[int, tuple[int, int]] = {}  # old number -> (overlap, region index)
+        for idx, (_reg, ovs) in enumerate(regions):
+            if ovs:
+                n, c = max(ovs.items(), key=lambda t: (t[1], -t[0]))
+                if n not in claims or c > claims[n][0]:
+                    claims[n] = (c, idx)
+        winner = {idx: n for n, (_c, idx) in claims.items()}
+        for idx, (reg, _ovs) in enumerate(regions):
+            out[reg] = winner[idx] if idx in winner else self._fresh()
+        return out
+
+    def _layer(self, grid: FloorGrid, numbers: np.ndarray) -> RoomLayer:
+        """Rooms and doorways of the numbered cells. Doorways are where rooms' cells touch; then each room also
+        takes the wall cells next to it (a wall's face belongs to the room it faces), for its outline and area."""
+        from skimage.segmentation import expand_labels
+
+        p = self.params
+        present = [int(n) for n in np.unique(numbers) if n > 0]
+        index = {n: i + 1 for i, n in enumerate(present)}
+        lut = np.zeros(int(numbers.max()) + 1, np.int32)
+        for n, i in index.items():
+            lut[n] = i
+        open_labels = lut[numbers]
+        c = grid.cell_m
+        room_ids = [self._ids[n] for n in present]
+        doors = []
+        for (a, b), mid in sorted(_pair_boundaries(open_labels).items()):
+            w = _opening_m(mid, c)
+            if w < p.door_min_m:
+                continue
+            xy = grid.xy_of(mid.mean(0, keepdims=True))[0]
+            ra, rb = sorted((room_ids[a - 1], room_ids[b - 1]), key=_id_order)
+            doors.append(Doorway(ra, rb, (float(xy[0]), float(xy[1])), w))
+        labels = np.where((open_labels == 0) & grid.wall, expand_labels(open_labels, 1), open_labels).astype(np.int32)
+        seen = grid.free  # observed floor, crossed by a camera, or under an object standing on the floor
+        rooms = []
+        for i, rid in enumerate(room_ids, start=1):
+            m = labels == i
+            inner = open_labels == i
+            cxy = grid.xy_of(np.argwhere(m).mean(0, keepdims=True))[0]
+            rooms.append(Room(rid, _outline(m, grid), grid.floor_z_m, float(m.sum() * c * c),
+                              float(seen[inner].mean()) if inner.any() else 0.0, (float(cxy[0]), float(cxy[1]))))
+        return RoomLayer(grid, labels, rooms, doors)
+
+
+def _root(groups: dict[int, int], n: int) -> int:
+    while groups[n] != n:
+        n = groups[n]
+    return n
+
+
+def _id_order(room_id: str) -> tuple[int, str]:
+    digits = "".join(ch for ch in room_id if ch.isdigit())
+    return (int(digits) if digits else 0, room_id)
+
+
+def _outline(mask: np.ndarray, grid: FloorGrid) -> np.ndarray:
+    """The outer outline of a room's cells as a counter-clockwise world polygon (its largest part): the
+    0.5 level line of the mask, which runs along the cells' edges, simplified to within half a cell."""
+    from skimage.measure import approximate_polygon, find_contours
+
+    contours = find_contours(np.pad(mask.astype(np.float32), 1), 0.5)
+    if not contours:
+        return np.zeros((0, 2))
+    cnt = approximate_polygon(max(contours, key=len), tolerance=0.5)[:-1] - 1.0  # closed: last == first
+    xy = (cnt + np.asarray(grid.origin_ij) + 0.5) * grid.cell_m
+    area = 0.5 * float(np.sum(xy[:, 0] * np.roll(xy[:, 1], -1) - np.roll(xy[:, 0], -1) * xy[:, 1]))
+    return xy if area >= 0 else xy[::-1]
+
+
+# --- objects and labels ------------------------------------------------------------------------------
+def label_room(object_labels: Sequence[str], prior: IndoorPrior) -> tuple[str, float, dict[str, float]]:
+    """A room's kind from the labels of its objects: the indoor prior's posterior over room kinds (the kinds'
+    base rates times each object's presence probability per kind). ``("unknown", 0.0, {})`` while none of
+    the labels says anything about rooms."""
+    canon = [prior.canonical_label(lab) for lab in object_labels]
+    known = {e.label for es in prior.rooms.values() for e in es}
+    evidence = [c for c in canon if c in known]
+    if not evidence:
+        return UNKNOWN, 0.0, {}
+    lp = prior.kind_log_posterior(evidence)
+    kinds = sorted(lp)
+    v = np.array([lp[k] for k in kinds])
+    post = np.exp(v - v.max())
+    post /= post.sum()
+    best = int(np.argmax(post))
+    return kinds[best], float(post[best]), {k: float(x) for k, x in zip(kinds, post, strict=True)}
+
+
+def footprints_of(nodes: Sequence[GraphNode]) -> list[Footprint]:
+    """The objects' boxes seen from above."""
+    out = []
+    for n in nodes:
+        b = n.box
+        out.append(Footprint((float(b.center[0]), float(b.center[1])), (float(b.extent[0]), float(b.extent[1])),
+                             float(b.yaw_rad), float(b.center[2] - 0.5 * b.extent[2])))
+    return out
+
+
+class RoomMapper:
+    """The room layer of a growing map: camera positions kept as known-free space, rooms with stable ids
+    (:class:`RoomTracker`), objects assigned to rooms and rooms labelled from their objects."""
+
+    def __init__(self, params: RoomParams = RoomParams(), prior: IndoorPrior | None = None,
+                 max_cameras: int = 20_000) -> None:
+        from protocol.prior import load_prior
+
+        self.params = params
+        self.prior = prior if prior is not None else load_prior()
+        self.tracker = RoomTracker(params)
+        self.cameras: collections.deque[tuple[float, float, float]] = collections.deque(maxlen=max_cameras)
+        self.in_room: dict[str, str] = {}
+
+    @property
+    def layer(self) -> RoomLayer:
+        return self.tracker.layer
+
+    def note_camera(self, xyz: np.ndarray) -> None:
+        """A camera was here (world metres): the space around it is free."""
+        p = np.asarray(xyz, np.float64).reshape(3)
+        if np.all(np.isfinite(p)):
+            self.cameras.append((float(p[0]), float(p[1]), float(p[2])))
+
+    def update(self, points_world: np.ndarray, nodes: Sequence[GraphNode]) -> RoomLayer:
+        """Rebuild the grid from the map, carry room ids over, assign ``nodes`` and label the rooms."""
+        grid = build_grid(points_world, np.array(self.cameras, np.float64).reshape(-1, 3), footprints_of(nodes),
+                          self.params)
+        layer = self.tracker.update(grid)
+        ids = layer.room_of(np.array([n.centroid[:2] for n in nodes], np.float64).reshape(-1, 2),
+                            self.params.assign_max_m)
+        self.in_room = {n.node_id: r for n, r in zip(nodes, ids, strict=True) if r is not None}
+        members: dict[str, list[str]] = {}
+        for n in nodes:
+            r = self.in_room.get(n.node_id)
+            if r is not None:
+                members.setdefault(r, []).append(n.label)
+        layer.rooms = [dataclasses.replace(room, label=lab, label_confidence=conf)
+                       for room in layer.rooms
+                       for lab, conf, _ in [label_room(members.get(room.room_id, []), self.prior)]]
+        return layer
+
+    def state(self) -> dict[str, Any]:
+        """What a restart needs to keep room ids: the camera positions and the tracker's numbered cells."""
+        t = self.tracker
+        nums = t._numbers if t._numbers is not None else np.zeros((0, 0), np.int32)
+        return {"cameras": np.array(self.cameras, np.float64).reshape(-1, 3).tobytes(), "next": t._next,
+                "ids": {str(k): v for k, v in t._ids.items()}, "origin": list(t._origin),
+                "shape": list(nums.shape), "numbers": nums.astype(np.int32).tobytes()}
+
+    def load_state(self, state: dict[str, Any]) -> None:
+        """Resume from :meth:`state` (the layer itself is rebuilt at the next update)."""
+        t = self.tracker
+        cams = np.frombuffer(state["cameras"], np.float64).reshape(-1, 3)
+        self.cameras.clear()
+        self.cameras.extend((float(x), float(y), float(z)) for x, y, z in cams)
+        t._next = int(state["next"])
+        t._ids = {int(k): str(v) for k, v in state["ids"].items()}
+        t._origin = (int(state["origin"][0]), int(state["origin"][1]))
+        shape = tuple(int(x) for x in state["shape"])
+        nums = np.frombuffer(state["numbers"], np.int32).reshape(shape).copy()
+        t._numbers = nums if nums.size else None

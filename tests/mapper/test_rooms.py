@@ -1,0 +1,164 @@
+"""Rooms from the map (mapper.rooms) on generated floor plans: exact room counts, doorways, ids, labels."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from mapper.rooms import RoomMapper, RoomParams, build_grid, estimate_floor_z, label_room
+from protocol.messages import GraphNode, OrientedBox
+from protocol.prior import load_prior
+
+STEP = 0.08
+
+
+def _floor(x0: float, y0: float, x1: float, y1: float, z: float = 0.0) -> np.ndarray:
+    xs, ys = np.arange(x0 + STEP / 2, x1, STEP), np.arange(y0 + STEP / 2, y1, STEP)
+    X, Y = np.meshgrid(xs, ys, indexing="ij")
+    return np.stack([X.ravel(), Y.ravel(), np.full(X.size, z)], 1)
+
+
+def _wall(a: tuple[float, float], b: tuple[float, float], gaps: tuple[tuple[float, float], ...] = (),
+          z: float = 0.0, height: float = 2.5) -> np.ndarray:
+    """Points on a wall face from ``a`` to ``b`` (axis-aligned), minus doorway ``gaps`` (along-wall intervals)."""
+    (ax, ay), (bx, by) = a, b
+    n = max(2, int(np.hypot(bx - ax, by - ay) / STEP))
+    t = np.linspace(0.0, 1.0, n)
+    along = np.where(ax == bx, ay + t * (by - ay), ax + t * (bx - ax))
+    keep = np.ones(n, bool)
+    for lo, hi in gaps:
+        keep &= ~((along >= lo) & (along <= hi))
+    xy = np.stack([ax + t * (bx - ax), ay + t * (by - ay)], 1)[keep]
+    zs = np.arange(z, z + height, STEP)
+    return np.array([[x, y, zz] for x, y in xy for zz in zs]).reshape(-1, 3)
+
+
+def two_rooms(door: tuple[float, float] | None = (1.5, 2.4), wall: bool = True, right_to_x: float = 8.0,
+              floor_under_wall: bool = True) -> np.ndarray:
+    """An 8 x 4 m plan split at x = 4 by a wall with a doorway (``door``: y interval) into two rooms."""
+    parts = [_floor(0.0, 0.0, 4.0 if not floor_under_wall else 4.0, 4.0), _floor(4.1, 0.0, right_to_x, 4.0),
+             _wall((0.0, 0.0), (right_to_x, 0.0)), _wall((0.0, 4.0), (right_to_x, 4.0)), _wall((0.0, 0.0), (0.0, 4.0))]
+    if right_to_x >= 8.0:
+        parts.append(_wall((8.0, 0.0), (8.0, 4.0)))
+    if wall:
+        parts.append(_wall((4.05, 0.0), (4.05, 4.0), gaps=(door,) if door else ()))
+    if floor_under_wall:
+        parts.append(_floor(3.95, 0.0, 4.15, 4.0))
+    return np.concatenate(parts)
+
+
+def node(nid: str, label: str, x: float, y: float, size: float = 0.6) -> GraphNode:
+    return GraphNode(node_id=nid, label=label, label_confidence=0.9, centroid=(x, y, size / 2),
+                     box=OrientedBox(center=(x, y, size / 2), extent=(size, size, size)), point_count=10,
+                     observation_count=1, first_seen_ns=0, last_seen_ns=0)
+
+
+NODES = [node("a", "bed", 1.5, 2.0, 1.2), node("b", "nightstand", 0.6, 3.3, 0.4),
+         node("c", "refrigerator", 7.3, 3.4), node("d", "stove", 6.0, 0.5)]
+
+
+class TestFloorZ:
+    def test_floor_height_found_above_strays(self) -> None:
+        pts = np.concatenate([_floor(0, 0, 3, 3, z=0.42), _wall((0, 0), (3, 0), z=0.42), [[1.0, 1.0, -2.0]]])
+        assert estimate_floor_z(pts) == pytest.approx(0.42, abs=0.02)
+
+    def test_empty_map_has_no_grid(self) -> None:
+        assert estimate_floor_z(np.zeros((0, 3))) is None
+        assert build_grid(np.zeros((0, 3)), np.zeros((0, 3)), []) is None
+
+
+class TestTwoRooms:
+    def test_two_rooms_one_doorway_objects_in_the_right_room(self) -> None:
+        rm = RoomMapper()
+        layer = rm.update(two_rooms(), NODES)
+        assert [r.room_id for r in layer.rooms] == ["room1", "room2"]
+        left, right = sorted(layer.rooms, key=lambda r: r.centroid_xy[0])
+        assert left.area_m2 == pytest.approx(16.0, rel=0.08) and right.area_m2 == pytest.approx(16.0, rel=0.08)
+        assert len(layer.doorways) == 1
+        d = layer.doorways[0]
+        assert {d.room_a, d.room_b} == {left.room_id, right.room_id}
+        assert d.position_xy[0] == pytest.approx(4.05, abs=0.15) and d.position_xy[1] == pytest.approx(1.95, abs=0.15)
+        assert 0.6 <= d.width_m <= 1.0
+        assert rm.in_room == {"a": left.room_id, "b": left.room_id, "c": right.room_id, "d": right.room_id}
+        assert left.floor_z_m == pytest.approx(0.0, abs=0.02)
+        # the outline is the room's rectangle, counter-clockwise
+        poly = left.polygon_xy
+        area = 0.5 * np.sum(poly[:, 0] * np.roll(poly[:, 1], -1) - np.roll(poly[:, 0], -1) * poly[:, 1])
+        assert area == pytest.approx(16.0, rel=0.1)
+        assert poly[:, 0].min() == pytest.approx(0.0, abs=0.15) and poly[:, 0].max() == pytest.approx(4.0, abs=0.15)
+
+    def test_labels_from_contents_unknown_without_evidence(self) -> None:
+        rm = RoomMapper()
+        layer = rm.update(two_rooms(), NODES[:2])
+        left, right = sorted(layer.rooms, key=lambda r: r.centroid_xy[0])
+        assert left.label == "bedroom" and left.label_confidence > 0.5
+        assert right.label == "unknown" and right.label_confidence == 0.0
+        layer = rm.update(two_rooms(), NODES)
+        right = max(layer.rooms, key=lambda r: r.centroid_xy[0])
+        assert right.label == "kitchen"
+
+    def test_label_room_canonicalises_and_ignores_unknown_words(self) -> None:
+        prior = load_prior()
+        assert label_room([], prior)[:2] == ("unknown", 0.0)
+        assert label_room(["xyzzy"], prior)[:2] == ("unknown", 0.0)
+        kind, conf, post = label_room(["Toilet", "bath tub", "sink"], prior)
+        assert kind == "bathroom" and conf == max(post.values()) and sum(post.values()) == pytest.approx(1.0)
+
+    def test_no_doorway_no_connects_edge(self) -> None:
+        layer = RoomMapper().update(two_rooms(door=None), NODES)
+        assert len(layer.rooms) == 2 and layer.doorways == []
+
+    def test_objects_far_outside_every_room_are_not_assigned(self) -> None:
+        rm = RoomMapper()
+        rm.update(two_rooms(), [*NODES, node("far", "chair", 20.0, 20.0)])
+        assert "far" not in rm.in_room and len(rm.in_room) == 4
+
+
+class TestIds:
+    def test_a_room_keeps_its_id_as_the_map_grows_into_it(self) -> None:
+        rm = RoomMapper()
+        first = rm.update(two_rooms(right_to_x=5.8), NODES[:2])  # the right room seen only near the door
+        ids = {r.room_id: r for r in first.rooms}
+        assert len(ids) == 2
+        right_id = max(first.rooms, key=lambda r: r.centroid_xy[0]).room_id
+        grown = rm.update(two_rooms(), NODES)
+        right = max(grown.rooms, key=lambda r: r.centroid_xy[0])
+        assert right.room_id == right_id and right.area_m2 > ids[right_id].area_m2 + 3.0
+        assert {r.room_id for r in grown.rooms} == set(ids)
+
+    def test_rooms_merge_only_when_the_wall_is_seen_open(self) -> None:
+        rm = RoomMapper()
+        before = rm.update(two_rooms(), NODES)
+        ids = sorted(r.room_id for r in before.rooms)
+        # wall points lost and the floor along it never seen: not evidence of an opening, the rooms stay
+        unseen = rm.update(two_rooms(wall=False, floor_under_wall=False), NODES)
+        assert sorted(r.room_id for r in unseen.rooms) == ids
+        # the floor is seen right through where the wall stood, over 4 m: the rooms are one, an old id kept
+        opened = rm.update(two_rooms(wall=False, floor_under_wall=True), NODES)
+        assert len(opened.rooms) == 1 and opened.rooms[0].room_id in ids
+        assert opened.doorways == []
+        assert set(rm.in_room.values()) == {opened.rooms[0].room_id}
+
+    def test_a_new_room_gets_a_fresh_id_never_reused(self) -> None:
+        rm = RoomMapper()
+        one = rm.update(_floor(0, 0, 4, 4), [])
+        assert [r.room_id for r in one.rooms] == ["room1"]
+        two = rm.update(two_rooms(), [])
+        assert sorted(r.room_id for r in two.rooms) == ["room1", "room2"]
+
+    def test_state_round_trip_keeps_ids(self) -> None:
+        rm = RoomMapper()
+        rm.note_camera(np.array([1.0, 1.0, 1.0]))
+        rm.update(two_rooms(right_to_x=5.8), [])
+        again = RoomMapper()
+        again.load_state(rm.state())
+        assert list(again.cameras) == list(rm.cameras)
+        assert sorted(r.room_id for r in again.update(two_rooms(), []).rooms) == ["room1", "room2"]
+
+
+def test_params_defaults_match_config() -> None:
+    from mapper.config import RoomsConfig
+
+    cfg = RoomsConfig()
+    for f, v in RoomParams.__dataclass_fields__.items():
+        assert getattr(cfg, f) == v.default, f
