@@ -19,6 +19,7 @@ BENCHES: dict[str, tuple[str, str]] = {
     "robot": ("robot_agent.bench", "robot-agent per-frame cost and a fast-simulation exploration run"),
     "geometry": ("bench.geometry", "RGB-only depth and pose accuracy, seconds per keyframe"),
     "graph": ("bench.graph", "scene-graph node/edge quality vs ground truth, update and query time"),
+    "rooms": ("bench.rooms", "room layer update time on a full map with 2,000 objects (quality: argus eval rooms)"),
     "planner": ("bench.planner", "planner decision time for many candidates and completions"),
     "detector": ("bench.detector", "detector segmenter on the real RGB-D frames: labelled boxes, masks, 3D nodes"),
     "perception": ("bench.modeltiming", "seconds per real frame of a segmenter + embedder (sam+clip on a GPU, ...)"),

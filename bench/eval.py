@@ -9,6 +9,8 @@
   ``bench.explore.run_episode``). RGB-only geometry (``mvs``) with the robot's goal capture by default,
   true geometry as the reference curves.
 - ``external`` (paper Table II): 1, 2 and 3 fixed cameras and no robot, on both scene families.
+- ``rooms`` (run only when named): the mapper's room layer against the simulator's rooms after a full tour
+  (room count, IoU, object-to-room and room-label accuracy; ``bench.rooms``).
 
 Each writes ``<name>.json``, ``<name>.md`` and PNG plots under ``--out``; ``summary.md`` collects the
 tables. 2D perception defaults to the simulator's semantic camera (``sim``: an ORACLE for masks and
@@ -38,8 +40,11 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from bench.explore import mapper_config, steps_to
 from bench.report import machine, markdown_table
+from bench.rooms import RoomsConfig, rooms_markdown, rooms_plot, run_rooms
+from bench.simdrive import mapper_views as _mapper_views
 
 EXPERIMENTS = ("static", "external", "active")
+OPTIONAL = ("rooms",)  # run only when named
 
 
 class FramesConfig(BaseModel):
@@ -136,6 +141,7 @@ class EvalConfig(BaseModel):
     static: StaticConfig = Field(default_factory=StaticConfig, description="Table I")
     active: ActiveConfig = Field(default_factory=ActiveConfig, description="Fig. 2")
     external: ExternalConfig = Field(default_factory=ExternalConfig, description="Table II")
+    rooms: RoomsConfig = Field(default_factory=RoomsConfig, description="the room layer against the true rooms")
     torch_threads: int = Field(default=2, ge=1, description="torch CPU threads")
 
 
@@ -152,26 +158,6 @@ def quick_config(out: Path) -> EvalConfig:
 
 
 # --- frames ---------------------------------------------------------------------------------------
-def _mapper_views(scene: Any, poses_true: Sequence[np.ndarray], priors: Sequence[np.ndarray | None],
-                  intr: Any, source_id: str, trusted: bool, prior_rel_rot_deg: float | None = None,
-                  prior_rel_trans_m: float | None = None) -> list[Any]:
-    """Render each pose and wrap it as a mapper View with its ORACLE data (used only by oracle backends)."""
-    from mapper.geometry.contract import OracleData, View
-    from sim.render import Renderer
-
-    renderer = Renderer(scene)
-    labels = scene.labels()
-    views = []
-    for k, (T_true, prior) in enumerate(zip(poses_true, priors, strict=True)):
-        out = renderer.render(intr, T_true)
-        oracle = OracleData(depth_m=out.depth_m.astype(np.float32), T_world_cam_true=np.asarray(T_true, float),
-                            instance_id=out.instance_id.astype(np.int32), labels=labels)
-        views.append(View(image=out.rgb, source_id=source_id, intrinsics=intr, T_world_cam=prior,
-                          pose_trusted=trusted, stamp_ns=(k + 1) * 1_000_000_000, seq=k, oracle=oracle,
-                          prior_rel_rot_deg=prior_rel_rot_deg, prior_rel_trans_m=prior_rel_trans_m))
-    return views
-
-
 def scan_walk(scene: Any, cfg: FramesConfig, seed: int) -> tuple[list[np.ndarray], list[np.ndarray]]:
     """True camera poses of a robot walking a covering route, its head scanning left and right, and the
     odometry priors (true poses with Gaussian noise) the RGB-only path starts from."""
@@ -566,6 +552,7 @@ RUNNERS: dict[str, tuple[Callable[..., dict[str, Any]], Callable[[dict[str, Any]
     "static": (run_static, static_markdown, static_plot),
     "active": (run_active, active_markdown, active_plot),
     "external": (run_external, external_markdown, external_plot),
+    "rooms": (run_rooms, rooms_markdown, rooms_plot),
 }
 
 
@@ -607,11 +594,12 @@ def main(argv: list[str] | None = None) -> int:
         "JSON, Markdown tables and PNG plots under --out.",
         epilog="examples: argus eval --quick --out eval_out | argus eval static --scenes 5 --out eval_out",
     )
-    p.add_argument("experiments", nargs="*", help=f"which of {', '.join(EXPERIMENTS)} (default: all three)")
+    p.add_argument("experiments", nargs="*",
+                   help=f"which of {', '.join(EXPERIMENTS + OPTIONAL)} (default: {', '.join(EXPERIMENTS)})")
     p.add_argument("--out", type=Path, default=None, help="output folder (default: the config's out, else eval_out)")
     p.add_argument("--quick", action="store_true", help="small subset for CI (< 5 min on 2 cores)")
     p.add_argument("--config", type=Path, default=None, help="TOML file with an EvalConfig (overrides defaults)")
-    p.add_argument("--scenes", type=int, default=None, help="scenes per setting (static and external)")
+    p.add_argument("--scenes", type=int, default=None, help="scenes per setting (static, external, rooms)")
     p.add_argument("--starts", type=int, default=None, help="start poses (active)")
     p.add_argument("--steps", type=int, default=None, help="exploration steps (active)")
     p.add_argument("--perception", default=None, help="2D perception for all: sim (ORACLE) or classical")
@@ -620,9 +608,9 @@ def main(argv: list[str] | None = None) -> int:
                    help="reference reconstructor of the active runs (default oracle; 'none' skips it)")
     p.add_argument("--threads", type=int, default=2, help="torch CPU threads")
     a = p.parse_args(argv)
-    unknown = [e for e in a.experiments if e not in EXPERIMENTS]
+    unknown = [e for e in a.experiments if e not in EXPERIMENTS + OPTIONAL]
     if unknown:
-        print(f"argus eval: unknown experiment(s) {unknown}; choose from {EXPERIMENTS}", file=sys.stderr)
+        print(f"argus eval: unknown experiment(s) {unknown}; choose from {EXPERIMENTS + OPTIONAL}", file=sys.stderr)
         return 2
     try:
         if a.config is not None:
@@ -642,6 +630,7 @@ def main(argv: list[str] | None = None) -> int:
         if a.scenes is not None:
             cfg.static.seeds = list(range(a.scenes))
             cfg.external.seeds = list(range(a.scenes))
+            cfg.rooms.seeds = list(range(a.scenes))
         if a.starts is not None:
             cfg.active.starts = a.starts
         if a.steps is not None:
@@ -652,6 +641,7 @@ def main(argv: list[str] | None = None) -> int:
             cfg.active.reference_geometry = None if a.active_reference == "none" else a.active_reference
         if a.perception is not None:
             cfg.static.perception = cfg.external.perception = cfg.active.perception = a.perception
+            cfg.rooms.perception = a.perception
     except (ValueError, OSError) as e:
         print(f"argus eval: {e}", file=sys.stderr)
         return 2

@@ -4,6 +4,7 @@ scene's fixed camera sees, with true or odometry-like pose priors (``bench.geome
 from __future__ import annotations
 
 import math
+from collections.abc import Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -21,6 +22,25 @@ def _perturb(T: np.ndarray, rng: np.random.Generator, trans_m: float, rot_deg: f
     out[:3, :3] = Rotation.from_rotvec(rng.normal(0, math.radians(rot_deg), 3)).as_matrix() @ T[:3, :3]
     out[:3, 3] += rng.normal(0, trans_m, 3)
     return out
+
+
+def mapper_views(scene: Any, poses_true: Sequence[np.ndarray], priors: Sequence[np.ndarray | None],
+                  intr: Any, source_id: str, trusted: bool, prior_rel_rot_deg: float | None = None,
+                  prior_rel_trans_m: float | None = None) -> list[Any]:
+    """Render each pose and wrap it as a mapper View with its ORACLE data (used only by oracle backends)."""
+    from sim.render import Renderer
+
+    renderer = Renderer(scene)
+    labels = scene.labels()
+    views = []
+    for k, (T_true, prior) in enumerate(zip(poses_true, priors, strict=True)):
+        out = renderer.render(intr, T_true)
+        oracle = OracleData(depth_m=out.depth_m.astype(np.float32), T_world_cam_true=np.asarray(T_true, float),
+                            instance_id=out.instance_id.astype(np.int32), labels=labels)
+        views.append(View(image=out.rgb, source_id=source_id, intrinsics=intr, T_world_cam=prior,
+                          pose_trusted=trusted, stamp_ns=(k + 1) * 1_000_000_000, seq=k, oracle=oracle,
+                          prior_rel_rot_deg=prior_rel_rot_deg, prior_rel_trans_m=prior_rel_trans_m))
+    return views
 
 
 # ---- simulated scenes ------------------------------------------------------------------------------------

@@ -92,21 +92,13 @@ class FloorGrid:
         return (np.asarray(ij, np.float64).reshape(-1, 2) + np.asarray(self.origin_ij) + 0.5) * self.cell_m
 
 
-@dataclass(frozen=True)
-class Footprint:
-    """An object's gravity-aligned box seen from above, and its bottom height (world, metres)."""
-
-    center_xy: tuple[float, float]
-    size_xy: tuple[float, float]
-    yaw_rad: float
-    z_min_m: float
-
-
 def estimate_floor_z(points_world: np.ndarray, bin_m: float = 0.04, search_m: float = 1.0) -> float | None:
     """The floor height: the densest height bin within ``search_m`` above the lowest decile of the points
     (robust to a few stray points below the floor). None for an empty map."""
-    z = np.asarray(points_world, np.float64).reshape(-1, 3)[:, 2]
-    z = z[np.isfinite(z)]
+    z = np.asarray(points_world).reshape(-1, 3)[:, 2]
+    if len(z) > 60_000:  # a strided sample finds the same floor in a fraction of the time
+        z = z[:: len(z) // 50_000]
+    z = z[np.isfinite(z)].astype(np.float64)
     if len(z) == 0:
         return None
     lo = float(np.quantile(z, 0.02))
@@ -118,50 +110,54 @@ def estimate_floor_z(points_world: np.ndarray, bin_m: float = 0.04, search_m: fl
     return float(np.median(sel)) if len(sel) else float(0.5 * (edges[k] + edges[k + 1]))
 
 
-def build_grid(points_world: np.ndarray, cameras_world: np.ndarray, footprints: Sequence[Footprint],
+def build_grid(points_world: np.ndarray, cameras_world: np.ndarray, footprints: np.ndarray,
                params: RoomParams = RoomParams(), floor_z_m: float | None = None) -> FloorGrid | None:
-    """The floor grid from map points (N, 3), camera positions (M, 3) and object footprints (None: no map)."""
+    """The floor grid from map points (N, 3), camera positions (M, 3) and object footprints ((F, 6): centre x, y,
+    size x, y, yaw, bottom z, as :func:`footprints_of` gives); None while there is no map."""
     p = params
-    pts = np.asarray(points_world, np.float64).reshape(-1, 3)
-    pts = pts[np.all(np.isfinite(pts), axis=1)]
+    pts = np.asarray(points_world).reshape(-1, 3)
+    if pts.dtype.kind != "f":
+        pts = pts.astype(np.float64)
     cams = np.asarray(cameras_world, np.float64).reshape(-1, 3)
     fz = estimate_floor_z(pts) if floor_z_m is None else float(floor_z_m)
     if fz is None:
         return None
-    h = pts[:, 2] - fz
+    h = pts[:, 2] - pts.dtype.type(fz)  # NaN compares False: non-finite points fall in no band
     on_floor = np.abs(h) <= p.floor_band_m
     in_wall = (h >= p.wall_band_m[0]) & (h <= p.wall_band_m[1])
+    idx = np.flatnonzero(on_floor | in_wall)  # 1-D selections: several times faster than pts[mask, :2]
+    x, y, is_floor = pts[:, 0][idx], pts[:, 1][idx], on_floor[idx]
+    ok = np.isfinite(x) & np.isfinite(y)
+    if not ok.all():
+        x, y, is_floor = x[ok], y[ok], is_floor[ok]
     cams = cams[(cams[:, 2] - fz > 0.0) & (cams[:, 2] - fz <= p.camera_max_height_m)]
-    used = np.concatenate([pts[on_floor | in_wall, :2], cams[:, :2]])
-    if len(used) == 0:
+    if len(x) == 0 and len(cams) == 0:
         return None
     c = p.cell_m
     pad = int(math.ceil(p.camera_free_m / c)) + 2
-    lo = np.floor(used.min(0) / c).astype(np.int64) - pad
-    hi = np.floor(used.max(0) / c).astype(np.int64) + pad + 1
+    xs, ys = np.concatenate([x, cams[:, 0]]), np.concatenate([y, cams[:, 1]])
+    lo = np.floor(np.array([xs.min(), ys.min()]) / c).astype(np.int64) - pad
+    hi = np.floor(np.array([xs.max(), ys.max()]) / c).astype(np.int64) + pad + 1
     origin = (int(lo[0]), int(lo[1]))
     shape = (int(hi[0] - lo[0]), int(hi[1] - lo[1]))
-
-    def counts(xy: np.ndarray) -> np.ndarray:
-        ij = np.floor(xy / c).astype(np.int64) - lo
-        ok = (ij[:, 0] >= 0) & (ij[:, 1] >= 0) & (ij[:, 0] < shape[0]) & (ij[:, 1] < shape[1])
-        flat = ij[ok, 0] * shape[1] + ij[ok, 1]
-        return np.bincount(flat, minlength=shape[0] * shape[1]).reshape(shape)
-
-    floor = counts(pts[on_floor, :2]) > 0
-    wall = counts(pts[in_wall, :2]) >= p.wall_min_points
+    # every point is inside the bounds by construction
+    flat = ((np.floor(x * (1.0 / c)).astype(np.int64) - lo[0]) * shape[1]
+            + (np.floor(y * (1.0 / c)).astype(np.int64) - lo[1]))
+    floor = np.bincount(flat[is_floor], minlength=shape[0] * shape[1]).reshape(shape) > 0
+    wall = np.bincount(flat[~is_floor], minlength=shape[0] * shape[1]).reshape(shape) >= p.wall_min_points
     foot = np.zeros(shape, np.uint8)
-    polys = []
-    for f in footprints:
-        if f.z_min_m - fz > 0.3:  # on something, or on a wall: says nothing about the floor
-            continue
-        cy, sy = math.cos(f.yaw_rad), math.sin(f.yaw_rad)
-        hx, hy = 0.5 * f.size_xy[0], 0.5 * f.size_xy[1]
-        corners = np.array([[hx, hy], [-hx, hy], [-hx, -hy], [hx, -hy]]) @ np.array([[cy, sy], [-sy, cy]])
-        ij = (corners + np.asarray(f.center_xy)) / c - lo  # continuous cell coordinates
-        polys.append(np.round(ij[:, ::-1] * 4).astype(np.int32))  # cv2 wants (col, row) = (j, i); 2 bits subpixel
-    if polys:
-        cv2.fillPoly(foot, polys, 1, lineType=cv2.LINE_8, shift=2)
+    fp = np.asarray(footprints, np.float64).reshape(-1, 6)
+    fp = fp[fp[:, 5] - fz <= 0.3]  # higher: on something, or on a wall; says nothing about the floor
+    if len(fp):
+        cy, sy = np.cos(fp[:, 4]), np.sin(fp[:, 4])
+        half = 0.5 * fp[:, 2:4]
+        signs = np.array([[1, 1], [-1, 1], [-1, -1], [1, -1]], np.float64)
+        lx, ly = signs[None, :, 0] * half[:, None, 0], signs[None, :, 1] * half[:, None, 1]  # (F, 4)
+        wx = fp[:, None, 0] + cy[:, None] * lx - sy[:, None] * ly
+        wy = fp[:, None, 1] + sy[:, None] * lx + cy[:, None] * ly
+        # cv2 wants (col, row) = (j, i) in 1/4 cells (shift=2)
+        polys = np.round(np.stack([wy / c - lo[1], wx / c - lo[0]], 2) * 4).astype(np.int32)
+        cv2.fillPoly(foot, list(polys), 1, lineType=cv2.LINE_8, shift=2)
     footb = foot.astype(bool)
     # Tall furniture standing in a room puts points in the wall band: inside its own footprint they are not a wall.
     wall &= ~ndimage.binary_erosion(footb, iterations=1)
@@ -191,17 +187,23 @@ def room_space(grid: FloorGrid, params: RoomParams = RoomParams()) -> np.ndarray
 def segment(grid: FloorGrid, params: RoomParams = RoomParams()) -> np.ndarray:
     """Room labels (int32, 0 = no room) of the grid's cells: distance transform + h-maxima markers + watershed;
     regions under ``min_room_m2`` join the neighbour they touch most (or vanish when they touch none)."""
-    from skimage.morphology import h_maxima
+    from skimage.morphology import local_maxima, reconstruction
     from skimage.segmentation import watershed
 
     space = room_space(grid, params)
     if not space.any():
         return np.zeros(grid.shape, np.int32)
     dt = ndimage.distance_transform_edt(space) * grid.cell_m
-    q = np.round(dt / grid.cell_m * 4).astype(np.int32)  # quarter cells: h-maxima on integers is exact
-    peaks = h_maxima(q, max(1, int(round(params.marker_h_m / grid.cell_m * 4)))).astype(bool)
-    peaks &= dt >= params.marker_min_m
+    # h-maxima as plateaus: the regional maxima of the reconstruction of dt - h under dt (one connected plateau
+    # per dome; skimage's h_maxima returns only the tops, which may be several spots of one dome)
+    h = params.marker_h_m
+    rec = reconstruction(np.maximum(dt - h, 0.0), dt, method="dilation")
+    peaks = local_maxima(np.round(rec / grid.cell_m * 16).astype(np.int32), connectivity=2)
     markers, n = ndimage.label(peaks, structure=np.ones((3, 3), bool))
+    if n:
+        tall = ndimage.maximum(dt, markers, index=np.arange(1, n + 1)) >= params.marker_min_m
+        markers = np.where(markers > 0, np.concatenate([[0], np.cumsum(tall) * tall])[markers], 0)
+        n = int(tall.sum())
     if n == 0:  # nothing wide enough to be a room: the widest spot seeds one
         markers = np.zeros(grid.shape, np.int32)
         markers[np.unravel_index(int(np.argmax(dt)), dt.shape)] = 1
@@ -291,18 +293,12 @@ class RoomLayer:
         g = self.grid
         d, idx = ndimage.distance_transform_edt(self.labels == 0, return_indices=True)
         ij = g.cells_of(xy)
-        inside = (ij[:, 0] >= 0) & (ij[:, 1] >= 0) & (ij[:, 0] < g.shape[0]) & (ij[:, 1] < g.shape[1])
-        out: list[str | None] = []
-        for (i, j), ok in zip(ij, inside, strict=True):
-            if not ok:
-                out.append(None)
-                continue
-            if d[i, j] * g.cell_m > max_m:
-                out.append(None)
-                continue
-            k = int(self.labels[idx[0, i, j], idx[1, i, j]])
-            out.append(self.rooms[k - 1].room_id if k > 0 else None)
-        return out
+        ok = (ij[:, 0] >= 0) & (ij[:, 1] >= 0) & (ij[:, 0] < g.shape[0]) & (ij[:, 1] < g.shape[1])
+        i, j = np.where(ok, ij[:, 0], 0), np.where(ok, ij[:, 1], 0)
+        ok &= d[i, j] * g.cell_m <= max_m
+        k = self.labels[idx[0, i, j], idx[1, i, j]]
+        ids = [r.room_id for r in self.rooms]
+        return [ids[int(kk) - 1] if good and kk > 0 else None for kk, good in zip(k, ok, strict=True)]
 
     def room_by_id(self, room_id: str) -> Room | None:
         return next((r for r in self.rooms if r.room_id == room_id), None)
@@ -368,6 +364,7 @@ class RoomTracker:
         self._numbers: np.ndarray | None = None  # last update's cells' room numbers (0 none)
         self._origin: tuple[int, int] = (0, 0)
         self.layer = RoomLayer(None, np.zeros((0, 0), np.int32))
+        self._outlines: dict[str, tuple[tuple[int | float, ...], np.ndarray]] = {}
 
     def _fresh(self) -> int:
         n = self._next
@@ -393,7 +390,6 @@ class RoomTracker:
         then give each region the number it overlaps most (the larger overlap wins a contested number)."""
         from skimage.segmentation import watershed
 
-        p = self.params
         min_cells = max(4, int(0.5 / grid.cell_m ** 2))  # 0.5 m2 of an old room in a region counts
         out = np.zeros_like(labels)
         regions: list[tuple[np.ndarray, dict[int, int]]] = []
@@ -410,14 +406,16 @@ class RoomTracker:
             split = watershed(-dt, marks, mask=reg).astype(np.int32)
             groups = {n: n for n in olds}  # union-find over old numbers seen open to each other
             root = functools.partial(_root, groups)
-            for (a, b), mid in _pair_boundaries(split).items():
-                cells = np.floor(mid).astype(np.int64)
-                seen = float(grid.floor[cells[:, 0], cells[:, 1]].mean()) if len(cells) else 0.0
-                if _opening_m(mid, grid.cell_m) >= p.merge_open_m and seen >= p.merge_floor_fraction:
-                    ra, rb = root(a), root(b)
-                    if ra != rb:
-                        big, small = (ra, rb) if ov[ra] >= ov[rb] else (rb, ra)
-                        groups[small] = big
+            near = {n: ndimage.binary_dilation(old == n, structure=np.ones((5, 5), bool)) for n in olds}
+            for ai, a in enumerate(olds):
+                for b in olds[ai + 1:]:
+                    oa, ob = old == a, old == b
+                    strip = ((old == 0) & near[a] & near[b]) | _touching(oa, ob) | _touching(ob, oa)
+                    if self._seen_open(reg & strip, grid):
+                        ra, rb = root(a), root(b)
+                        if ra != rb:
+                            big, small = (ra, rb) if ov[ra] >= ov[rb] else (rb, ra)
+                            groups[small] = big
             for r in {root(n) for n in olds}:
                 members = [n for n in olds if root(n) == r]
                 part = reg & np.isin(split, members)
@@ -436,6 +434,18 @@ class RoomTracker:
         for idx, (reg, _ovs) in enumerate(regions):
             out[reg] = winner[idx] if idx in winner else self._fresh()
         return out
+
+    def _seen_open(self, between: np.ndarray, grid: FloorGrid) -> bool:
+        """Whether the strip ``between`` two old rooms (cells that were in neither, next to both: where a wall
+        stood; and where they touch) is seen open: observed floor along ``merge_floor_fraction`` of it, over
+        ``merge_open_m``."""
+        if not between.any():
+            return False
+        seen = between & grid.floor
+        if seen.sum() < self.params.merge_floor_fraction * between.sum():
+            return False
+        ij = np.argwhere(seen)
+        return float((ij.max(0) - ij.min(0) + 1).max() * grid.cell_m) >= self.params.merge_open_m
 
     def _layer(self, grid: FloorGrid, numbers: np.ndarray) -> RoomLayer:
         """Rooms and doorways of the numbered cells. Doorways are where rooms' cells touch; then each room also
@@ -466,9 +476,23 @@ class RoomTracker:
             m = labels == i
             inner = open_labels == i
             cxy = grid.xy_of(np.argwhere(m).mean(0, keepdims=True))[0]
-            rooms.append(Room(rid, _outline(m, grid), grid.floor_z_m, float(m.sum() * c * c),
+            rooms.append(Room(rid, self._outline(rid, m, grid), grid.floor_z_m, float(m.sum() * c * c),
                               float(seen[inner].mean()) if inner.any() else 0.0, (float(cxy[0]), float(cxy[1]))))
+        self._outlines = {r.room_id: self._outlines[r.room_id] for r in rooms if r.room_id in self._outlines}
         return RoomLayer(grid, labels, rooms, doors)
+
+    def _outline(self, room_id: str, mask: np.ndarray, grid: FloorGrid) -> np.ndarray:
+        """:func:`_outline`, kept per room while its cells do not change."""
+        ij = np.argwhere(mask)
+        (i0, j0), (i1, j1) = ij.min(0), ij.max(0) + 1
+        key = (grid.origin_ij[0] + int(i0), grid.origin_ij[1] + int(j0), int(i1 - i0), int(j1 - j0),
+               hash(np.packbits(mask[i0:i1, j0:j1]).tobytes()), grid.cell_m)
+        hit = self._outlines.get(room_id)
+        if hit is not None and hit[0] == key:
+            return hit[1]
+        poly = _outline(mask, grid)
+        self._outlines[room_id] = (key, poly)
+        return poly
 
 
 def _root(groups: dict[int, int], n: int) -> int:
@@ -485,44 +509,82 @@ def _id_order(room_id: str) -> tuple[int, str]:
 def _outline(mask: np.ndarray, grid: FloorGrid) -> np.ndarray:
     """The outer outline of a room's cells as a counter-clockwise world polygon (its largest part): the
     0.5 level line of the mask, which runs along the cells' edges, simplified to within half a cell."""
-    from skimage.measure import approximate_polygon, find_contours
+    from skimage.measure import find_contours
 
-    contours = find_contours(np.pad(mask.astype(np.float32), 1), 0.5)
+    ij = np.argwhere(mask)
+    if len(ij) == 0:
+        return np.zeros((0, 2))
+    (i0, j0), (i1, j1) = ij.min(0), ij.max(0) + 1
+    contours = find_contours(np.pad(mask[i0:i1, j0:j1].astype(np.float32), 1), 0.5)
     if not contours:
         return np.zeros((0, 2))
-    cnt = approximate_polygon(max(contours, key=len), tolerance=0.5)[:-1] - 1.0  # closed: last == first
+    c = max(contours, key=len).astype(np.float32).reshape(-1, 1, 2)
+    cnt = cv2.approxPolyDP(c, 0.5, True).reshape(-1, 2).astype(np.float64) - 1.0 + np.array([i0, j0])
+    if len(cnt) > 1 and np.allclose(cnt[0], cnt[-1]):  # closed: last == first
+        cnt = cnt[:-1]
     xy = (cnt + np.asarray(grid.origin_ij) + 0.5) * grid.cell_m
     area = 0.5 * float(np.sum(xy[:, 0] * np.roll(xy[:, 1], -1) - np.roll(xy[:, 0], -1) * xy[:, 1]))
     return xy if area >= 0 else xy[::-1]
 
 
 # --- objects and labels ------------------------------------------------------------------------------
+class RoomLabeller:
+    """Room kinds from object labels with the indoor prior (:func:`label_room`), with the prior's tables
+    prepared once and labels canonicalised once each (a room of hundreds of objects is labelled in microseconds).
+    The posterior is exactly ``IndoorPrior.kind_log_posterior``'s."""
+
+    def __init__(self, prior: IndoorPrior, max_cached: int = 10_000) -> None:
+        from protocol.prior import ABSENT_P
+
+        self.prior = prior
+        self.kinds = sorted(prior.rooms)
+        known = sorted({e.label for es in prior.rooms.values() for e in es})
+        self._col = {lab: i for i, lab in enumerate(known)}
+        table = np.full((len(self.kinds), len(known)), math.log(ABSENT_P))
+        for k, kind in enumerate(self.kinds):
+            for e in prior.rooms[kind]:  # a label listed twice: the last row wins, as in kind_log_posterior
+                table[k, self._col[e.label]] = math.log(max(e.p_present, 1e-9))
+        self._table = table
+        self._base = np.array([math.log(max(prior.room_kind_prior.get(k, 0.05), 1e-9)) for k in self.kinds])
+        self._canon: dict[str, int] = {}  # label -> column (-1: says nothing about rooms)
+        self._max = max_cached
+
+    def column(self, label: str) -> int:
+        c = self._canon.get(label)
+        if c is None:
+            c = self._col.get(self.prior.canonical_label(label), -1)
+            if len(self._canon) < self._max:
+                self._canon[label] = c
+        return c
+
+    def __call__(self, object_labels: Sequence[str]) -> tuple[str, float, dict[str, float]]:
+        cols = [c for c in (self.column(lab) for lab in object_labels) if c >= 0]
+        if not cols:
+            return UNKNOWN, 0.0, {}
+        counts = np.bincount(np.asarray(cols), minlength=self._table.shape[1])
+        v = self._base + self._table @ counts
+        post = np.exp(v - v.max())
+        post /= post.sum()
+        best = int(np.argmax(post))
+        return self.kinds[best], float(post[best]), {k: float(x) for k, x in zip(self.kinds, post, strict=True)}
+
+
 def label_room(object_labels: Sequence[str], prior: IndoorPrior) -> tuple[str, float, dict[str, float]]:
     """A room's kind from the labels of its objects: the indoor prior's posterior over room kinds (the kinds'
-    base rates times each object's presence probability per kind). ``("unknown", 0.0, {})`` while none of
-    the labels says anything about rooms."""
-    canon = [prior.canonical_label(lab) for lab in object_labels]
-    known = {e.label for es in prior.rooms.values() for e in es}
-    evidence = [c for c in canon if c in known]
-    if not evidence:
-        return UNKNOWN, 0.0, {}
-    lp = prior.kind_log_posterior(evidence)
-    kinds = sorted(lp)
-    v = np.array([lp[k] for k in kinds])
-    post = np.exp(v - v.max())
-    post /= post.sum()
-    best = int(np.argmax(post))
-    return kinds[best], float(post[best]), {k: float(x) for k, x in zip(kinds, post, strict=True)}
+    base rates times each object's presence probability per kind, ``IndoorPrior.kind_log_posterior``), its
+    probability and the whole posterior. ``("unknown", 0.0, {})`` while none of the labels says anything about
+    rooms."""
+    return RoomLabeller(prior)(object_labels)
 
 
-def footprints_of(nodes: Sequence[GraphNode]) -> list[Footprint]:
-    """The objects' boxes seen from above."""
-    out = []
-    for n in nodes:
-        b = n.box
-        out.append(Footprint((float(b.center[0]), float(b.center[1])), (float(b.extent[0]), float(b.extent[1])),
-                             float(b.yaw_rad), float(b.center[2] - 0.5 * b.extent[2])))
-    return out
+def footprints_of(nodes: Sequence[GraphNode]) -> np.ndarray:
+    """The objects' boxes seen from above: (F, 6) centre x, y, size x, y, yaw, bottom z (world, metres)."""
+    return np.array([_footprint(n) for n in nodes], np.float64).reshape(-1, 6)
+
+
+def _footprint(n: GraphNode) -> tuple[float, float, float, float, float, float]:
+    b = n.box
+    return (b.center[0], b.center[1], b.extent[0], b.extent[1], b.yaw_rad, b.center[2] - 0.5 * b.extent[2])
 
 
 class RoomMapper:
@@ -535,9 +597,12 @@ class RoomMapper:
 
         self.params = params
         self.prior = prior if prior is not None else load_prior()
+        self.labeller = RoomLabeller(self.prior)
         self.tracker = RoomTracker(params)
         self.cameras: collections.deque[tuple[float, float, float]] = collections.deque(maxlen=max_cameras)
         self.in_room: dict[str, str] = {}
+        self._row_cache: dict[str, tuple[GraphNode, tuple[float, ...]]] = {}
+        self._floor: tuple[int, float] | None = None  # (map size, floor height) of the last estimate
 
     @property
     def layer(self) -> RoomLayer:
@@ -551,11 +616,16 @@ class RoomMapper:
 
     def update(self, points_world: np.ndarray, nodes: Sequence[GraphNode]) -> RoomLayer:
         """Rebuild the grid from the map, carry room ids over, assign ``nodes`` and label the rooms."""
-        grid = build_grid(points_world, np.array(self.cameras, np.float64).reshape(-1, 3), footprints_of(nodes),
-                          self.params)
+        rows = self._rows(nodes)
+        size = len(points_world)
+        if self._floor is None or abs(size - self._floor[0]) > 0.1 * max(self._floor[0], 1):
+            # the floor height moves only as the map grows: re-estimated when the map changed size by 10 %
+            fz = estimate_floor_z(points_world)
+            self._floor = (size, fz) if fz is not None else None
+        grid = build_grid(points_world, np.array(self.cameras, np.float64).reshape(-1, 3), rows[:, 2:8], self.params,
+                          floor_z_m=self._floor[1] if self._floor is not None else None)
         layer = self.tracker.update(grid)
-        ids = layer.room_of(np.array([n.centroid[:2] for n in nodes], np.float64).reshape(-1, 2),
-                            self.params.assign_max_m)
+        ids = layer.room_of(rows[:, :2], self.params.assign_max_m)
         self.in_room = {n.node_id: r for n, r in zip(nodes, ids, strict=True) if r is not None}
         members: dict[str, list[str]] = {}
         for n in nodes:
@@ -564,8 +634,22 @@ class RoomMapper:
                 members.setdefault(r, []).append(n.label)
         layer.rooms = [dataclasses.replace(room, label=lab, label_confidence=conf)
                        for room in layer.rooms
-                       for lab, conf, _ in [label_room(members.get(room.room_id, []), self.prior)]]
+                       for lab, conf, _ in [self.labeller(members.get(room.room_id, []))]]
         return layer
+
+    def _rows(self, nodes: Sequence[GraphNode]) -> np.ndarray:
+        """(N, 8) centroid x, y and footprint of each node; unchanged nodes (the same object as last time) are
+        not read again."""
+        cache: dict[str, tuple[GraphNode, tuple[float, ...]]] = {}
+        old = self._row_cache
+        out = []
+        for n in nodes:
+            hit = old.get(n.node_id)
+            row = hit[1] if hit is not None and hit[0] is n else (n.centroid[0], n.centroid[1], *_footprint(n))
+            cache[n.node_id] = (n, row)
+            out.append(row)
+        self._row_cache = cache
+        return np.array(out, np.float64).reshape(-1, 8)
 
     def state(self) -> dict[str, Any]:
         """What a restart needs to keep room ids: the camera positions and the tracker's numbered cells."""

@@ -64,7 +64,7 @@ class TestFloorZ:
 
     def test_empty_map_has_no_grid(self) -> None:
         assert estimate_floor_z(np.zeros((0, 3))) is None
-        assert build_grid(np.zeros((0, 3)), np.zeros((0, 3)), []) is None
+        assert build_grid(np.zeros((0, 3)), np.zeros((0, 3)), np.zeros((0, 6))) is None
 
 
 class TestTwoRooms:
