@@ -3,11 +3,13 @@
 Examples::
 
     argus query nodes --label chair --near 1,2,0 --radius 2
+    argus query nodes --room room2 --label cup
+    argus query rooms
     argus query snapshot --json > graph.json
     argus query watch                      # live deltas; Ctrl-C exits
 
-``nodes`` and ``snapshot`` are Zenoh queries answered by the mapper's queryable (``graph/nodes`` with
-:class:`protocol.query.GraphQuery` parameters, ``graph/snapshot``); ``watch`` subscribes to
+``nodes``, ``rooms`` and ``snapshot`` are Zenoh queries answered by the mapper's queryable (``graph/nodes`` with
+:class:`protocol.query.GraphQuery` parameters, ``graph/rooms``, ``graph/snapshot``); ``watch`` subscribes to
 ``graph/delta``. A consumer never blocks the mapper: queries are answered from the mapper's latest
 graph and each consumer only waits on its own reply.
 """
@@ -32,6 +34,7 @@ from protocol.codec import DecodeError, decode, peek_kind
 from protocol.keys import Keys
 from protocol.messages import GraphDelta, GraphEdge, GraphNode, GraphSnapshot
 from protocol.query import GraphQuery
+from protocol.rooms import RoomLayer
 from protocol.session import ZenohConfigError, ZenohUnavailable, open_session
 from protocol.tomlconfig import add_consumer_flags, consumer_values
 
@@ -159,6 +162,26 @@ def get_snapshot(session: Any, keys: Keys, timeout_s: float = 5.0) -> GraphSnaps
     return best
 
 
+def get_rooms(session: Any, keys: Keys, timeout_s: float = 5.0) -> RoomLayer:
+    """The room layer (the newest graph version among all replies)."""
+    payloads, errors = _reply_payloads(session.get(keys.graph_rooms, timeout=timeout_s))
+    best: RoomLayer | None = None
+    for data in payloads:
+        try:
+            layer = decode(data, RoomLayer)
+        except DecodeError:
+            continue
+        if best is None or layer.version > best.version:
+            best = layer
+    if best is None:
+        if errors:
+            raise _refusal(errors, keys.graph_rooms)
+        if payloads:
+            raise QueryError(f"{len(payloads)} undecodable replies on {keys.graph_rooms}", exits.FAILED)
+        raise QueryError(f"no answer on {keys.graph_rooms} within {timeout_s:g} s (is a mapper running?)")
+    return best
+
+
 # --- formatting -----------------------------------------------------------------------------------
 def _fmt_xyz(v: Iterable[float]) -> str:
     return "(" + ", ".join(f"{x:6.2f}" for x in v) + ")"
@@ -189,6 +212,21 @@ def format_edges(edges: list[GraphEdge], nodes: list[GraphNode]) -> str:
     )
 
 
+def format_rooms(layer: RoomLayer) -> str:
+    """A fixed-width table of rooms (objects in each), then the doorways."""
+    lines = [f"{'id':<10} {'label':<14} {'conf':>5} {'area_m2':>8} {'seen':>5} {'objects':>7}  centre (m)"]
+    for r in layer.rooms:
+        lines.append(f"{r.room_id:<10} {r.label[:14]:<14} {r.label_confidence:5.2f} {r.area_m2:8.1f} "
+                     f"{r.observed_fraction:5.2f} {len(layer.members(r.room_id)):>7}  "
+                     f"({r.centroid[0]:.2f}, {r.centroid[1]:.2f})")
+    lines.append(f"{len(layer.rooms)} room(s) at graph version {layer.version}")
+    for e in layer.edges:
+        if e.predicate == "connects" and e.position is not None:
+            lines.append(f"  {e.subject_id} connects {e.object_id} through a doorway at "
+                         f"({e.position[0]:.2f}, {e.position[1]:.2f}), {e.width_m or 0.0:.2f} m wide")
+    return "\n".join(lines)
+
+
 def format_delta(d: GraphDelta) -> str:
     up = ", ".join(f"{n.label}({n.node_id})" for n in d.upserted[:6])
     more = f" +{len(d.upserted) - 6} more" if len(d.upserted) > 6 else ""
@@ -203,6 +241,12 @@ def run_nodes(session: Any, keys: Keys, query: GraphQuery, as_json: bool, timeou
         print(json.dumps([n.model_dump(mode="json", exclude={"embedding"}) for n in nodes], indent=1))
     else:
         print(format_nodes(nodes, query.near))
+    return 0
+
+
+def run_rooms(session: Any, keys: Keys, as_json: bool, timeout_s: float) -> int:
+    layer = get_rooms(session, keys, timeout_s)
+    print(layer.model_dump_json() if as_json else format_rooms(layer))
     return 0
 
 
@@ -301,6 +345,8 @@ def _silence_stdout() -> None:
 EPILOG = """examples:
   argus query nodes --label chair --near 1,2,0 --radius 2
   argus query nodes --id n12 --json
+  argus query nodes --room room2 --label cup
+  argus query rooms
   argus query snapshot --json > graph.json
   argus query watch --count 5
 
@@ -317,13 +363,16 @@ def parser() -> argparse.ArgumentParser:
     add_consumer_flags(p)
     p.add_argument("--timeout", type=float, default=5.0, help="seconds to wait for answers")
     sub = p.add_subparsers(dest="what", required=True)
-    pn = sub.add_parser("nodes", help="nodes selected by label / position / id")
+    pn = sub.add_parser("nodes", help="nodes selected by label / position / id / room")
     pn.add_argument("--label", default=None, help="label substring, case-insensitive (e.g. chair)")
     pn.add_argument("--near", default=None, help="x,y,z centre in metres (world frame)")
     pn.add_argument("--radius", type=float, default=None, help="radius around --near in metres (default 1)")
     pn.add_argument("--id", default=None, help="one node id (exit status 3 when the graph has no such node)")
     pn.add_argument("--since-version", type=int, default=None, help="only nodes changed after this version")
+    pn.add_argument("--room", default=None, help="only nodes in this room (a room id: argus query rooms)")
     pn.add_argument("--json", action="store_true", help="JSON list of nodes")
+    pr = sub.add_parser("rooms", help="the rooms: label, area, how much was seen, objects, doorways")
+    pr.add_argument("--json", action="store_true", help="the RoomLayer as JSON")
     ps = sub.add_parser("snapshot", help="the whole latest graph")
     ps.add_argument("--json", action="store_true", help="the GraphSnapshot as JSON")
     pw = sub.add_parser("watch", help="print graph deltas as they happen (Ctrl-C exits)")
@@ -352,7 +401,7 @@ def main(argv: list[str] | None = None) -> int:
         if a.what == "nodes":
             near = _parse_near(a.near) if a.near is not None else None
             query = GraphQuery(label=a.label, near=near, radius=a.radius, id=a.id,
-                               since_version=a.since_version)
+                               since_version=a.since_version, room=a.room)
     except ValueError as e:  # pydantic's ValidationError included: one line per field, no URL
         print(f"argus query: {exits.one_line(e)}", file=sys.stderr)
         return exits.USAGE
@@ -367,6 +416,8 @@ def main(argv: list[str] | None = None) -> int:
                 return run_nodes(session, keys, query, a.json, a.timeout)
             if a.what == "snapshot":
                 return run_snapshot(session, keys, a.json, a.timeout)
+            if a.what == "rooms":
+                return run_rooms(session, keys, a.json, a.timeout)
             return run_watch(session, keys, a.json, stop, a.count, a.idle_timeout)
     except BrokenPipeError:  # the reader went away (argus query ... | head): not an error
         _silence_stdout()

@@ -302,13 +302,17 @@ class RoomsConfig(BaseModel):
         default=(1.2, 2.0),
         description="heights above the floor whose points make walls (below a doorway's lintel, above most furniture)",
     )
-    wall_min_points: int = Field(default=2, ge=1, description="voxels in the wall band that make a cell a wall")
+    min_observations: int = Field(
+        default=2, ge=1,
+        description="map voxels observed by fewer keyframes are left out (RGB-only depth scatters one-view outliers)",
+    )
+    wall_min_points: int = Field(default=6, ge=1, description="voxels in the wall band that make a cell a wall")
     camera_free_m: float = Field(default=0.3, ge=0.0, description="known-free radius around each camera position")
     camera_max_height_m: float = Field(
         default=1.8, gt=0.0, description="cameras higher than this above the floor (wall-mounted) free no space"
     )
     grow_m: float = Field(
-        default=1.0, ge=0.0, description="rooms take unseen cells inside their walls up to this far from known space"
+        default=1.5, ge=0.0, description="rooms take unseen cells inside their walls up to this far from known space"
     )
     close_m: float = Field(default=0.3, ge=0.0, description="gaps in observed floor up to this wide are filled")
     marker_h_m: float = Field(
@@ -327,6 +331,11 @@ class RoomsConfig(BaseModel):
         default=0.6, ge=0.0, description="an object outside every room joins the nearest one within this distance"
     )
     max_cameras: int = Field(default=20_000, ge=1, description="camera positions kept as known-free space (bound)")
+    every_keyframes: int = Field(
+        default=5, ge=0,
+        description="rebuild the rooms every this many keyframes, so ids follow the growing map (0: only when "
+        "asked; a query for rooms rebuilds them whenever the graph changed)",
+    )
     prior: Path | None = Field(
         default=None, description="indoor prior JSON for room labels (default: the embedded protocol/data one)"
     )

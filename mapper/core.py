@@ -48,12 +48,13 @@ from mapper.perception.base import Detection, Embedder, Mask2D, Segmenter, ViewG
 from mapper.pointmap import VoxelMap
 from mapper.posegraph import Key, LoopCloser, node_move
 from mapper.relations import EdgeCache, compute_edges, refine_with_points
-from mapper.rooms import RoomLayer, RoomMapper, RoomParams
+from mapper.rooms import RoomLayer, RoomMapper, RoomParams, room_message
 from mapper.work.compute import KeyframeProducts, compute_keyframe
 from mapper.work.latency import StageTimes
 from protocol.messages import GraphDelta, GraphNode, GraphSnapshot, PointMap
 from protocol.query import GraphQuery
 from protocol.ratelog import RateLimitedLog
+from protocol.rooms import RoomLayer as RoomLayerMessage
 
 log = logging.getLogger(__name__)
 
@@ -112,7 +113,9 @@ class MapperCore:
         self.store = GraphStore()
         self.voxels = VoxelMap(cfg.point_map.voxel_m, cfg.point_map.max_voxels)
         self.rooms = _room_mapper(cfg) if cfg.rooms.enabled else None
-        self._rooms_lock = threading.Lock()
+        self._rooms_lock = threading.RLock()
+        self._room_message: RoomLayerMessage | None = None
+        self._rooms_built_at_keyframe = 0.0
         self.selector = KeyframeSelector(cfg.keyframes)
         self.keyframes = KeyframeStore(cfg.keyframes)
         self.lock = threading.RLock()
@@ -181,7 +184,15 @@ class MapperCore:
         results = [r for r in [self._timed(view)] if r is not None]
         if moved:
             results.append(UpdateResult(changed=moved))
-        return self._finish(view, results)
+        delta = self._finish(view, results)
+        every = self.config.rooms.every_keyframes
+        if self.rooms is not None and every and self.counters["keyframes"] - self._rooms_built_at_keyframe >= every:
+            # Rooms follow the map as it grows (ids are carried over between builds, the closer the better);
+            # a query between builds rebuilds them itself.
+            t = time.perf_counter()
+            self.update_rooms()
+            self.stages.add("rooms", time.perf_counter() - t)
+        return delta
 
     def _drifts(self, view: View) -> bool:
         """Whether ``view``'s pose is odometry that drifts: a prior, not a calibration, whose errors are not
@@ -611,8 +622,27 @@ class MapperCore:
             return [self.store.nodes[k] for k in sorted(self.store.nodes)]
 
     def query(self, q: GraphQuery) -> list[GraphNode]:
+        """Nodes selected by ``q``; ``q.room`` selects by the room layer (built now if the graph changed)."""
+        members: set[str] | None = None
+        if q.room is not None:
+            layer = self.room_layer()
+            members = set(layer.members(q.room)) if layer is not None else set()
         with self.lock:
-            return self.store.query(q)
+            out = self.store.query(q)
+        return out if members is None else [n for n in out if n.node_id in members]
+
+    def room_layer(self) -> RoomLayerMessage | None:
+        """The room layer as its wire message, rebuilt when the graph version moved since the last build (None
+        when rooms are off)."""
+        if self.rooms is None:
+            return None
+        with self._rooms_lock:
+            cached = self._room_message
+            if cached is not None and cached.version == self.version and cached.epoch == self.epoch:
+                return cached
+        self.update_rooms()
+        with self._rooms_lock:
+            return self._room_message
 
     def update_rooms(self) -> RoomLayer | None:
         """Rebuild the room layer from the current map and nodes (room ids carried over from the last call);
@@ -621,9 +651,13 @@ class MapperCore:
             return None
         with self._rooms_lock:
             with self.lock:
-                pts = self.voxels.points()
+                pts, counts = self.voxels.points(), self.voxels.counts.copy()
                 nodes = [self.store.nodes[k] for k in sorted(self.store.nodes)]
-            return self.rooms.update(pts, nodes)
+                version, epoch = self.store.version, self.store.epoch
+            layer = self.rooms.update(pts, nodes, counts)
+            self._room_message = room_message(layer, self.rooms.in_room, version, epoch, time.time_ns())
+            self._rooms_built_at_keyframe = self.counters.get("keyframes", 0.0)
+            return layer
 
     def point_map(self, max_points: int | None = None) -> PointMap:
         with self.lock:

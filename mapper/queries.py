@@ -1,6 +1,7 @@
 """Graph queries the mapper answers: ``graph/snapshot``, ``graph/nodes?label=..;near=..;radius=..;id=..;
-since_version=..``, ``graph/node/<id>`` and wildcards such as ``graph/**`` (msgpack envelopes), and the same
-keys below ``graph/json/`` (JSON objects). A bad query gets an error reply, never a crash.
+since_version=..;room=..``, ``graph/node/<id>``, ``graph/rooms`` (the room layer) and wildcards such as
+``graph/**`` (msgpack envelopes), and the same keys below ``graph/json/`` (JSON objects). A bad query gets an
+error reply, never a crash.
 
 Error replies (Zenoh ``reply_err``, encoding ``text/plain``) are one UTF-8 line ``<code>: <detail>``; codes:
 ``not_found`` (``graph/node/<id>`` of a node the graph does not hold) and ``bad_query`` (a parameter that does
@@ -95,6 +96,11 @@ class GraphQueries:
 
         if key == self.keys.graph_snapshot:
             return [(key, self.core.snapshot())]
+        if key == self.keys.graph_rooms:
+            layer = self.core.room_layer()
+            if layer is None:
+                raise NotFound("this mapper builds no rooms (rooms.enabled = false)")
+            return [(key, layer)]
         if key == self.keys.graph_nodes:
             q = GraphQuery.from_parameters(params)
             nodes = self.core.query(q)
@@ -118,6 +124,10 @@ class GraphQueries:
         out: list[tuple[str, Message]] = []
         if asked.intersects(zenoh.KeyExpr(self.keys.graph_snapshot)):
             out.append((self.keys.graph_snapshot, self.core.snapshot()))
+        if asked.intersects(zenoh.KeyExpr(self.keys.graph_rooms)):
+            layer = self.core.room_layer()
+            if layer is not None:
+                out.append((self.keys.graph_rooms, layer))
         for n in self.core.nodes():
             nk = self.keys.graph_node(n.node_id)
             if asked.intersects(zenoh.KeyExpr(nk)):

@@ -42,6 +42,7 @@ from scipy import ndimage
 
 from protocol.messages import GraphNode
 from protocol.prior import IndoorPrior
+from protocol.rooms import RoomLayer as RoomLayerMessage
 
 UNKNOWN = "unknown"
 
@@ -53,10 +54,11 @@ class RoomParams:
     cell_m: float = 0.1
     floor_band_m: float = 0.1  # points within this of the floor height are floor
     wall_band_m: tuple[float, float] = (1.2, 2.0)  # heights above the floor whose points make walls
-    wall_min_points: int = 2  # voxels in the band that make a cell a wall
+    min_observations: int = 2  # map points seen by fewer keyframes are left out (when their counts are known)
+    wall_min_points: int = 6  # voxels in the band that make a cell a wall
     camera_free_m: float = 0.3  # radius of known-free space around each camera position
     camera_max_height_m: float = 1.8  # cameras higher than this above the floor (wall-mounted) free no space
-    grow_m: float = 1.0  # rooms take unseen cells inside their walls up to this far from known space
+    grow_m: float = 1.5  # rooms take unseen cells inside their walls up to this far from known space
     close_m: float = 0.3  # gaps in observed floor up to this wide are filled (under furniture, sparse points)
     marker_h_m: float = 0.3  # a room's middle stands this far above the saddle to its neighbour (h-maxima)
     marker_min_m: float = 0.45  # ... and at least this far from any wall (narrower is a passage, not a room)
@@ -92,19 +94,18 @@ class FloorGrid:
         return (np.asarray(ij, np.float64).reshape(-1, 2) + np.asarray(self.origin_ij) + 0.5) * self.cell_m
 
 
-def estimate_floor_z(points_world: np.ndarray, bin_m: float = 0.04, search_m: float = 1.0) -> float | None:
-    """The floor height: the densest height bin within ``search_m`` above the lowest decile of the points
-    (robust to a few stray points below the floor). None for an empty map."""
+def estimate_floor_z(points_world: np.ndarray, bin_m: float = 0.04, search_m: float = 1.5) -> float | None:
+    """The floor height: the densest height bin within ``search_m`` above the map's 5th height percentile (RGB-only
+    maps scatter points below the floor). None for an empty map."""
     z = np.asarray(points_world).reshape(-1, 3)[:, 2]
     if len(z) > 60_000:  # a strided sample finds the same floor in a fraction of the time
         z = z[:: len(z) // 50_000]
     z = z[np.isfinite(z)].astype(np.float64)
     if len(z) == 0:
         return None
-    lo = float(np.quantile(z, 0.02))
-    zz = z[(z >= lo - bin_m) & (z <= lo + search_m)]
-    hist, edges = np.histogram(zz, bins=max(1, int(math.ceil((search_m + bin_m) / bin_m))),
-                               range=(lo - bin_m, lo + search_m))
+    lo = float(np.quantile(z, 0.05)) - 0.1
+    zz = z[(z >= lo) & (z <= lo + search_m)]
+    hist, edges = np.histogram(zz, bins=max(1, int(math.ceil(search_m / bin_m))), range=(lo, lo + search_m))
     k = int(np.argmax(hist))
     sel = zz[(zz >= edges[k]) & (zz <= edges[k + 1])]
     return float(np.median(sel)) if len(sel) else float(0.5 * (edges[k] + edges[k + 1]))
@@ -614,8 +615,15 @@ class RoomMapper:
         if np.all(np.isfinite(p)):
             self.cameras.append((float(p[0]), float(p[1]), float(p[2])))
 
-    def update(self, points_world: np.ndarray, nodes: Sequence[GraphNode]) -> RoomLayer:
-        """Rebuild the grid from the map, carry room ids over, assign ``nodes`` and label the rooms."""
+    def update(self, points_world: np.ndarray, nodes: Sequence[GraphNode], counts: np.ndarray | None = None
+               ) -> RoomLayer:
+        """Rebuild the grid from the map, carry room ids over, assign ``nodes`` and label the rooms. ``counts``:
+        how many keyframes observed each point (the voxel map's); points seen fewer than ``min_observations``
+        times are left out (RGB-only depth scatters single-view outliers; surfaces are seen again)."""
+        if counts is not None and self.params.min_observations > 1:
+            c = np.asarray(counts).reshape(-1)
+            if len(c) == len(points_world):
+                points_world = np.asarray(points_world)[c >= self.params.min_observations]
         rows = self._rows(nodes)
         size = len(points_world)
         if self._floor is None or abs(size - self._floor[0]) > 0.1 * max(self._floor[0], 1):
@@ -671,3 +679,21 @@ class RoomMapper:
         shape = tuple(int(x) for x in state["shape"])
         nums = np.frombuffer(state["numbers"], np.int32).reshape(shape).copy()
         t._numbers = nums if nums.size else None
+
+
+def room_message(layer: RoomLayer, in_room: dict[str, str], version: int, epoch: str, stamp_ns: int
+                 ) -> RoomLayerMessage:
+    """The wire message of a room layer: its rooms, the objects' in_room edges and the doorways' connects edges."""
+    from protocol.rooms import RoomEdge, RoomNode
+
+    rooms = [RoomNode(room_id=r.room_id, label=r.label, label_confidence=min(1.0, max(0.0, r.label_confidence)),
+                      polygon=[(round(float(x), 3), round(float(y), 3)) for x, y in r.polygon_xy],
+                      floor_z_m=round(r.floor_z_m, 3), area_m2=round(r.area_m2, 3),
+                      observed_fraction=min(1.0, max(0.0, r.observed_fraction)),
+                      centroid=(round(r.centroid_xy[0], 3), round(r.centroid_xy[1], 3)))
+             for r in sorted(layer.rooms, key=lambda r: _id_order(r.room_id))]
+    edges = [RoomEdge(subject_id=n, predicate="in_room", object_id=r) for n, r in sorted(in_room.items())]
+    edges += [RoomEdge(subject_id=d.room_a, predicate="connects", object_id=d.room_b,
+                       position=(round(d.position_xy[0], 3), round(d.position_xy[1], 3)), width_m=round(d.width_m, 3))
+              for d in layer.doorways]
+    return RoomLayerMessage(epoch=epoch, version=version, stamp_ns=stamp_ns, rooms=rooms, edges=edges)

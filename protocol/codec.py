@@ -20,6 +20,7 @@ from pydantic import ValidationError
 
 from protocol import arrays
 from protocol.messages import ALL_MESSAGES, Message
+from protocol.rooms import ROOM_MESSAGES
 
 MAGIC = "ARG1"
 MAX_MESSAGE_BYTES = 64 * 1024 * 1024
@@ -28,7 +29,7 @@ MSGPACK_MIME = "application/msgpack"
 
 M = TypeVar("M", bound=Message)
 
-REGISTRY: dict[str, type[Message]] = {cls.KIND: cls for cls in ALL_MESSAGES}
+REGISTRY: dict[str, type[Message]] = {cls.KIND: cls for cls in ALL_MESSAGES + ROOM_MESSAGES}
 
 
 class DecodeError(ValueError):

@@ -141,8 +141,13 @@ class Keys:
 
     @property
     def graph_nodes(self) -> str:
-        """Query target for node selections (parameters: label, near, radius, id, since_version)."""
+        """Query target for node selections (parameters: label, near, radius, id, since_version, room)."""
         return f"{self.root}/graph/nodes"
+
+    @property
+    def graph_rooms(self) -> str:
+        """Query target for the room layer (protocol.rooms.RoomLayer: rooms, in_room and connects edges)."""
+        return f"{self.root}/graph/rooms"
 
     @property
     def graph_all(self) -> str:

@@ -22,6 +22,7 @@ class GraphQuery(BaseModel):
     radius: float | None = Field(default=None, gt=0.0, description="ball radius in metres (default 1.0)")
     id: str | None = Field(default=None, description="one node id")
     since_version: int | None = Field(default=None, ge=0, description="only nodes changed after it")
+    room: str | None = Field(default=None, min_length=1, description="only nodes in this room (a room id)")
 
     def to_parameters(self) -> str:
         """Selector parameter string (without the leading ``?``)."""
@@ -36,6 +37,8 @@ class GraphQuery(BaseModel):
             parts.append(f"id={self.id}")
         if self.since_version is not None:
             parts.append(f"since_version={self.since_version}")
+        if self.room is not None:
+            parts.append(f"room={self.room}")
         return ";".join(parts)
 
     @classmethod
@@ -55,14 +58,14 @@ class GraphQuery(BaseModel):
                 fields["radius"] = float(value)
             elif name == "since_version":
                 fields["since_version"] = int(value)
-            elif name in ("label", "id"):
+            elif name in ("label", "id", "room"):
                 fields[name] = value
             else:
                 raise ValueError(f"unknown query parameter {name!r}")
         return cls.model_validate(fields)
 
     def matches(self, node: GraphNode) -> bool:
-        """Whether ``node`` is selected (``since_version`` is checked by the graph holder)."""
+        """Whether ``node`` is selected (``since_version`` and ``room`` are checked by the graph holder)."""
         if self.id is not None and node.node_id != self.id:
             return False
         if self.label is not None and self.label.lower() not in node.label.lower():

@@ -20,6 +20,10 @@ from pydantic import BaseModel
 from protocol.codec import MAGIC, MSGPACK_MIME, REGISTRY
 from protocol.keys import Keys
 from protocol.messages import ALL_MESSAGES, Message, PlainGoal
+from protocol.rooms import ROOM_MESSAGES
+
+WIRE_MESSAGES: tuple[type[Message], ...] = ALL_MESSAGES + ROOM_MESSAGES
+"""Every message of the contract: protocol.messages' and the room layer's (protocol.rooms)."""
 
 SCHEMA_DIR = Path(__file__).resolve().parent / "schema"
 WIRE_MD = Path(__file__).resolve().parents[1] / "docs" / "WIRE.md"
@@ -68,7 +72,7 @@ def json_schema(cls: type[BaseModel]) -> dict[str, Any]:
 
 def schema_files() -> dict[str, str]:
     """File name -> JSON text of every shipped schema (one per message kind, plus plain_goal.json)."""
-    out = {f"{cls.KIND}.json": json.dumps(json_schema(cls), indent=2, sort_keys=True) + "\n" for cls in ALL_MESSAGES}
+    out = {f"{cls.KIND}.json": json.dumps(json_schema(cls), indent=2, sort_keys=True) + "\n" for cls in WIRE_MESSAGES}
     out["plain_goal.json"] = json.dumps(json_schema(PlainGoal), indent=2, sort_keys=True) + "\n"
     return out
 
@@ -140,7 +144,7 @@ def _doc(cls: type) -> str:
 
 def messages_block() -> str:
     parts = []
-    for cls in ALL_MESSAGES:
+    for cls in WIRE_MESSAGES:
         major, minor = cls.SCHEMA
         parts.append(f"### `{cls.KIND}` ({cls.__name__}, schema {major}.{minor})\n\n{_doc(cls)} "
                      f"JSON Schema: `protocol/schema/{cls.KIND}.json`.\n\n{field_table(cls)}\n")

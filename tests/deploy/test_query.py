@@ -15,6 +15,7 @@ from protocol.codec import encode
 from protocol.keys import Keys
 from protocol.messages import GraphDelta, GraphEdge, GraphNode, GraphSnapshot, OrientedBox
 from protocol.query import GraphQuery
+from protocol.rooms import RoomLayer
 from protocol.session import ZenohSettings, open_session
 from tests.support.procs import Proc, wait_for
 
@@ -305,6 +306,23 @@ def test_cli_returns_what_a_real_mapper_holds(router: str, procs: list[Proc], tm
                 if target.label.lower() in n.label.lower()
                 and sum((a - b) ** 2 for a, b in zip(n.centroid, target.centroid, strict=True)) <= 0.25}
     assert set(ids) == expected
+
+    # The room layer: what the in-process core built from the same map, served by the resumed mapper.
+    held_rooms = core.room_layer()
+    assert held_rooms is not None and held_rooms.rooms, "no room in a furnished room"
+    p = Proc([*base, "rooms", "--json"])
+    procs.append(p)
+    assert p.wait(30) == 0, p.output
+    got_rooms = RoomLayer.model_validate_json(p.output[p.output.index("{"):])
+    assert [r.room_id for r in got_rooms.rooms] == [r.room_id for r in held_rooms.rooms]
+    room = got_rooms.rooms[0].room_id
+    p = Proc([*base, "nodes", "--room", room, "--json"])
+    procs.append(p)
+    assert p.wait(30) == 0, p.output
+    assert {n["node_id"] for n in json.loads(p.output[p.output.index("["):])} == set(got_rooms.members(room))
+    p = Proc([*base, "rooms"])
+    procs.append(p)
+    assert p.wait(30) == 0 and f"{len(got_rooms.rooms)} room(s) at graph version" in p.output, p.output
 
 
 def core_config_oracle() -> Any:

@@ -30,6 +30,8 @@ from protocol.messages import (
     RobotState,
     Status,
 )
+from protocol.query import GraphQuery
+from protocol.rooms import RoomEdge, RoomLayer, RoomNode
 from robot_agent.goals import GoalRefused, RefusalLimiter, parse_goal
 from tests.support.procs import Proc, wait_for
 
@@ -240,7 +242,16 @@ class FakeCore:
         return list(self.snap.nodes)
 
     def query(self, q: Any) -> list[GraphNode]:
-        return [n for n in self.snap.nodes if q.matches(n)]
+        members = None if q.room is None else set(self.rooms.members(q.room))
+        return [n for n in self.snap.nodes if q.matches(n) and (members is None or n.node_id in members)]
+
+    rooms = RoomLayer(version=7, stamp_ns=9, rooms=[RoomNode(
+        room_id="room1", label="kitchen", label_confidence=0.8, polygon=[(0.0, 0.0), (4.0, 0.0), (4.0, 3.0)],
+        floor_z_m=0.0, area_m2=12.0, observed_fraction=0.9, centroid=(2.0, 1.5))],
+        edges=[RoomEdge(subject_id="n1", predicate="in_room", object_id="room1")])
+
+    def room_layer(self) -> RoomLayer:
+        return self.rooms
 
 
 class FakeQuery:
@@ -288,7 +299,25 @@ def test_json_view_answers_like_the_msgpack_keys(mapper_node) -> None:  # noqa: 
     q = FakeQuery(k.graph_json_all)
     mapper_node.queries.on_json_query(q)
     assert sorted(r[0] for r in q.replies) == ["argus/s/graph/json/node/n1", "argus/s/graph/json/node/n2",
-                                               "argus/s/graph/json/snapshot"]
+                                               "argus/s/graph/json/rooms", "argus/s/graph/json/snapshot"]
+
+
+def test_rooms_are_answered_in_both_views_and_select_nodes(mapper_node) -> None:  # noqa: ANN001
+    k = mapper_node.keys
+    q = FakeQuery(k.graph_rooms)
+    mapper_node.queries.on_query(q)
+    ((key, payload, enc),) = q.replies
+    assert key == "argus/s/graph/rooms" and enc == "application/msgpack;argus/room_layer/1.0"
+    layer = decode(payload, RoomLayer)
+    assert layer.rooms[0].label == "kitchen" and layer.members("room1") == ["n1"] and layer.room_of("n2") is None
+    q = FakeQuery(k.graph_json(k.graph_rooms))
+    mapper_node.queries.on_json_query(q)
+    assert json.loads(q.replies[0][1])["rooms"][0]["polygon"][1] == [4.0, 0.0]
+    q = FakeQuery(k.graph_json(k.graph_nodes), "room=room1")
+    mapper_node.queries.on_json_query(q)
+    assert [n["node_id"] for n in json.loads(q.replies[0][1])["nodes"]] == ["n1"]
+    assert GraphQuery.from_parameters("room=room1;label=cup") == GraphQuery(room="room1", label="cup")
+    assert GraphQuery(room="room2").to_parameters() == "room=room2"
 
 
 def test_json_view_refuses_bad_selectors_and_never_answers_msgpack_wildcards(mapper_node) -> None:  # noqa: ANN001
@@ -301,7 +330,8 @@ def test_json_view_refuses_bad_selectors_and_never_answers_msgpack_wildcards(map
     assert q.replies == [] and q.errors == []
     mapper_node.queries.on_query(q)
     assert {r[2] for r in q.replies} == {"application/msgpack;argus/graph_snapshot/1.2",
-                                        "application/msgpack;argus/graph_node/1.0"}
+                                        "application/msgpack;argus/graph_node/1.0",
+                                        "application/msgpack;argus/room_layer/1.0"}
     assert decode(q.replies[0][1], GraphSnapshot).version == 7
 
 

@@ -27,7 +27,7 @@ from tests.support.procs import Proc, wait_for
 SITE = "wire"
 ROBOT = "robot0"
 EXAMPLE = re.compile(r"```python\n# example: ([\w-]+)\n(.*?)```", re.S)
-MSGPACK_SCRIPT = ["preamble", "snapshot", "node", "follow", "goal"]
+MSGPACK_SCRIPT = ["preamble", "snapshot", "node", "rooms", "follow", "goal"]
 JSON_SCRIPT = ["json-preamble", "json-snapshot", "json-goal"]
 STDLIB = set(sys.stdlib_module_names)
 
@@ -136,6 +136,9 @@ def test_a_stranger_uses_the_site_with_only_the_wire_md_examples(router: str, pr
     assert re.search(r"^node \S+: .+ seen \d+ times$", out, re.M), out
     assert re.search(r"^embedding <f4 \[\d+\]: \[", out, re.M), out  # an array read without numpy
     assert re.search(r"^selection: [1-9]\d* node\(s\)", out, re.M), out
+    assert re.search(r"^room_layer at graph version \d+: [1-9]\d* room\(s\)$", out, re.M), out
+    assert re.search(r"^room room\d+: \w+ \(\d\.\d\d\), [\d.]+ m2, \d+ % seen, \d+ object\(s\)", out, re.M), out
+    assert re.search(r"^room selection: \d+ node\(s\) in room\d+$", out, re.M), out
     deltas = [int(v) for v in re.findall(r"^delta v(\d+):", out, re.M)]
     assert deltas and deltas[0] > 0, out
     assert re.search(r"^goal my-goal-\d+: accepted=True reason=''$", out, re.M), out + robot.output

@@ -30,6 +30,7 @@ from protocol.messages import (
     WorkResult,
 )
 from protocol.poses import camera_pose_from_base
+from protocol.rooms import RoomEdge, RoomLayer, RoomNode
 
 finite = st.floats(min_value=-1e6, max_value=1e6, allow_nan=False, allow_infinity=False)
 pos = st.floats(min_value=1e-3, max_value=1e4, allow_nan=False)
@@ -132,4 +133,19 @@ STRATEGIES = {
                           confidence_png=st.one_of(st.none(), st.binary(max_size=64)),
                           detections=st.one_of(st.none(), st.lists(work_dets, max_size=2)),
                           timings_s=st.dictionaries(ids, finite, max_size=3)),
+}
+
+# The room layer's messages (protocol.rooms; registered with the codec beside protocol.messages' ALL_MESSAGES).
+room_nodes = st.builds(RoomNode, room_id=ids, label=st.text(max_size=12), label_confidence=st.floats(0, 1),
+                       polygon=st.lists(st.tuples(finite, finite), max_size=6), floor_z_m=finite, area_m2=pos,
+                       observed_fraction=st.floats(0, 1), centroid=st.tuples(finite, finite))
+room_edges = st.one_of(
+    st.builds(RoomEdge, subject_id=ids, predicate=st.just("in_room"), object_id=ids),
+    st.builds(RoomEdge, subject_id=ids, predicate=st.just("connects"), object_id=ids,
+              position=st.tuples(finite, finite), width_m=pos))
+ROOM_STRATEGIES = {
+    RoomNode: room_nodes,
+    RoomEdge: room_edges,
+    RoomLayer: st.builds(RoomLayer, epoch=st.text(max_size=8), version=st.integers(0, 2**40), stamp_ns=stamps,
+                         rooms=st.lists(room_nodes, max_size=3), edges=st.lists(room_edges, max_size=4)),
 }
