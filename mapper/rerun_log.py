@@ -201,6 +201,7 @@ class RerunLogger:
                         radii=0.005,
                     ),
                 )
+        self._log_rooms(core)
         last = core.last
         if last is not None:
             v = last.view
@@ -219,6 +220,29 @@ class RerunLogger:
             rec.log(path + "/image", rr.Pinhole(focal_length=f, principal_point=pp, resolution=(ow, oh),
                                                 camera_xyz=rr.ViewCoordinates.RDF, image_plane_distance=0.3))
             rec.log(path + "/image", rr.Image(img).compress(jpeg_quality=self.cfg.jpeg_quality))
+
+    def _log_rooms(self, core: MapperCore) -> None:
+        """Room outlines on the floor under the objects, labelled with their kind and id, and the doorways."""
+        layer = core.room_layer()
+        if layer is None:
+            return
+        rr, rec = self._rr, self.rec
+        if not layer.rooms:
+            rec.log("world/rooms", rr.Clear(recursive=True))
+            return
+        strips = [[(x, y, r.floor_z_m + 0.02) for x, y in [*r.polygon, r.polygon[0]]] for r in layer.rooms if r.polygon]
+        named = [r for r in layer.rooms if r.polygon]
+        rec.log("world/rooms/outlines", rr.LineStrips3D(
+            strips, labels=[f"{r.label} ({r.room_id}, {r.label_confidence:.2f})" for r in named],
+            colors=[_color(r.label) for r in named], radii=0.02, show_labels=True))
+        doors = [e for e in layer.edges if e.predicate == "connects" and e.position is not None]
+        z = {r.room_id: r.floor_z_m for r in layer.rooms}
+        if doors:
+            rec.log("world/rooms/doorways", rr.Points3D(
+                [(e.position[0], e.position[1], z.get(e.subject_id, 0.0) + 0.05) for e in doors if e.position],
+                labels=[f"{e.subject_id} - {e.object_id}" for e in doors], radii=0.08))
+        else:
+            rec.log("world/rooms/doorways", rr.Clear(recursive=False))
 
     def close(self) -> None:
         try:

@@ -12,6 +12,7 @@ import pytest
 from mapper.config import RerunConfig
 from mapper.rerun_log import PointParts, RerunLogger
 from protocol.messages import GraphNode, GraphSnapshot, OrientedBox
+from protocol.rooms import RoomEdge, RoomLayer, RoomNode
 
 
 class TestPointParts:
@@ -44,12 +45,18 @@ def test_boxes_show_their_labels(tmp_path: Path, monkeypatch: pytest.MonkeyPatch
                        point_count=10, observation_count=1, first_seen_ns=1, last_seen_ns=1) for i in range(40)]
     voxels = types.SimpleNamespace(keys=np.array([1, 2]), points=lambda: np.zeros((2, 3), np.float32),
                                    colors=lambda: np.zeros((2, 3), np.uint8), voxel_m=0.05)
+    rooms = RoomLayer(version=1, stamp_ns=1, rooms=[RoomNode(
+        room_id="room1", label="office", label_confidence=0.7, polygon=[(0.0, 0.0), (4.0, 0.0), (4.0, 3.0)],
+        floor_z_m=0.0, area_m2=12.0, observed_fraction=1.0, centroid=(2.0, 1.0))], edges=[RoomEdge(
+        subject_id="room1", predicate="connects", object_id="room2", position=(4.0, 1.0), width_m=0.9)])
     core = types.SimpleNamespace(lock=threading.Lock(), voxels=voxels, nodes=lambda: nodes, last=None,
-                                 snapshot=lambda: GraphSnapshot(version=1, stamp_ns=1, nodes=nodes))
+                                 snapshot=lambda: GraphSnapshot(version=1, stamp_ns=1, nodes=nodes),
+                                 room_layer=lambda: rooms)
     logger = RerunLogger(RerunConfig(file=tmp_path / "m.rrd"))
     logged: dict[str, object] = {}
     monkeypatch.setattr(logger.rec, "log", lambda path, arch, **kw: logged.__setitem__(path, arch))
     logger.log(core)  # type: ignore[arg-type]
     assert logged["world/objects"].show_labels is not None  # type: ignore[attr-defined]
     assert "world/points/part0" in logged
+    assert "world/rooms/outlines" in logged and "world/rooms/doorways" in logged  # rooms under the objects
     logger.close()
