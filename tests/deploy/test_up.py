@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import contextlib
 import os
 import signal
 import socket
@@ -10,6 +11,7 @@ from pathlib import Path
 
 import pytest
 
+from deploy.query import query_hint
 from deploy.up import Health, LaunchFile, ProcessSpec, Stack, dump_toml, load_launch
 from protocol.keys import Keys
 from tests.support.procs import REPO, Proc, endpoint, free_port, wait_for
@@ -166,7 +168,10 @@ def test_up_starts_reports_healthy_and_stops_all(tmp_path: Path, procs: list[Pro
     pids = [int(p) for p in ready.read_text().split(",")]
     assert len(pids) == 2 and all(not _pid_gone(p) for p in pids)
     assert "[up] health: all 2 processes up" in up.output
-    assert f"[up] read the graph: argus query --connect {endpoint(port)} --site uptest snapshot" in up.output
+    with contextlib.chdir(REPO):  # the hint names `argus`, or .venv/bin/argus where PATH finds another (Proc's cwd)
+        hint = query_hint(endpoint(port), "uptest")
+    assert hint.endswith(f"argus query --connect {endpoint(port)} --site uptest snapshot")
+    assert f"[up] read the graph: {hint}" in up.output
     assert not any(_port_free(p) for p in ports)  # both routers listen
     wait_for(lambda: "[router]" in up.output and "[edge]" in up.output, timeout=10, what="prefixed logs")
     assert (tmp_path / "logs" / "router.log").read_text().strip()
