@@ -1,9 +1,10 @@
 """Scene completions: what the unobserved part of the scene may hold, given the current graph.
 
-A :class:`CompletionSampler` turns a :class:`SceneContext` (graph nodes assigned to rooms, the rooms
-known from the robots' published viewpoints) into K :class:`Completion`\\ s, each a list of
-hypothesised objects (label, room, support parent, optional position). Placement and consistency
-with what was already seen happen afterwards, the same for every sampler (planner.hypotheses).
+A :class:`CompletionSampler` turns a :class:`SceneContext` (graph nodes assigned to rooms, the rooms of
+the mapper's room layer, or else those known from the robots' published viewpoints) into K
+:class:`Completion`\\ s, each a list of hypothesised objects (label, room, support parent, optional
+position). Placement and consistency with what was already seen happen afterwards, the same for every sampler
+(planner.hypotheses).
 """
 
 from __future__ import annotations
@@ -17,6 +18,7 @@ import numpy as np
 
 from planner.prior import IndoorPrior
 from protocol.messages import GraphEdge, GraphNode
+from protocol.rooms import UNKNOWN_ROOM_LABEL, RoomLayer
 
 log = logging.getLogger(__name__)
 
@@ -26,7 +28,8 @@ ROOM_MARGIN_M = 0.45
 
 @dataclass(frozen=True)
 class RoomInfo:
-    """A room as the planner knows it: from the viewpoints published with that room name."""
+    """A room as the planner knows it: from the mapper's room layer (:func:`rooms_from_layer`), or from the
+    viewpoints published with that room name (:func:`rooms_from_viewpoints`)."""
 
     name: str
     kind: str | None
@@ -112,6 +115,53 @@ class CompletionSampler(Protocol):
 
 
 # --- context -------------------------------------------------------------------------------------
+
+
+UNEXPLORED = "unexplored"
+"""The region of the viewpoints in no room of the mapper's layer: space the map has not made a room of yet."""
+
+
+def in_polygon(xy: np.ndarray, polygon: Sequence[tuple[float, float]]) -> np.ndarray:
+    """(N,) bool: which of the points ``xy`` (N, 2) lie inside ``polygon`` (P corners, x, y)."""
+    from skimage.measure import points_in_poly
+
+    xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
+    if len(polygon) < 3 or xy.shape[0] == 0:
+        return np.zeros(xy.shape[0], dtype=bool)
+    return np.asarray(points_in_poly(xy, np.asarray(polygon, dtype=np.float64)), dtype=bool)
+
+
+def room_of_points(xy: np.ndarray, layer: RoomLayer) -> list[str | None]:
+    """The mapper room (id) each point ``xy`` (N, 2) lies in, None outside every room's outline."""
+    xy = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
+    out: list[str | None] = [None] * xy.shape[0]
+    for r in layer.rooms:
+        for i in np.flatnonzero(in_polygon(xy, r.polygon)):
+            if out[int(i)] is None:
+                out[int(i)] = r.room_id
+    return out
+
+
+def rooms_from_layer(layer: RoomLayer, vp_xy: np.ndarray, min_confidence: float = 0.5) -> tuple[RoomInfo, ...]:
+    """Rooms from the mapper's room layer (built from its own map): each room's outline's bounding box, its label
+    as the kind when at least ``min_confidence`` (else unknown: inferred from the objects, like an unnamed room),
+    the viewpoints inside its outline. The viewpoints in no room make one more region, ``unexplored``: rooms the
+    map has not reached count too."""
+    vp_xy = np.asarray(vp_xy, dtype=np.float64).reshape(-1, 2)
+    where = np.array([r or "" for r in room_of_points(vp_xy, layer)], dtype=object)
+    out = []
+    for r in layer.rooms:
+        poly = np.asarray(r.polygon, dtype=np.float64).reshape(-1, 2)
+        if poly.shape[0] < 3:
+            continue
+        kind = r.label if r.label != UNKNOWN_ROOM_LABEL and r.label_confidence >= min_confidence else None
+        out.append(RoomInfo(name=r.room_id, kind=kind, xy_min=poly.min(axis=0), xy_max=poly.max(axis=0),
+                            vp_xy=vp_xy[where == r.room_id]))
+    rest = vp_xy[where == ""]
+    if rest.shape[0]:
+        out.append(RoomInfo(name=UNEXPLORED, kind=None, xy_min=rest.min(axis=0) - ROOM_MARGIN_M,
+                            xy_max=rest.max(axis=0) + ROOM_MARGIN_M, vp_xy=rest))
+    return tuple(out)
 
 
 def rooms_from_viewpoints(

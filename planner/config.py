@@ -174,6 +174,17 @@ class PlannerConfig(_Model):
     see: SeeConfig = Field(default_factory=SeeConfig, description="geometric strategy")
     asp: AspConfig = Field(default_factory=AspConfig, description="semantic strategy")
     sampler: SamplerConfig = Field(default_factory=SamplerConfig, description="completion sampler")
+    rooms: Literal["auto", "map", "viewpoints"] = Field(
+        default="auto",
+        description="where asp's rooms come from: map (the mapper's room layer, built from its own map; viewpoints "
+        "in no room form one 'unexplored' region), viewpoints (the room names the robots publish with their "
+        "viewpoints), auto (map when the planner has a room layer with rooms, else viewpoints)",
+    )
+    focus_room: str | None = Field(
+        default=None,
+        description="look around one room: only viewpoints inside it are candidates (a room id such as room3, or a "
+        "room label such as kitchen: the most confident room with it); none inside, or no such room: no focus",
+    )
     revisit_xy_m: float = Field(default=0.15, ge=0.0, description="a candidate this close to a past view…")
     revisit_yaw_deg: float = Field(default=20.0, ge=0.0, description="…and this aligned is not taken again")
     claim_radius_m: float = Field(
@@ -220,4 +231,10 @@ class PlannerNodeConfig(_Model):
         "a few ms): without it the resting RSS creeps up in plateaus after decisions' large temporary arrays",
     )
     query_timeout_s: float = Field(default=2.0, gt=0.0, description="start-up query timeout")
+    rooms_period_s: float = Field(
+        default=2.0, ge=0.0,
+        description="ask the mapper for its room layer (graph/rooms) at most this often, when the graph changed: "
+        "asp's rooms, the rooms of frontiers and goals, planner.focus_room (0: never; rooms then come from the "
+        "viewpoints' names)",
+    )
     log_level: str = Field(default="INFO", description="logging level")

@@ -15,6 +15,7 @@ multi-robot claims (no two robots sent to look at the same region at once).
 
 from __future__ import annotations
 
+import collections
 import logging
 import time
 from dataclasses import dataclass, field
@@ -24,8 +25,12 @@ import numpy as np
 
 from planner.completion import (
     SAMPLERS,
+    UNEXPLORED,
     CompletionSampler,
     build_context,
+    in_polygon,
+    room_of_points,
+    rooms_from_layer,
     rooms_from_viewpoints,
 )
 from planner.config import PlannerConfig
@@ -42,6 +47,7 @@ from planner.geometry import (
 from planner.hypotheses import Hypotheses, realize
 from planner.prior import IndoorPrior, load_prior
 from protocol.messages import GraphSnapshot, Intrinsics, NbvGoal, PointMap, RobotState, ViewpointSet
+from protocol.rooms import RoomLayer
 
 log = logging.getLogger(__name__)
 
@@ -71,6 +77,9 @@ class PlanInfo:
     sampler: str = ""
     sampler_fallback: bool = False
     per_robot: dict[str, dict[str, Any]] = field(default_factory=dict)
+    room_source: str = ""  # where asp's rooms came from: map or viewpoints
+    frontier_by_room: dict[str, int] = field(default_factory=dict)  # see's frontier points per mapper room
+    hypotheses_by_room: dict[str, int] = field(default_factory=dict)  # asp's hypotheses per room
 
 
 @dataclass
@@ -138,6 +147,9 @@ class Planner:
         self.goals: dict[str, tuple[NbvGoal, np.ndarray]] = {}
         self.blacklist: dict[str, set[int]] = {}
         self.info = PlanInfo()
+        # The mapper's room layer (graph/rooms), when the planner has one: asp's rooms, frontier and goal rooms,
+        # the focus room. None: rooms come from the viewpoints' names only.
+        self.rooms: RoomLayer | None = None
         self._cand_cache: dict[str, tuple[int, Candidates]] = {}
         self._frontier_cache: tuple[tuple[int, int, int], np.ndarray] | None = None
         self._last_pano: Panoramas | None = None  # the last decision's z-buffers, reused where the map did not change
@@ -364,7 +376,13 @@ class Planner:
         all_vps = [vps for _, vps in robots.values()]
         room_names = [v.room for vps in all_vps for v in vps.viewpoints]
         xy = np.array([[v.x, v.y] for vps in all_vps for v in vps.viewpoints]).reshape(-1, 2)
-        rooms = rooms_from_viewpoints(room_names, xy, self.prior)
+        if self._map_rooms() is not None:
+            assert self.rooms is not None
+            rooms = rooms_from_layer(self.rooms, xy)
+            self.info.room_source = "map"
+        else:
+            rooms = rooms_from_viewpoints(room_names, xy, self.prior)
+            self.info.room_source = "viewpoints"
         scene_ctx = build_context(snapshot.nodes, snapshot.edges, rooms, self.prior, snapshot.version)
         completions = self.sampler.sample(scene_ctx, acfg.n_completions, self.rng)
         info = getattr(self.sampler, "info", None)
@@ -392,7 +410,30 @@ class Planner:
             rng=self.rng,
         )
         self.info.n_hypotheses = hyps.size
+        self.info.hypotheses_by_room = dict(collections.Counter(r or "" for r in hyps.room))
         return hyps
+
+    def _map_rooms(self) -> RoomLayer | None:
+        """The mapper's room layer when this plan uses it (config ``rooms``), else None."""
+        src = self.config.rooms
+        if src == "viewpoints" or self.rooms is None or (src == "auto" and not self.rooms.rooms):
+            return None
+        return self.rooms
+
+    def _focus_mask(self, c: Candidates) -> np.ndarray | None:
+        """Candidates inside the focus room (``focus_room``: an id, or a label's most confident room); None when
+        there is no focus, no such room, or no candidate in it."""
+        want = self.config.focus_room
+        if not want or self.rooms is None:
+            return None
+        room = next((r for r in self.rooms.rooms if r.room_id == want), None)
+        if room is None:
+            same = [r for r in self.rooms.rooms if r.label == want]
+            room = max(same, key=lambda r: (r.label_confidence, r.area_m2)) if same else None
+        if room is None:
+            return None
+        inside = in_polygon(c.xy_yaw[:, :2], room.polygon)
+        return inside if inside.any() else None
 
     def _frontier_targets(self, ctx: _PlanContext) -> np.ndarray:
         """``see``'s targets (computed once per plan, on first use): frontier points of the map that the
@@ -411,6 +452,9 @@ class Planner:
                     f = f[att < scfg.max_attempts]
                 ctx.frontier = f
             self.info.n_frontier = int(ctx.frontier.shape[0])
+            if self.rooms is not None and ctx.frontier.shape[0]:
+                where = room_of_points(ctx.frontier[:, :2], self.rooms)
+                self.info.frontier_by_room = dict(collections.Counter(r or UNEXPLORED for r in where))
         return ctx.frontier
 
     def _plan_robot(
@@ -434,6 +478,9 @@ class Planner:
             valid = np.isfinite(travel)
             if not valid.any():
                 return None
+        focus = self._focus_mask(c)
+        if focus is not None and (valid & focus).any():
+            valid = valid & focus  # look around the focus room: its viewpoints only
         claim_T = np.stack([T for _, T in claimed]) if claimed else np.zeros((0, 4, 4))
         claim_r = np.array([ctx.claim_rows[r] for r in self.goals if r != rid], dtype=np.int64)
         rows = ctx.cand_rows[rid]
@@ -471,7 +518,7 @@ class Planner:
             vp_id=int(c.vp_ids[idx]),
             strategy=self.config.strategy,
             expected_gain=float(gain),
-            reason=f"{reason}; travel {travel[idx]:.1f} m",
+            reason=f"{reason}; travel {travel[idx]:.1f} m" + self._room_note(c.xy_yaw[idx, :2]),
             graph_version=graph_version,
         )
         self.goals[rid] = (goal, c.T_world_cam[idx])
@@ -483,6 +530,14 @@ class Planner:
             "reason": goal.reason,
         }
         return goal
+
+    def _room_note(self, xy: np.ndarray) -> str:
+        """``; in room3 (kitchen)`` for a goal inside a mapper room, ``; in unexplored space`` outside all."""
+        if self.rooms is None or not self.rooms.rooms:
+            return ""
+        (rid,) = room_of_points(np.asarray(xy).reshape(1, 2), self.rooms)
+        room = next((r for r in self.rooms.rooms if r.room_id == rid), None)
+        return f"; in {room.room_id} ({room.label})" if room is not None else "; in unexplored space"
 
     def _claimed_mask(
         self,

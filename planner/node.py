@@ -20,6 +20,7 @@ from planner.schedule import Pending, goal_due
 from protocol.codec import DecodeError, M, decode, encode
 from protocol.messages import GraphSnapshot, NbvGoal, RobotState, ViewpointSet
 from protocol.node import Node, Process
+from protocol.rooms import RoomLayer
 from protocol.runtime import release_free_heap
 
 if TYPE_CHECKING:
@@ -34,6 +35,7 @@ class PlannerNode(PlannerInbox, Process):
     def __init__(self, config: PlannerNodeConfig, planner: Planner | None = None) -> None:
         super().__init__(config, planner)
         self._pubs: dict[str, Any] = {}
+        self._rooms_version = -1  # the graph version the planner last asked for rooms at
         self.node = Node(config.zenoh, self.keys, ROLE, config.node_id, counters=self.counters,
                          status_period_s=config.status_period_s, logger=log)
 
@@ -195,12 +197,29 @@ class PlannerNode(PlannerInbox, Process):
         node.alive()  # once the start-up queries are answered
         self._loop(node.stop, node.session)
 
+    def _refresh_rooms(self, session: zenoh.Session) -> None:
+        """The mapper's newest room layer for the planner, when the graph moved since the last one."""
+        version = self.graph.version
+        if self._rooms_version == version:
+            return
+        self._rooms_version = version
+        self.counters.add("room_queries")
+        layers = self._query(session, self.keys.graph_rooms, RoomLayer)
+        if layers:
+            best = max(layers, key=lambda r: r.version)
+            self.planner.rooms = best
+            self.counters.set("rooms", len(best.rooms))
+
     def _loop(self, stop: threading.Event, session: zenoh.Session) -> None:
-        last_query = time.monotonic()
+        last_query = last_rooms = time.monotonic()
         while not stop.is_set():
             self._wake.wait(0.25)
             self._wake.clear()
             self.bad_input.flush()
+            period = self.config.rooms_period_s
+            if period > 0 and time.monotonic() - last_rooms >= period:
+                last_rooms = time.monotonic()
+                self._refresh_rooms(session)
             if self._need_snapshot and time.monotonic() - last_query > 2.0:
                 last_query = time.monotonic()
                 self.counters.add("snapshot_queries")
