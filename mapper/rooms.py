@@ -174,6 +174,19 @@ def build_grid(points_world: np.ndarray, cameras_world: np.ndarray, footprints: 
     return FloorGrid(origin, c, fz, wall, floor, free)
 
 
+def _fill_holes(mask: np.ndarray) -> np.ndarray:
+    """``mask`` with its holes filled (what ``ndimage.binary_fill_holes`` gives, 4-connected background), by one
+    labelling of the background instead of a dilation run to convergence."""
+    bg, n = ndimage.label(~mask)
+    if n == 0:
+        return mask.copy()
+    edge = np.unique(np.concatenate([bg[0], bg[-1], bg[:, 0], bg[:, -1]]))
+    outside = np.zeros(n + 1, bool)
+    outside[edge] = True
+    outside[0] = False
+    return mask | ~outside[bg] & (bg > 0)
+
+
 def _disk(r: int) -> np.ndarray:
     return np.hypot(*np.mgrid[-r:r + 1, -r:r + 1]) <= r
 
@@ -182,7 +195,7 @@ def room_space(grid: FloorGrid, params: RoomParams = RoomParams()) -> np.ndarray
     """The cells rooms may take: known free space with small gaps closed and enclosed holes filled, no walls."""
     r = max(1, int(round(params.close_m / grid.cell_m)))
     closed = ndimage.binary_closing(np.pad(grid.free, r), structure=_disk(r))[r:-r, r:-r]
-    return ndimage.binary_fill_holes(closed | grid.free) & ~grid.wall  # type: ignore[no-any-return]
+    return _fill_holes(closed | grid.free) & ~grid.wall
 
 
 def segment(grid: FloorGrid, params: RoomParams = RoomParams()) -> np.ndarray:
@@ -196,11 +209,14 @@ def segment(grid: FloorGrid, params: RoomParams = RoomParams()) -> np.ndarray:
         return np.zeros(grid.shape, np.int32)
     dt = ndimage.distance_transform_edt(space) * grid.cell_m
     # h-maxima as plateaus: the regional maxima of the reconstruction of dt - h under dt (one connected plateau
-    # per dome; skimage's h_maxima returns only the tops, which may be several spots of one dome)
+    # per dome; skimage's h_maxima returns only the tops, which may be several spots of one dome). On cells twice
+    # as large (a room's middle needs no finer place; the reconstruction is the costliest step), then back.
     h = params.marker_h_m
-    rec = reconstruction(np.maximum(dt - h, 0.0), dt, method="dilation")
+    coarse = dt[::2, ::2]
+    rec = reconstruction(np.maximum(coarse - h, 0.0), coarse, method="dilation")
     peaks = local_maxima(np.round(rec / grid.cell_m * 16).astype(np.int32), connectivity=2)
-    markers, n = ndimage.label(peaks, structure=np.ones((3, 3), bool))
+    small, n = ndimage.label(peaks, structure=np.ones((3, 3), bool))
+    markers = np.repeat(np.repeat(small, 2, axis=0), 2, axis=1)[: grid.shape[0], : grid.shape[1]] * space
     if n:
         tall = ndimage.maximum(dt, markers, index=np.arange(1, n + 1)) >= params.marker_min_m
         markers = np.where(markers > 0, np.concatenate([[0], np.cumsum(tall) * tall])[markers], 0)
@@ -222,7 +238,7 @@ def _grow(labels: np.ndarray, grid: FloorGrid, space: np.ndarray, params: RoomPa
         return labels
     r = 2
     shell = ndimage.binary_closing(np.pad(grid.wall | space, r), structure=_disk(r))[r:-r, r:-r]
-    inside = ndimage.binary_fill_holes(shell) & ~grid.wall
+    inside = _fill_holes(shell) & ~grid.wall
     near = ndimage.distance_transform_edt(~space) * grid.cell_m <= params.grow_m
     dist = ndimage.distance_transform_edt(labels == 0)
     return watershed(dist, labels, mask=(inside & near) | (labels > 0)).astype(np.int32)
@@ -292,12 +308,14 @@ class RoomLayer:
         if self.grid is None or not self.rooms or len(xy) == 0:
             return [None] * len(xy)
         g = self.grid
-        d, idx = ndimage.distance_transform_edt(self.labels == 0, return_indices=True)
         ij = g.cells_of(xy)
         ok = (ij[:, 0] >= 0) & (ij[:, 1] >= 0) & (ij[:, 0] < g.shape[0]) & (ij[:, 1] < g.shape[1])
         i, j = np.where(ok, ij[:, 0], 0), np.where(ok, ij[:, 1], 0)
-        ok &= d[i, j] * g.cell_m <= max_m
-        k = self.labels[idx[0, i, j], idx[1, i, j]]
+        k = np.where(ok, self.labels[i, j], 0)
+        if (ok & (k == 0)).any():  # some fall outside every room: the nearest room cell within max_m
+            d, idx = ndimage.distance_transform_edt(self.labels == 0, return_indices=True)
+            near = ok & (k == 0) & (d[i, j] * g.cell_m <= max_m)
+            k = np.where(near, self.labels[idx[0, i, j], idx[1, i, j]], k)
         ids = [r.room_id for r in self.rooms]
         return [ids[int(kk) - 1] if good and kk > 0 else None for kk, good in zip(k, ok, strict=True)]
 
@@ -395,7 +413,7 @@ class RoomTracker:
         out = np.zeros_like(labels)
         regions: list[tuple[np.ndarray, dict[int, int]]] = []
         space = labels > 0
-        dt = ndimage.distance_transform_edt(space)
+        dt: np.ndarray | None = None  # only a region over several old rooms needs it
         for k in range(1, int(labels.max()) + 1):
             reg = labels == k
             ov = np.bincount(old[reg], minlength=1)
@@ -404,6 +422,8 @@ class RoomTracker:
                 regions.append((reg, {n: int(ov[n]) for n in olds}))
                 continue
             marks = np.where(reg & np.isin(old, olds), old, 0)
+            if dt is None:
+                dt = ndimage.distance_transform_edt(space)
             split = watershed(-dt, marks, mask=reg).astype(np.int32)
             groups = {n: n for n in olds}  # union-find over old numbers seen open to each other
             root = functools.partial(_root, groups)
@@ -451,8 +471,6 @@ class RoomTracker:
     def _layer(self, grid: FloorGrid, numbers: np.ndarray) -> RoomLayer:
         """Rooms and doorways of the numbered cells. Doorways are where rooms' cells touch; then each room also
         takes the wall cells next to it (a wall's face belongs to the room it faces), for its outline and area."""
-        from skimage.segmentation import expand_labels
-
         p = self.params
         present = [int(n) for n in np.unique(numbers) if n > 0]
         index = {n: i + 1 for i, n in enumerate(present)}
@@ -470,7 +488,9 @@ class RoomTracker:
             xy = grid.xy_of(mid.mean(0, keepdims=True))[0]
             ra, rb = sorted((room_ids[a - 1], room_ids[b - 1]), key=_id_order)
             doors.append(Doorway(ra, rb, (float(xy[0]), float(xy[1])), w))
-        labels = np.where((open_labels == 0) & grid.wall, expand_labels(open_labels, 1), open_labels).astype(np.int32)
+        # a wall cell next to a room joins it (next to two: the larger label, a tie rule that keeps it cheap)
+        near = ndimage.grey_dilation(open_labels, footprint=np.ones((3, 3), bool))
+        labels = np.where((open_labels == 0) & grid.wall, near, open_labels).astype(np.int32)
         seen = grid.free  # observed floor, crossed by a camera, or under an object standing on the floor
         rooms = []
         for i, rid in enumerate(room_ids, start=1):
