@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import importlib
 import io
 import os
 import sys
@@ -139,9 +140,9 @@ def reference() -> str:
     for name in COMMANDS:
         if name == "bench":
             parts.append(_section("argus bench", _listing(["bench", "--help"])))
-            from bench.cli import BENCHES
-
-            for bench in BENCHES:
+            # The bench command's own table, reached the way deploy.cli dispatches to it (by module name): deploy
+            # does not import bench, which imports deploy.
+            for bench in importlib.import_module(COMMANDS["bench"][0]).BENCHES:
                 p = parser_of(["bench", bench, "--help"])
                 if p is not None:
                     parts.append(_section(f"argus bench {bench}", _help(p), level=3))
