@@ -106,16 +106,16 @@ def test_rerun_file_output(tmp_path: Path) -> None:
     for i, eye in enumerate(EYES[:2]):
         core.ingest(view(eye, i))
         logger.log(core)
-        parts.append(logger._parts)
-        assert len(logger._logged_keys) == len(core.voxels)  # every voxel is in the recording once
+        parts.append(logger._points.parts)
+        assert len(logger._points.logged) == len(core.voxels)  # every voxel is in the recording once
     logger.log(core)  # nothing new: no part logged
-    parts.append(logger._parts)
+    parts.append(logger._points.parts)
     core.ingest(view(EYES[2], 2))
     logger.log(core)  # two parts already: the whole map afresh as part 0
-    parts.append(logger._parts)
+    parts.append(logger._points.parts)
     logger.close()
     assert parts == [1, 2, 2, 1]
-    assert len(logger._logged_keys) == len(core.voxels)
+    assert len(logger._points.logged) == len(core.voxels)
     assert out.stat().st_size > 1000
 
 
