@@ -22,6 +22,7 @@ each capped by the keyframes offered. With no worker the mapper's main thread do
 from __future__ import annotations
 
 import os
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -78,11 +79,48 @@ def thread_cpu_s(pid: int) -> dict[str, float]:
     return {"main": main, "threads": other}
 
 
-class RoleClock:
-    """CPU seconds of each role's process (mapper split into main thread and other threads) at one moment."""
+def cmdline(pid: int) -> str:
+    """The command line of ``pid``, its arguments joined by spaces ("" when it is gone)."""
+    try:
+        return Path(f"/proc/{pid}/cmdline").read_bytes().replace(b"\0", b" ").decode(errors="replace").strip()
+    except OSError:
+        return ""
 
-    def __init__(self, mapper: int, router: int | None, workers: dict[str, int], bench: int | None = None) -> None:
-        self.mapper, self.router, self.workers = mapper, router, dict(workers)
+
+class ChildClock:
+    """Cumulative CPU seconds of the children of ``parent`` (those whose command line contains ``match``), named
+    ``<prefix><i>`` in the order they were found. They are looked up at every :meth:`sample`, so a child started
+    after the clock was made (the mapper starts its local worker only once it serves) is counted from its start;
+    a child that ended keeps the CPU seconds of its last sample (a role's clock never runs backwards)."""
+
+    def __init__(self, parent: int, prefix: str, match: str | None = None,
+                 children: Callable[[int], list[int]] | None = None,
+                 cpu: Callable[[int], float | None] | None = None) -> None:
+        self.parent, self.prefix, self.match = parent, prefix, match
+        self._children = children or child_pids
+        self._cpu = cpu or _cpu_or_none
+        self._names: dict[int, str] = {}  # pid -> name, for every child ever found
+        self._last: dict[str, float] = {}  # name -> CPU seconds at its last sample
+
+    def sample(self) -> dict[str, float]:
+        for pid in self._children(self.parent):
+            if pid not in self._names:
+                if self.match is not None and self.match not in cmdline(pid):
+                    continue
+                self._names[pid] = f"{self.prefix}{len(self._names)}"
+            cpu = self._cpu(pid)
+            if cpu is not None:
+                self._last[self._names[pid]] = cpu
+        return dict(self._last)
+
+
+class RoleClock:
+    """CPU seconds of each role's process (mapper split into main thread and other threads) at one moment. With
+    ``local`` (a :class:`ChildClock` of the mapper's local workers) those are workers too, found when they exist."""
+
+    def __init__(self, mapper: int, router: int | None, workers: dict[str, int], bench: int | None = None,
+                 local: ChildClock | None = None) -> None:
+        self.mapper, self.router, self.workers, self.local = mapper, router, dict(workers), local
         self.bench = os.getpid() if bench is None else bench
 
     def sample(self) -> dict[str, float]:
@@ -94,15 +132,28 @@ class RoleClock:
         out["cameras"] = _safe_cpu(self.bench)
         for name, pid in self.workers.items():
             out[f"worker.{name}"] = _safe_cpu(pid)
+        if self.local is not None:
+            out.update({f"worker.{name}": cpu for name, cpu in self.local.sample().items()})
         return out
 
 
-def _safe_cpu(pid: int) -> float:
+def workers_cpu_s(cpu0: dict[str, float], cpu1: dict[str, float]) -> float:
+    """CPU seconds all workers spent between two :meth:`RoleClock.sample` s (a worker first seen in ``cpu1``: all of
+    its own)."""
+    return sum(v - cpu0.get(k, 0.0) for k, v in cpu1.items() if k.startswith("worker."))
+
+
+def _cpu_or_none(pid: int) -> float | None:
     try:
         t = thread_cpu_s(pid)
-    except FileNotFoundError:  # the process ended
-        return 0.0
+    except (FileNotFoundError, ProcessLookupError):  # the process ended
+        return None
     return t["main"] + t["threads"]
+
+
+def _safe_cpu(pid: int) -> float:
+    cpu = _cpu_or_none(pid)
+    return 0.0 if cpu is None else cpu
 
 
 def role_costs(cpu0: dict[str, float], cpu1: dict[str, float], keyframes_done: float,

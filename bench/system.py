@@ -39,7 +39,7 @@ from typing import Any
 import numpy as np
 
 from bench.report import write_report
-from bench.scaling import stat_cpu_s
+from bench.scaling import stat_cpu_s, workers_cpu_s
 from protocol.codec import DecodeError, decode, encode
 from protocol.keys import Keys
 from protocol.messages import FrameHeader, GraphDelta, OracleFrame, SourceKind, Status, rows
@@ -450,16 +450,20 @@ def _keyframes_done(diff: Any) -> float:
             + diff("work_jobs_done_locally", 0.0))
 
 
+LOCAL_WORKER_MODULE = "mapper.work.local"
+"""What the command line of the mapper's local worker processes runs (``python -m mapper.work.local``)."""
+
+
 def role_clock(stack: Any, mapper_pid: int) -> Any:
     """CPU clocks of the stack's roles (:class:`bench.scaling.RoleClock`): mapper, router, each worker (the mapper's
-    local workers too, as ``mapper-local<i>``), this process."""
-    from bench.scaling import RoleClock, child_pids
+    local workers too, as ``mapper-local<i>``: looked up at each sample, they start after the mapper is up), this
+    process."""
+    from bench.scaling import ChildClock, RoleClock
 
     router = next((c.pid for c in stack.children if c.spec.command == "router"), None)
     workers = {(c.spec.node_id or c.spec.name): c.pid for c in stack.children
                if c.spec.command == "worker" and c.pid is not None}
-    workers.update({f"mapper-local{i}": pid for i, pid in enumerate(child_pids(mapper_pid))})
-    return RoleClock(mapper_pid, router, workers)
+    return RoleClock(mapper_pid, router, workers, local=ChildClock(mapper_pid, "mapper-local", LOCAL_WORKER_MODULE))
 
 
 def phase_model(diff: Any, roles0: dict[str, float], roles1: dict[str, float], phase: dict[str, Any],
@@ -515,7 +519,6 @@ def _run_stack(cams: list[CameraFrames], fps: float, phase_s: float, warmup_s: f
         mapper_pid = next(c.pid for c in stack.children if c.spec.name == "mapper")
         assert mapper_pid is not None
         clock = role_clock(stack, mapper_pid)
-        worker_pids = list(clock.workers.values())
         session = open_session(ZenohSettings(mode="client", connect=[endpoint]))
         watch = GraphWatch(session, keys)
         players = [CameraPlayer(session, keys, cam, fps) for cam in cams]
@@ -531,14 +534,12 @@ def _run_stack(cams: list[CameraFrames], fps: float, phase_s: float, warmup_s: f
             watch.take()
             sent0 = sum(p.sent for p in players)
             cpu0, t0 = proc_cpu_s(mapper_pid), time.monotonic()
-            wcpu0 = sum(proc_cpu_s(pid) for pid in worker_pids)
             self_cpu0 = proc_cpu_s(os.getpid())
             roles0 = clock.sample()
             status0 = watch.take()[2]
             time.sleep(phase_s)
             dt = time.monotonic() - t0
             cpu1, sent1 = proc_cpu_s(mapper_pid), sum(p.sent for p in players)
-            wcpu1 = sum(proc_cpu_s(pid) for pid in worker_pids)
             self_cpu1 = proc_cpu_s(os.getpid())
             roles1 = clock.sample()
             lat, n_deltas, status1 = watch.take()
@@ -569,7 +570,7 @@ def _run_stack(cams: list[CameraFrames], fps: float, phase_s: float, warmup_s: f
                 "query_p50_ms": _pct(qlat, 50), "query_p99_ms": _pct(qlat, 99),
                 "queries": len(qlat), "query_failures": sum(c.failures for c in cons),
                 "mapper_cpu_cores": (cpu1 - cpu0) / dt,
-                "workers_cpu_cores": (wcpu1 - wcpu0) / dt,
+                "workers_cpu_cores": workers_cpu_s(roles0, roles1) / dt,  # the mapper's local workers too
                 **work_model(diff, watch.worker_status()),
                 "bench_cpu_cores": (self_cpu1 - self_cpu0) / dt,  # cameras + consumers share the machine
                 "mapper_rss_mb": mem["rss_mb"], "mapper_peak_rss_mb": mem["peak_rss_mb"],

@@ -9,7 +9,7 @@ import time
 
 import pytest
 
-from bench.scaling import RoleClock, curve, model_inputs, predict, role_costs, thread_cpu_s
+from bench.scaling import ChildClock, RoleClock, curve, model_inputs, predict, role_costs, thread_cpu_s, workers_cpu_s
 
 
 def test_thread_cpu_splits_main_thread_from_the_others() -> None:
@@ -76,3 +76,56 @@ def test_role_clock_samples_live_processes() -> None:
     assert set(s) == {"mapper_main", "mapper_threads", "cameras", "worker.w0"}
     assert s["worker.w0"] >= s["mapper_main"] > 0
     assert RoleClock(os.getpid(), 2**22 + 12345, {}).sample()["router"] == 0.0  # a process that ended
+
+
+def test_child_clock_finds_children_when_they_exist_and_keeps_the_cpu_of_those_that_ended(
+        monkeypatch: pytest.MonkeyPatch) -> None:
+    live: list[int] = []
+    cpu = {101: 1.0, 202: 0.5, 303: 9.0}
+    lines = {101: "python -m mapper.work.local", 202: "python -m mapper.work.local", 303: "python -c tracker"}
+    clock = ChildClock(1, "local", None, children=lambda parent: list(live), cpu=cpu.get)
+    assert clock.sample() == {}  # the mapper has not started its worker yet
+    live.append(101)
+    assert clock.sample() == {"local0": 1.0}
+    cpu[101] = 2.5
+    assert clock.sample() == {"local0": 2.5}
+    live.remove(101)  # it ended (and was restarted as 202)
+    live.append(202)
+    assert clock.sample() == {"local0": 2.5, "local1": 0.5}
+    from bench import scaling
+
+    monkeypatch.setattr(scaling, "cmdline", lines.get)
+    only = ChildClock(1, "w", "mapper.work.local", children=lambda parent: [101, 303], cpu=cpu.get)
+    assert only.sample() == {"w0": 2.5}  # not the child that is no worker
+
+
+def test_the_mappers_local_worker_started_after_the_clock_is_in_the_workers_cpu() -> None:
+    """Issue 41: bench system looked the local worker up once, before the mapper had started it: workers_cpu_cores
+    read 0 and cpu_s_per_kf.workers / .all left it out. This process plays the mapper; its child, started after the
+    clock, runs as ``mapper.work.local`` (argv[0]) and spins."""
+    import subprocess
+    import time
+    from types import SimpleNamespace
+
+    from bench.system import role_clock
+
+    clock = role_clock(SimpleNamespace(children=[]), os.getpid())
+    s0 = clock.sample()
+    assert not [k for k in s0 if k.startswith("worker.")]
+    child = subprocess.Popen(["bash", "-c", "exec -a mapper.work.local bash -c 'while :; do :; done'"])
+    try:
+        deadline = time.monotonic() + 10
+        while time.monotonic() < deadline and "worker.mapper-local0" not in (s1 := clock.sample()):
+            time.sleep(0.05)
+        while time.monotonic() < deadline and s1.get("worker.mapper-local0", 0.0) < 0.05:
+            time.sleep(0.05)
+            s1 = clock.sample()
+    finally:
+        child.kill()
+        child.wait()
+    assert s1["worker.mapper-local0"] >= 0.05
+    costs = role_costs(s0, s1, 1.0, {})
+    assert costs["cpu_s_per_kf.workers"] == pytest.approx(s1["worker.mapper-local0"])
+    assert costs["cpu_s_per_kf.all"] >= s1["worker.mapper-local0"]  # type: ignore[operator]
+    assert workers_cpu_s(s0, s1) == pytest.approx(s1["worker.mapper-local0"])
+    assert clock.sample()["worker.mapper-local0"] >= s1["worker.mapper-local0"]  # ended: its CPU kept, not 0
