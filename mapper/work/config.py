@@ -108,4 +108,10 @@ class WorkerConfig(BaseModel):
         "ms; counter heap_releases): a job's large temporary arrays otherwise leave the resting RSS creeping up "
         "(a 30-minute soak: 523 -> 865 MiB, 635 MiB right after one release)",
     )
+    warm_up: bool = Field(
+        default=True,
+        description="before declaring itself alive, run one small synthetic keyframe (mapper.work.compute.warm_up) "
+        "with the default mapper settings, so the first real job does not also pay the process's one-time costs "
+        "(JIT kernels, lazy imports, first calls: ~1-4 s on 2 cores); meanwhile the mapper maps keyframes itself",
+    )
     log_level: Literal["DEBUG", "INFO", "WARNING", "ERROR"] = Field(default="INFO", description="log level")

@@ -57,20 +57,38 @@ class Backends:
         self.parts: tuple[Any, Any, Any] | None = None
 
     def get(self, job: WorkJob) -> tuple[MapperCoreConfig, tuple[Any, Any, Any]]:
-        if self.digest != job.config_digest or self.config is None or self.parts is None:
+        return self.of(job.config_digest, job.core_config)
+
+    def of(self, digest: str, settings: dict[str, Any]) -> tuple[MapperCoreConfig, tuple[Any, Any, Any]]:
+        """The backends of the core settings ``settings`` (digest ``digest``), built unless they are the last ones."""
+        if self.digest != digest or self.config is None or self.parts is None:
             from mapper.config import MapperCoreConfig
             from mapper.geometry.registry import make_reconstructor
             from mapper.perception.registry import make_embedder, make_segmenter
 
-            cfg = MapperCoreConfig.model_validate(job.core_config)
+            cfg = MapperCoreConfig.model_validate(settings)
             p = cfg.perception
             self.parts = (make_reconstructor(cfg.geometry.backend, cfg.geometry.options),
                           make_segmenter(p.segmenter, p.segmenter_options),
                           make_embedder(p.embedder, p.embedder_options))
-            self.config, self.digest = cfg, job.config_digest
-            log.info("backends for settings %s: geometry=%s segmenter=%s embedder=%s", job.config_digest[:8],
+            self.config, self.digest = cfg, digest
+            log.info("backends for settings %s: geometry=%s segmenter=%s embedder=%s", digest[:8],
                      cfg.geometry.backend, p.segmenter, p.embedder)
         return self.config, self.parts
+
+    def warm_up(self) -> float:
+        """Build the backends of the default mapper settings (kept: a mapper with those settings finds them built)
+        and run one synthetic keyframe through them (:func:`mapper.work.compute.warm_up`); seconds, NaN if it
+        failed (the first job then pays what the warm-up would have)."""
+        from mapper.config import MapperCoreConfig
+        from mapper.work.compute import warm_up
+        from mapper.work.jobs import core_settings
+
+        try:
+            cfg, parts = self.of(*reversed(core_settings(MapperCoreConfig())))
+        except Exception:  # noqa: BLE001 - a failed warm-up only leaves its cost to the first job
+            return float("nan")
+        return warm_up(*parts, cfg)
 
 
 class WorkerNode(Process):
@@ -194,6 +212,9 @@ class WorkerNode(Process):
             "ack": node.publisher(self.keys.work_ack(cfg.id), message=WorkAck),
             "result": node.publisher(self.keys.work_result(cfg.id), message=WorkResult),
         }
+        if cfg.warm_up:  # before the token: while it warms, the mapper maps keyframes itself
+            log.info("worker %s: warming up (one synthetic keyframe)", cfg.id)
+            log.info("worker %s: warm-up took %.1f s", cfg.id, self.backends.warm_up())
         node.subscribe(self.keys.work_job(cfg.id), self._on_job)
         node.alive()  # once it can take jobs: the mapper sends to live workers only
         node.status(extra=self._extra)
