@@ -9,7 +9,7 @@ import pytest
 
 from bench.rooms import score_rooms, synthetic_map
 from mapper.rooms import RoomMapper
-from tests.mapper.test_rooms import NODES, node, two_rooms
+from tests.support.floorplans import NODES, node, two_rooms
 
 
 def _room(name: str, kind: str, x0: float, x1: float) -> SimpleNamespace:
