@@ -657,6 +657,7 @@ class MapperCore:
             layer = self.rooms.update(pts, nodes, counts)
             self._room_message = room_message(layer, self.rooms.in_room, version, epoch, time.time_ns())
             self._rooms_built_at_keyframe = self.counters.get("keyframes", 0.0)
+            self.counters["rooms"] = float(len(layer.rooms))
             return layer
 
     def point_map(self, max_points: int | None = None) -> PointMap:
