@@ -10,7 +10,11 @@ shape) counts as ``header_errors``. Every kind of bad input is logged as a WARNI
 
 Memory is bounded: compressed frames wait in a newest-frames ring per source (``ring_depth``, under
 ``limits.max_buffered_frame_bytes``), plus the same bound for frames waiting for their ORACLE sample, and
-frames are decoded one at a time, just before processing, under ``limits.decode_budget_pixels``.
+frames are decoded one at a time, just before processing, under ``limits.decode_budget_pixels``. Each is decoded
+at its working size (:func:`mapper.intake.working_reduction`: 1/1, 1/2, 1/4 or 1/8 of its size, at most
+``limits.max_working_pixels``; libjpeg's DCT scaling, in at most ``limits.max_decode_bytes``), its intrinsics
+scaled alike (:meth:`protocol.messages.Intrinsics.reduced`) and its ORACLE images brought to the same pixel grid
+(:func:`reduce_nearest`).
 
 A header's ``pose_covariance`` becomes the view's prior accuracy (:class:`PriorAccuracy`); a covariance that
 is not one (a negative or non-finite variance) is counted (``frames_bad_covariance``) and the frame goes on
@@ -29,12 +33,12 @@ import numpy as np
 
 from mapper.config import MapperConfig
 from mapper.geometry.contract import OracleData, View
-from mapper.intake import IMAGE_REASONS, frame_problem
+from mapper.intake import IMAGE_REASONS, frame_problem, working_reduction
 from protocol.codec import DecodeError
-from protocol.jpeg import JpegError, decode_jpeg
+from protocol.jpeg import JpegError, decode_jpeg, jpeg_info, reduced_size
 from protocol.keys import Keys
 from protocol.messages import OracleFrame
-from protocol.oracle import decode_u16_png, png_to_depth
+from protocol.oracle import PNG_DECODE_BYTES_PER_PIXEL, decode_u16_png
 from protocol.poses import PoseError, check_pose, pose_accuracy
 from protocol.ratelog import RateLimitedLog
 from protocol.transport import Counters, Frame, LatestSlots, decode_frame_sample, decode_message_sample
@@ -53,12 +57,37 @@ def needs_oracle(config: MapperConfig) -> bool:
             or p.embedder in ORACLE_BACKENDS)
 
 
-def oracle_data(msg: OracleFrame, frame_size: tuple[int, int] | None = None) -> OracleData:
+def reduce_nearest(image: np.ndarray, reduction: int) -> np.ndarray:
+    """``image`` (H, W, ...) on the grid of its frame decoded at 1/``reduction`` (:func:`protocol.jpeg.reduced_size`):
+    each output pixel takes the input pixel nearest the centre of its ``reduction`` x ``reduction`` block (an
+    instance id stays an id; a partial block at the right or bottom edge takes its nearest pixel inside)."""
+    if reduction == 1:
+        return image
+    h, w = image.shape[:2]
+    ow, oh = reduced_size((w, h), reduction)
+    rows = np.minimum(np.arange(oh) * reduction + reduction // 2, h - 1)
+    cols = np.minimum(np.arange(ow) * reduction + reduction // 2, w - 1)
+    return image[rows[:, None], cols[None, :]]
+
+
+def oracle_data(msg: OracleFrame, frame_size: tuple[int, int] | None = None, reduction: int = 1,
+                max_decode_bytes: int | None = None) -> OracleData:
     """Decode an OracleFrame's PNGs (raises JpegError on corrupt images, and with ``frame_size`` (width, height)
-    on images of another size than their frame, before any pixel is decoded)."""
-    depth = png_to_depth(msg.depth_png, frame_size) if msg.depth_png is not None else None
-    ids = (decode_u16_png(msg.ids_png, expected_size=frame_size).astype(np.int32)
-           if msg.ids_png is not None else None)
+    on images of another size than their frame, before any pixel is decoded), brought to the frame's grid at
+    1/``reduction`` (:func:`reduce_nearest`). A PNG cannot be decoded reduced: one whose full-size decode needs more
+    than ``max_decode_bytes`` is refused unread."""
+
+    def u16(data: bytes) -> np.ndarray:
+        if max_decode_bytes is not None and frame_size is not None:
+            need = PNG_DECODE_BYTES_PER_PIXEL * frame_size[0] * frame_size[1]
+            if need > max_decode_bytes:
+                raise JpegError(f"an ORACLE PNG of {frame_size[0]}x{frame_size[1]} needs {need / 2**20:.0f} MiB to "
+                                f"decode: over {max_decode_bytes / 2**20:.0f} MiB")
+        return reduce_nearest(decode_u16_png(data, expected_size=frame_size), reduction)
+
+    # Reduced before conversion: the full-size image is never held as float32 or int32.
+    depth = u16(msg.depth_png).astype(np.float32) / 1000.0 if msg.depth_png is not None else None
+    ids = u16(msg.ids_png).astype(np.int32) if msg.ids_png is not None else None
     if depth is None:
         depth = np.zeros(ids.shape if ids is not None else (1, 1), dtype=np.float32)
     labels: dict[int, str] = {}
@@ -245,20 +274,39 @@ class FrameIntake:
         with self._oracle_lock:
             return self._oracle.pop((frame.header.source_id, frame.header.seq), None)
 
+    def reduction(self, frame: Frame) -> int:
+        """The reduction ``frame`` is decoded and worked at (:func:`mapper.intake.working_reduction`; 1 for a JPEG
+        whose headers do not parse: its decode fails anyway)."""
+        try:
+            r = working_reduction(jpeg_info(frame.jpeg), self.config.limits)
+        except JpegError:
+            return 1
+        return 8 if r is None else r  # None was refused on arrival; 8 keeps the budget's bound
+
+    def working_pixels(self, frame: Frame) -> int:
+        """Pixels of ``frame`` decoded at its working size: what it holds of the decode budget."""
+        w, h = reduced_size((frame.header.width, frame.header.height), self.reduction(frame))
+        return w * h
+
     def decode(self, frame: Frame) -> np.ndarray | None:
-        """The frame's RGB image (its pixels are held in ``decode_budget`` until :meth:`release`), or None."""
+        """The frame's RGB image at its working size (its pixels are held in ``decode_budget`` until
+        :meth:`release`), or None."""
         h = frame.header
         lim = self.config.limits
-        if not self.decode_budget.acquire(h.width * h.height):
-            self.refuse("frames_over_decode_budget", "no decode budget for %s#%d (%dx%d)",
-                         h.source_id, h.seq, h.width, h.height)
+        reduction = self.reduction(frame)
+        ow, oh = reduced_size((h.width, h.height), reduction)
+        if not self.decode_budget.acquire(ow * oh):
+            self.refuse("frames_over_decode_budget", "no decode budget for %s#%d (%dx%d at 1/%d)",
+                         h.source_id, h.seq, h.width, h.height, reduction)
             return None
         try:
-            # The size is checked against the header before any pixel is decoded (no memory bombs).
+            # The size is checked against the header, and the decode's memory against its limit, before any
+            # pixel is decoded (no memory bombs).
             rgb = decode_jpeg(frame.jpeg, expected_size=(h.width, h.height), max_pixels=lim.max_frame_pixels,
-                              min_bytes_per_mpixel=lim.min_jpeg_bytes_per_mpixel)
-            if rgb.shape[:2] != (h.height, h.width):
-                raise JpegError(f"JPEG is {rgb.shape}, header says {h.width}x{h.height}")
+                              min_bytes_per_mpixel=lim.min_jpeg_bytes_per_mpixel, reduction=reduction,
+                              max_decode_bytes=lim.max_decode_bytes)
+            if rgb.shape[:2] != (oh, ow):
+                raise JpegError(f"JPEG is {rgb.shape}, header says {h.width}x{h.height} (at 1/{reduction}: {ow}x{oh})")
         except JpegError as e:
             self.release(frame)
             self.refuse("decode_errors", "bad JPEG from %s#%d: %s", h.source_id, h.seq, e)
@@ -266,21 +314,26 @@ class FrameIntake:
         return rgb
 
     def release(self, frame: Frame) -> None:
-        self.decode_budget.release(frame.header.width * frame.header.height)
+        self.decode_budget.release(self.working_pixels(frame))
 
     def view(self, frame: Frame, rgb: np.ndarray, oracle: OracleFrame | None) -> View | None:
+        """The :class:`View` of ``frame`` decoded as ``rgb`` (:meth:`decode`: at its working size, to which its
+        intrinsics and ORACLE images are brought), or None (counted)."""
         h = frame.header
+        reduction = self.reduction(frame)
         try:
             accuracy = self.accuracy.fields(h.source_id, h.pose_covariance) if h.T_world_cam is not None else {}
         except PoseError as e:
             self.refuse("frames_bad_covariance", "ignored the pose covariance of %s#%d: %s", h.source_id, h.seq, e)
             accuracy = {}
         try:
-            od = oracle_data(oracle, (h.width, h.height)) if oracle is not None else None
+            od = (oracle_data(oracle, (h.width, h.height), reduction, self.config.limits.max_decode_bytes)
+                  if oracle is not None else None)
+            intrinsics = h.intrinsics.reduced(reduction) if h.intrinsics is not None else None
             return View(
                 image=rgb,
                 source_id=h.source_id,
-                intrinsics=h.intrinsics,
+                intrinsics=intrinsics,
                 T_world_cam=None if h.T_world_cam is None else np.asarray(h.T_world_cam),
                 pose_trusted=h.pose_trusted,
                 stamp_ns=h.stamp_ns,

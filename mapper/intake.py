@@ -5,8 +5,10 @@ A refused frame is counted under its reason (the counter names below) and logged
 it never takes a ring slot, is never decoded and never reaches the graph.
 
 ``frame_problem`` runs on each frame sample as it arrives (header decoded, JPEG bytes not): compressed size,
-pixel count, the JPEG's own start-of-frame size against the header, compressed bytes per pixel, intrinsics and
-the pose against the site's bounds. ``view_problem`` runs the checks that apply to an in-process :class:`View`
+pixel count, the JPEG's own start-of-frame size against the header, compressed bytes per pixel, the size it
+will be worked at (:func:`working_reduction`: the JPEG is decoded at 1/1, 1/2, 1/4 or 1/8 of its size, the
+least reduction that brings it to ``max_working_pixels``) and the memory decoding it takes, intrinsics and the
+pose against the site's bounds. ``view_problem`` runs the checks that apply to an in-process :class:`View`
 at :meth:`mapper.core.MapperCore.ingest` (benchmarks and the explorer feed the core directly).
 
 Counter names (the ``reason`` returned): ``frames_too_large``, ``frames_size_mismatch``, ``frames_implausible_jpeg``,
@@ -22,7 +24,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, model_validator
 
-from protocol.jpeg import MIN_BYTES_PER_MPIXEL_FLOOR, jpeg_problem
+from protocol.jpeg import MIN_BYTES_PER_MPIXEL_FLOOR, JpegInfo, jpeg_info, jpeg_problem
 from protocol.messages import FrameHeader, Intrinsics
 
 if TYPE_CHECKING:
@@ -44,10 +46,11 @@ IMAGE_REASONS = frozenset(_JPEG_REASONS.values())
 
 
 class InputLimits(BaseModel):
-    """Limits on what peers may send the mapper. Memory of the frame path (README, "Memory bound"):
-    compressed frames buffered <= ``2 * max_buffered_frame_bytes`` (receive rings + frames waiting for their
-    ORACLE sample) and decoded pixels in flight <= ``decode_budget_pixels`` (about 9 bytes each while libjpeg
-    decodes a progressive JPEG, 3 once decoded)."""
+    """Limits on what peers may send the mapper. Memory of the frame path (README, "Hostile input and the
+    mapper's memory bound"): compressed frames buffered <= ``2 * max_buffered_frame_bytes`` (receive rings +
+    frames waiting for their ORACLE sample); one frame decoded at a time, in at most ``max_decode_bytes`` while
+    libjpeg decodes it, to at most ``max_working_pixels`` (3 bytes each once decoded, also the size of every
+    keyframe kept); decoded pixels in flight <= ``decode_budget_pixels``."""
 
     model_config = ConfigDict(extra="forbid")
     max_frame_bytes: int = Field(
@@ -56,9 +59,27 @@ class InputLimits(BaseModel):
         "(frames_too_large). 8 MiB holds a 16 MP JPEG at quality 95",
     )
     max_frame_pixels: int = Field(
-        default=4096 * 4096, ge=1,
+        default=8192 * 8192, ge=1,
         description="largest frame (width x height, from its header and its JPEG) accepted (frames_too_large); "
-        "default 16.8 MP: 4096x4096, more than a 12 MP phone camera or 4K video",
+        "default 67 MP: 8192x8192, more than a 48 MP phone camera or 8K video. What a frame costs is bounded by "
+        "max_working_pixels and max_decode_bytes, not by this",
+    )
+    max_working_pixels: int = Field(
+        default=1920 * 1080, ge=64,
+        description="pixels a frame is worked at (decoded, kept as a keyframe, reconstructed): a larger frame is "
+        "decoded at 1/2, 1/4 or 1/8 of its size, the least of these that brings it to this many pixels or fewer "
+        "(libjpeg DCT scaling: about the cost of decoding the smaller image; its intrinsics are scaled alike); "
+        "a frame over it even at 1/8 is refused (frames_too_large). Default: Full HD (1920x1080 is worked at "
+        "full size, 4000x3000 at 1/4)",
+    )
+    max_decode_bytes: int = Field(
+        default=256 * 1024 * 1024, ge=1024 * 1024,
+        description="memory libjpeg may take to decode one frame at its working size, from its headers: about 9 "
+        "bytes per decoded pixel, plus, for a progressive JPEG (or one whose first scan lacks a component), 2 "
+        "bytes per DCT coefficient of the whole full-size image (3 bytes a pixel at 4:2:0, 6 at 4:4:4) whatever "
+        "the reduction; over it the frame is refused (frames_too_large). 256 MiB: a progressive 8000x8000 "
+        "4:2:0 frame (183 MiB of coefficients) passes, a progressive 4:4:4 one (366 MiB) does not; a baseline "
+        "frame of any accepted size needs at most 9 x max_working_pixels bytes (18 MiB)",
     )
     min_jpeg_bytes_per_mpixel: float = Field(
         default=1000.0, ge=0.0,
@@ -73,8 +94,9 @@ class InputLimits(BaseModel):
     )
     decode_budget_pixels: int = Field(
         default=4096 * 4096, ge=1,
-        description="decoded pixels in flight across all sources (frames decoded and not yet processed); frames "
-        "are decoded one at a time just before processing, so this is at least max_frame_pixels",
+        description="decoded pixels (at the working size) in flight across all sources (frames decoded and not yet "
+        "processed); frames are decoded one at a time just before processing, so this is at least "
+        "max_working_pixels",
     )
     min_hfov_deg: float = Field(
         default=5.0, gt=0.0, lt=180.0,
@@ -107,8 +129,12 @@ class InputLimits(BaseModel):
     def _consistent(self) -> InputLimits:
         if self.min_hfov_deg >= self.max_hfov_deg:
             raise ValueError("min_hfov_deg must be below max_hfov_deg")
-        if self.decode_budget_pixels < self.max_frame_pixels:
-            raise ValueError("decode_budget_pixels must be at least max_frame_pixels")
+        if self.decode_budget_pixels < self.max_working_pixels:
+            raise ValueError("decode_budget_pixels must be at least max_working_pixels")
+        if self.max_working_pixels > self.max_frame_pixels:
+            raise ValueError("max_working_pixels must be at most max_frame_pixels")
+        if self.max_decode_bytes < 9 * self.max_working_pixels:
+            raise ValueError("max_decode_bytes must be at least 9 bytes per working pixel (9 x max_working_pixels)")
         if self.max_buffered_frame_bytes < self.max_frame_bytes:
             raise ValueError("max_buffered_frame_bytes must be at least max_frame_bytes")
         if not all(math.isfinite(v) for v in (*self.site_min_m, *self.site_max_m)) or any(
@@ -164,9 +190,15 @@ def pose_problem(T_world_cam: object, limits: InputLimits) -> Problem | None:
     return None
 
 
+def working_reduction(info: JpegInfo, limits: InputLimits) -> int | None:
+    """The reduction (1, 2, 4 or 8) a frame with JPEG ``info`` is decoded and worked at: the least that brings it
+    to ``limits.max_working_pixels`` or fewer. None: over it even at 1/8 (or lossless, which cannot be reduced)."""
+    return info.reduction_for(limits.max_working_pixels)
+
+
 def frame_problem(header: FrameHeader, jpeg: bytes, limits: InputLimits) -> Problem | None:
     """Why a received frame (decoded header, undecoded JPEG bytes) must be refused, or None. Nothing here
-    allocates pixel memory: the JPEG's size is read from its start-of-frame segment."""
+    allocates pixel memory: the JPEG's size, sampling and scans are read from its headers."""
     w, h = header.width, header.height
     if w * h > limits.max_frame_pixels:
         return "frames_too_large", f"frame header claims {w}x{h} > {limits.max_frame_pixels} pixels"
@@ -174,6 +206,16 @@ def frame_problem(header: FrameHeader, jpeg: bytes, limits: InputLimits) -> Prob
                       limits.max_frame_bytes)
     if jp is not None:
         return _JPEG_REASONS[jp[0]], jp[1]
+    reduction = working_reduction(jpeg_info(jpeg), limits)  # the headers parsed above: no JpegError
+    if reduction is None:
+        return "frames_too_large", (
+            f"a {w}x{h} frame is over limits.max_working_pixels ({limits.max_working_pixels}) even decoded at "
+            "its smallest (1/8; lossless JPEGs: 1/1)"
+        )
+    jp = jpeg_problem(jpeg, reduction=reduction, max_pixels=limits.max_frame_pixels,
+                      max_bytes=limits.max_frame_bytes, max_decode_bytes=limits.max_decode_bytes)
+    if jp is not None:
+        return _JPEG_REASONS[jp[0]], jp[1] + " (limits.max_decode_bytes)"
     if header.intrinsics is not None:
         p = intrinsics_problem(header.intrinsics, w, h, limits)
         if p is not None:
@@ -184,10 +226,14 @@ def frame_problem(header: FrameHeader, jpeg: bytes, limits: InputLimits) -> Prob
 
 
 def view_problem(view: View, limits: InputLimits) -> Problem | None:
-    """The checks of :func:`frame_problem` that apply to an in-process view (decoded image, no JPEG)."""
+    """The checks of :func:`frame_problem` that apply to an in-process view (decoded image, no JPEG): its image is
+    what the mapper works at, so it must be within ``max_working_pixels``."""
     h, w = view.image.shape[:2]
-    if w * h > limits.max_frame_pixels:
-        return "frames_too_large", f"view of {w}x{h} > {limits.max_frame_pixels} pixels"
+    if w * h > limits.max_working_pixels:
+        return "frames_too_large", (
+            f"view of {w}x{h} > limits.max_working_pixels ({limits.max_working_pixels}): reduce it first "
+            "(argus mapper decodes frames reduced)"
+        )
     if view.intrinsics is not None:
         p = intrinsics_problem(view.intrinsics, w, h, limits)
         if p is not None:

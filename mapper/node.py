@@ -208,7 +208,8 @@ class MapperNode(Process):
         if frame.header.source_kind == "robot":
             self._robots.put(view.source_id, True)
         if self.offloader is not None:
-            self.offloader.remember(view.key, frame.jpeg, frame.received_ns)  # answers workers' fetches
+            # Answers workers' fetches; a worker decodes it at the mapper's working size.
+            self.offloader.remember(view.key, frame.jpeg, frame.received_ns, self.intake.reduction(frame))
         delta = self.core.ingest(view)
         if self.offloader is not None:
             self.offloader.prune(self.core.views_to_keep())

@@ -175,7 +175,20 @@ class Intrinsics(Message):
 
     def scaled(self, width: int, height: int) -> Intrinsics:
         """The same camera at another resolution."""
-        sx, sy = width / self.width, height / self.height
+        return self._resampled(width, height, width / self.width, height / self.height)
+
+    def reduced(self, reduction: int) -> Intrinsics:
+        """The same camera decoded at 1/``reduction`` (JPEG DCT scaling, ``protocol.jpeg.decode_jpeg``): the image
+        is ``ceil(width / reduction)`` x ``ceil(height / reduction)``, each pixel a ``reduction`` x ``reduction``
+        block of the full image (a partial block at the right and bottom edges), so the scale is exactly
+        1/``reduction`` even where the size does not divide."""
+        if reduction < 1:
+            raise ValueError(f"reduction must be >= 1, got {reduction}")
+        s = 1.0 / reduction
+        return self._resampled(-(-self.width // reduction), -(-self.height // reduction), s, s)
+
+    def _resampled(self, width: int, height: int, sx: float, sy: float) -> Intrinsics:
+        # Pixel centres: u' + 0.5 = (u + 0.5) * s.
         return Intrinsics(
             width=width,
             height=height,
@@ -187,6 +200,8 @@ class Intrinsics(Message):
 
 
 SourceKind = Literal["fixed", "robot"]
+Reduction = Literal[1, 2, 4, 8]
+"""A JPEG decoded at 1/this of its size (libjpeg DCT scaling: ``protocol.jpeg.REDUCTIONS``)."""
 
 
 class FrameHeader(Message):
@@ -484,11 +499,19 @@ class WorkFrame(Message):
     """
 
     KIND: ClassVar[str] = "work_frame"
+    # 1.1: reduction (the size its JPEG is decoded at).
+    SCHEMA: ClassVar[tuple[int, int]] = (1, 1)
     source_id: str = Field(min_length=1, max_length=128, description="camera or robot id")
     seq: int = Field(ge=0, description="the frame's sequence number within its source")
     stamp_ns: int = Field(default=0, ge=0, description="capture time, ns since the epoch")
-    width: int = Field(gt=0, le=65535, description="image width, pixels")
-    height: int = Field(gt=0, le=65535, description="image height, pixels")
+    width: int = Field(gt=0, le=65535, description="image width, pixels: the JPEG decoded at 1/reduction")
+    height: int = Field(gt=0, le=65535, description="image height, pixels: the JPEG decoded at 1/reduction")
+    reduction: Reduction = Field(
+        default=1,
+        description="the mapper decoded the frame's JPEG at 1/reduction of its size (libjpeg DCT scaling; its "
+        "limits.max_working_pixels) and so must the worker: width x height is then ceil(JPEG size / reduction) and "
+        "the intrinsics are the reduced image's (schema 1.1)",
+    )
     intrinsics: Intrinsics | None = Field(default=None, description="null: an uncalibrated camera")
     T_world_cam: Mat4 | None = Field(
         default=None, description="the pose the mapper holds for this view (prior or registered); null: unknown"
@@ -515,7 +538,9 @@ class WorkJob(Message):
 
     KIND: ClassVar[str] = "work_job"
     # 1.1: its frames carry the declared pose accuracy (pose_covariance, prior_rel_*).
-    SCHEMA: ClassVar[tuple[int, int]] = (1, 1)
+    # 1.2: its frames carry the reduction their JPEGs are decoded at (a worker of 1.1 fails such a job: the image it
+    # decodes is not the frame's size; the mapper then re-issues it and at last does it itself).
+    SCHEMA: ClassVar[tuple[int, int]] = (1, 2)
     job_id: str = Field(min_length=1, max_length=300, description="the keyframe id: <source_id>#<seq>")
     attempt: int = Field(ge=1, description="1 for the first issue, +1 for each re-issue")
     window: list[WorkFrame] = Field(min_length=1, max_length=64, description="the views reconstructed together")

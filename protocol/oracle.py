@@ -12,6 +12,8 @@ from protocol.jpeg import MAX_PIXELS, JpegError
 from protocol.messages import OracleFrame, rows
 
 _PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+PNG_DECODE_BYTES_PER_PIXEL = 4
+"""Peak bytes per pixel while OpenCV decodes a 16-bit PNG (the image and a copy of it, measured)."""
 
 
 def encode_u16_png(image: np.ndarray) -> bytes:

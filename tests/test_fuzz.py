@@ -285,7 +285,8 @@ def check_frame(args: tuple[str, bytes, bytes | None]) -> None:
         rgb = node.intake.decode(f)
         if rgb is not None:
             node.intake.release(f)
-            assert rgb.shape == (f.header.height, f.header.width, 3)
+            assert rgb.shape[2] == 3 and rgb.shape[0] * rgb.shape[1] == node.intake.working_pixels(f)
+            assert rgb.shape[0] * rgb.shape[1] <= node.config.limits.max_working_pixels
     assert node.intake.decode_budget.in_flight == 0
 
 

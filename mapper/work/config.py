@@ -9,6 +9,7 @@ from typing import Literal
 from pydantic import BaseModel, ConfigDict, Field
 
 from mapper.work.dispatch import DispatchConfig
+from protocol.jpeg import MAX_DECODE_BYTES
 from protocol.keys import SiteName
 from protocol.session import ZenohSettings, default_site
 
@@ -100,7 +101,16 @@ class WorkerConfig(BaseModel):
     max_job_bytes: int = Field(default=16 * 1024 * 1024, ge=1024, description="larger job samples are refused")
     fetch_timeout_s: float = Field(default=5.0, gt=0.0, description="wait for a source keyframe's JPEG")
     image_cache: int = Field(default=64, ge=0, description="decoded source keyframes kept (they recur across jobs)")
-    max_image_pixels: int = Field(default=4096 * 4096, ge=1, description="largest image decoded")
+    max_image_pixels: int = Field(
+        default=4096 * 4096, ge=1,
+        description="largest image decoded (at the size the job names: the mapper's working size, its JPEG "
+        "decoded at 1/1, 1/2, 1/4 or 1/8)",
+    )
+    max_decode_bytes: int = Field(
+        default=MAX_DECODE_BYTES, ge=1024 * 1024,
+        description="memory libjpeg may take to decode one JPEG of a job (protocol.jpeg.JpegInfo.decode_bytes, "
+        "from its headers: the decoded image, and a progressive JPEG's DCT coefficients); over it the job fails",
+    )
     status_period_s: float = Field(default=1.0, gt=0.0, description="status publishing period")
     release_heap_after_job: bool = Field(
         default=True,

@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import hashlib
 import json
-from typing import Any
+from typing import Any, cast
 
 import cv2
 import numpy as np
@@ -28,7 +28,7 @@ from mapper.geometry.singleview import depth_to_world
 from mapper.perception.base import Detection, ViewGeometry
 from mapper.work.compute import KeyframeProducts
 from protocol.jpeg import JpegError
-from protocol.messages import Intrinsics, WorkDetection, WorkFrame, WorkJob, WorkResult
+from protocol.messages import Intrinsics, Reduction, WorkDetection, WorkFrame, WorkJob, WorkResult
 from protocol.oracle import decode_u16_png, encode_u16_png, png_size
 from protocol.poses import PoseError, check_pose
 
@@ -63,10 +63,11 @@ def core_settings(config: MapperCoreConfig) -> tuple[dict[str, Any], str]:
     return settings, hashlib.sha256(text.encode()).hexdigest()[:32]
 
 
-def frame_of(view: View) -> WorkFrame:
+def frame_of(view: View, reduction: int = 1) -> WorkFrame:
+    """``view`` for a job; its image is its JPEG decoded at 1/``reduction`` (the mapper's working size)."""
     h, w = view.image.shape[:2]
     return WorkFrame(source_id=view.source_id, seq=view.seq, stamp_ns=view.stamp_ns, width=w, height=h,
-                     intrinsics=view.intrinsics,
+                     reduction=cast(Reduction, reduction), intrinsics=view.intrinsics,  # pydantic checks it
                      T_world_cam=None if view.T_world_cam is None else view.T_world_cam.tolist(),
                      pose_trusted=view.pose_trusted,
                      pose_covariance=None if view.pose_covariance is None else view.pose_covariance.tolist(),
@@ -86,9 +87,13 @@ def view_of(frame: WorkFrame, image: np.ndarray) -> View:
 
 
 def make_job(views: list[View], target: int, jpeg: bytes, attempt: int, perception: bool,
-             config: MapperCoreConfig) -> WorkJob:
+             config: MapperCoreConfig, reductions: list[int] | None = None) -> WorkJob:
+    """The job of keyframe ``views[target]`` (its JPEG: ``jpeg``); ``reductions``: each view's JPEG was decoded at
+    1/that (default 1: at full size)."""
     settings, digest = core_settings(config)
-    return WorkJob(job_id=job_id_of(views[target].key), attempt=attempt, window=[frame_of(v) for v in views],
+    scale = reductions or [1] * len(views)
+    return WorkJob(job_id=job_id_of(views[target].key), attempt=attempt,
+                   window=[frame_of(v, r) for v, r in zip(views, scale, strict=True)],
                    target_index=target, jpeg=jpeg, perception=perception, core_config=settings,
                    config_digest=digest)
 

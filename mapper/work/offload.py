@@ -80,6 +80,7 @@ class Offloader:
         self._pending: dict[str, Pending] = {}
         self._jpegs: collections.OrderedDict[tuple[str, int], bytes] = collections.OrderedDict()
         self._received: dict[tuple[str, int], int] = {}  # when each remembered frame reached the mapper (ns)
+        self._reduction: dict[tuple[str, int], int] = {}  # each remembered JPEG was decoded at 1/this
         self._inbox: collections.deque[tuple[str, bytes]] = collections.deque(maxlen=8 * config.max_jobs)
         self._newest: dict[str, int] = {}  # newest seq remembered per source (bounded by the mapper's sources)
         self._session: zenoh.Session | None = None
@@ -148,12 +149,14 @@ class Offloader:
             log.debug("keyframe query %s failed: %s", query.key_expr, e)
 
     # -- the keyframe store ------------------------------------------------------------------------------
-    def remember(self, key: tuple[str, int], jpeg: bytes, received_ns: int | None = None) -> None:
+    def remember(self, key: tuple[str, int], jpeg: bytes, received_ns: int | None = None, reduction: int = 1) -> None:
         """Keep a frame's JPEG while it may become a keyframe (see :meth:`prune`), and when it reached the mapper
-        (``received_ns``, ``time.time_ns()`` of this machine; default now): a job's deadline counts from then."""
+        (``received_ns``, ``time.time_ns()`` of this machine; default now): a job's deadline counts from then.
+        ``reduction``: the mapper decoded it at 1/that (its working size), and so will a worker."""
         with self._lock:
             self._jpegs[key] = jpeg
             self._received[key] = time.time_ns() if received_ns is None else received_ns
+            self._reduction[key] = reduction
             if len(self._newest) > 4096:  # made-up source ids must not grow it without bound
                 self._newest.clear()
             self._newest[key[0]] = max(key[1], self._newest.get(key[0], -1))
@@ -167,6 +170,7 @@ class Offloader:
             for key in [k for k in self._jpegs if k not in keep]:
                 del self._jpegs[key]
                 self._received.pop(key, None)
+                self._reduction.pop(key, None)
         self.counters.set("keyframe_store_jpegs", len(self._jpegs))
 
     # -- the core's hook ----------------------------------------------------------------------------------
@@ -177,11 +181,12 @@ class Offloader:
                 return False
             jpeg = self._jpegs.get(view.key)
             missing = [v.key for v in views if v.key not in self._jpegs]
+            reductions = [self._reduction.get(v.key, 1) for v in views]
         if jpeg is None or missing:
             self.counters.add("offload_missing_jpeg")  # e.g. a view fed in-process: done here
             log.debug("keyframe %s done here: no JPEG of %s", view.key, missing or [view.key])
             return False
-        job = make_job(views, target, jpeg, 1, self.perception, self.core_config)
+        job = make_job(views, target, jpeg, 1, self.perception, self.core_config, reductions)
         now_ns = time.time_ns()
         with self._lock:
             fresh = view.seq >= self._newest.get(view.source_id, -1)  # else a deferred keyframe retried

@@ -27,7 +27,7 @@ from mapper.geometry.features import LruCache
 from mapper.work.config import WorkerConfig
 from mapper.work.jobs import encode_products, view_of
 from protocol.codec import DecodeError, encode
-from protocol.jpeg import JpegError, decode_jpeg
+from protocol.jpeg import JpegError, decode_jpeg, jpeg_info
 from protocol.keys import Keys
 from protocol.messages import WorkAck, WorkFrame, WorkJob, WorkResult
 from protocol.node import Node, Process
@@ -143,14 +143,26 @@ class WorkerNode(Process):
                           error=reason[:2000])
 
     def _decode(self, frame: WorkFrame, jpeg: bytes) -> np.ndarray:
+        """``jpeg`` decoded as the mapper did (at 1/``frame.reduction``): checked against the frame's size and this
+        worker's limits from its headers, before any pixel is decoded."""
+        cfg = self.config
         try:
-            return decode_jpeg(jpeg, expected_size=(frame.width, frame.height), max_pixels=self.config.max_image_pixels)
+            info = jpeg_info(jpeg)
+            if frame.reduction not in info.reductions() or info.output_size(frame.reduction) != (frame.width,
+                                                                                                   frame.height):
+                raise JpegError(f"the {info.width}x{info.height} JPEG at 1/{frame.reduction} is not the job's "
+                                f"{frame.width}x{frame.height}")
+            if frame.width * frame.height > cfg.max_image_pixels:
+                raise JpegError(f"{frame.width}x{frame.height} is over max_image_pixels ({cfg.max_image_pixels})")
+            # Its full size costs memory only as max_decode_bytes allows: no cap on it here.
+            return decode_jpeg(jpeg, max_pixels=info.width * info.height, reduction=frame.reduction,
+                               max_decode_bytes=cfg.max_decode_bytes)
         except JpegError as e:
             raise JobFailed(f"JPEG of {frame.source_id}#{frame.seq}: {e}") from None
 
     def _source_image(self, frame: WorkFrame) -> np.ndarray:
         """A source keyframe's image: cached, else fetched from the mapper's keyframe store."""
-        key = (frame.source_id, frame.seq)
+        key = (frame.source_id, frame.seq)  # one mapper decodes a frame at one size: view_of checks it
         img = self._images.get(key)
         if img is not None:
             self.counters.add("image_cache_hits")

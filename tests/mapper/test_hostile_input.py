@@ -63,7 +63,7 @@ def test_the_bomb_is_refused_from_its_header_and_byte_count() -> None:
     assert reason == "jpeg_implausible" and "cannot hold 6000x6000" in detail
     with pytest.raises(JpegError, match="cannot hold"):
         decode_jpeg(bomb, (6000, 6000), min_bytes_per_mpixel=1000.0)
-    assert jpeg_problem(bomb, (6000, 6000), max_pixels=LIM.max_frame_pixels)[0] == "jpeg_too_large"
+    assert jpeg_problem(bomb, (6000, 6000), max_pixels=6000 * 6000 - 1)[0] == "jpeg_too_large"
     assert jpeg_problem(bomb, (640, 480))[0] == "jpeg_size_mismatch"
     assert jpeg_problem(b"\xff\xd8" + b"\x00" * 10)[0] == "jpeg_corrupt"
     assert jpeg_problem(b"x" * 100, max_bytes=50)[0] == "jpeg_too_large"
@@ -147,7 +147,7 @@ def test_limits_are_validated() -> None:
     with pytest.raises(ValueError):
         InputLimits(min_hfov_deg=100, max_hfov_deg=90)
     with pytest.raises(ValueError):
-        InputLimits(decode_budget_pixels=100, max_frame_pixels=1000)
+        InputLimits(decode_budget_pixels=100, max_working_pixels=1000)
     with pytest.raises(ValueError):
         InputLimits(max_buffered_frame_bytes=2048, max_frame_bytes=4096)
     with pytest.raises(ValueError):
@@ -157,8 +157,8 @@ def test_limits_are_validated() -> None:
 def test_frame_problem_orders_the_checks_cheapest_first() -> None:
     good = encode_jpeg(np.zeros((INTR.height, INTR.width, 3), np.uint8))
     assert frame_problem(header("a", 1), good, LIM) is None
-    big = header("a", 1, width=6000, height=6000, intrinsics=None)
-    assert frame_problem(big, jpeg_claiming(6000, 6000), LIM)[0] == "frames_too_large"  # 36 MP > 16.8 MP
+    big = header("a", 1, width=9000, height=9000, intrinsics=None)
+    assert frame_problem(big, jpeg_claiming(9000, 9000), LIM)[0] == "frames_too_large"  # 81 MP > 67 MP
     mid = header("a", 1, width=3000, height=3000, intrinsics=None)
     assert frame_problem(mid, jpeg_claiming(3000, 3000), LIM)[0] == "frames_implausible_jpeg"
     assert frame_problem(header("a", 1), jpeg_claiming(3000, 3000), LIM)[0] == "frames_size_mismatch"
@@ -277,7 +277,7 @@ def test_forty_bomb_frames_are_refused_unread_and_a_real_frame_still_maps(decode
     """Issue 19: 40 ~600-byte frames whose JPEG and header both claim 6000x6000 took the mapper to 4.6 GB."""
     node = mapper()
     for i in range(40):
-        w = h = 6000 if i % 2 == 0 else 3000  # 36 MP: over the pixel cap; 9 MP: too few bytes for it
+        w = h = 9000 if i % 2 == 0 else 3000  # 81 MP: over the pixel cap; 9 MP: too few bytes for it
         frame(node, header(f"evil{i}", 1, width=w, height=h, intrinsics=None), jpeg_claiming(w, h))
     c = node.counters.snapshot()
     assert c["frames_too_large"] == 20 and c["frames_implausible_jpeg"] == 20 and c["decode_errors"] == 40
@@ -299,8 +299,8 @@ def test_with_the_byte_floor_off_frames_are_still_decoded_one_at_a_time(decodes:
         frame(node, header(f"evil{i}", 1, width=3000, height=3000, intrinsics=None), jpeg_claiming(3000, 3000))
     assert len(node.intake.slots) == 4
     step(node)
-    assert len(decodes) == 4  # libjpeg "decodes" each (filling grey)...
-    assert node.intake.decode_budget.peak == 9_000_000  # ...one at a time: never two 9 MP images in flight
+    assert len(decodes) == 4  # libjpeg "decodes" each (filling grey), at 1/4 (750x750: max_working_pixels)...
+    assert node.intake.decode_budget.peak == 750 * 750  # ...one at a time: never two images in flight
     assert node.intake.decode_budget.in_flight == 0
 
 
@@ -335,13 +335,13 @@ def test_a_flood_of_bad_frames_logs_one_line_per_reason_then_a_summary(caplog: p
     node.intake.bad_input = RateLimitedLog(logging.getLogger("mapper.node"), 10.0, clock=lambda: now[0])
     with caplog.at_level(logging.WARNING, logger="mapper.node"):
         for i in range(1000):
-            frame(node, header(f"evil{i % 50}", i, width=6000, height=6000, intrinsics=None), jpeg_claiming(6000, 6000))
+            frame(node, header(f"evil{i % 50}", i, width=9000, height=9000, intrinsics=None), jpeg_claiming(9000, 9000))
             node.intake.on_frame(Sample(KEYS.robot_frame("evil"), zenoh.ZBytes(b"x"), zenoh.ZBytes(b"\x93garbage")))
         now[0] = 10.0
         step(node)  # flushes the summary
     lines = [r.getMessage() for r in caplog.records if r.levelno == logging.WARNING]
     assert len(lines) == 3, lines
-    assert lines[0].startswith("refused a frame from evil0#0: frame header claims 6000x6000")
+    assert lines[0].startswith("refused a frame from evil0#0: frame header claims 9000x9000")
     assert lines[1].startswith("bad frame sample on")
     assert lines[2] == ("1998 more bad inputs in the last 10 s (not logged one by one): frames_too_large x999, "
                         "header_errors x999")

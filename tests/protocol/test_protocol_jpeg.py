@@ -93,3 +93,79 @@ def test_png_size_bomb_is_refused() -> None:
     png[16:24] = (40000).to_bytes(4, "big") + (40000).to_bytes(4, "big")
     with pytest.raises(JpegError):
         decode_u16_png(bytes(png))
+
+
+# --- decoding reduced (issue 37) ---------------------------------------------------------------------------
+def _odd() -> np.ndarray:
+    return np.random.default_rng(2).integers(0, 255, (30, 41, 3), dtype=np.uint8)
+
+
+@pytest.mark.parametrize("reduction", [1, 2, 4, 8])
+def test_decoding_reduced_gives_libjpegs_rounded_up_size(reduction: int) -> None:
+    from protocol.jpeg import jpeg_info, reduced_size
+
+    data = encode_jpeg(_odd())
+    img = decode_jpeg(data, reduction=reduction)
+    assert img.shape == (-(-30 // reduction), -(-41 // reduction), 3)
+    assert (img.shape[1], img.shape[0]) == reduced_size((41, 30), reduction) == jpeg_info(data).output_size(reduction)
+
+
+def test_a_reduction_other_than_1_2_4_8_is_refused() -> None:
+    from protocol.jpeg import reduced_size
+
+    with pytest.raises(ValueError, match="reduction"):
+        reduced_size((40, 30), 3)
+    with pytest.raises(JpegError, match="1/3"):
+        decode_jpeg(encode_jpeg(_odd()), reduction=3)
+
+
+def test_jpeg_info_reads_sampling_and_scans_from_the_headers() -> None:
+    import cv2
+
+    from protocol.jpeg import jpeg_info
+
+    bgr = _odd()
+    base = jpeg_info(cv2.imencode(".jpg", bgr)[1].tobytes())
+    assert base.sampling == ((2, 2), (1, 1), (1, 1)) and not base.multi_scan and base.coefficient_bytes() == 0
+    prog_bytes = cv2.imencode(".jpg", bgr, [cv2.IMWRITE_JPEG_PROGRESSIVE, 1])[1].tobytes()
+    prog = jpeg_info(prog_bytes)
+    # 41x30 at 4:2:0: luma 6x4 blocks rounded up to whole 2x2 MCUs (6x4), each chroma 3x2 blocks: 36 blocks.
+    assert prog.multi_scan and prog.coefficient_bytes() == (6 * 4 + 2 * 3 * 2) * 64 * 2
+    assert 0 < prog.data_bytes < len(prog_bytes)
+    grey = jpeg_info(cv2.imencode(".jpg", bgr[:, :, 0])[1].tobytes())
+    assert grey.sampling == ((1, 1),) and not grey.multi_scan
+    # A first scan with fewer components than the frame: libjpeg buffers the whole image too.
+    b = bytearray(cv2.imencode(".jpg", bgr)[1].tobytes())
+    sos = b.find(b"\xff\xda")
+    b[sos + 4] = 1
+    assert jpeg_info(bytes(b)).multi_scan
+    with pytest.raises(JpegError, match="no scan"):
+        jpeg_info(bytes(b[:sos]))
+
+
+def test_comment_padding_does_not_count_towards_the_byte_floor() -> None:
+    """Issue 37: a small JPEG claiming 4000x4000, padded with comment segments to the floor, passed it."""
+    from bench.bigframes import claim_size, with_comments
+    from protocol.jpeg import jpeg_problem
+
+    bomb = claim_size(encode_jpeg(_img()), 4000, 4000)
+    assert jpeg_problem(bomb, (4000, 4000), min_bytes_per_mpixel=1000.0)[0] == "jpeg_implausible"
+    padded = with_comments(bomb, 17_000)  # 16 000 bytes would do for 16 MP at 1000 bytes per megapixel
+    reason, detail = jpeg_problem(padded, (4000, 4000), min_bytes_per_mpixel=1000.0) or ("", "")
+    assert reason == "jpeg_implausible" and "of coded data" in detail
+    real = encode_jpeg(_img())  # a real one passes with its comments
+    assert jpeg_problem(with_comments(real, 100_000), (64, 48), min_bytes_per_mpixel=1000.0) is None
+
+
+def test_reduced_intrinsics_keep_pixel_centres_and_scale_exactly() -> None:
+    from protocol.messages import Intrinsics
+
+    intr = Intrinsics(width=1001, height=803, fx=800.0, fy=790.0, cx=500.0, cy=401.0)
+    r = intr.reduced(4)
+    assert (r.width, r.height) == (251, 201)  # rounded up, as libjpeg does
+    assert (r.fx, r.fy) == (200.0, 197.5)  # exactly 1/4, not 251/1001
+    assert (r.cx, r.cy) == ((500.0 + 0.5) / 4 - 0.5, (401.0 + 0.5) / 4 - 0.5)
+    assert intr.reduced(1) == intr
+    assert Intrinsics.from_fov(4000, 3000, 70.0).reduced(4) == Intrinsics.from_fov(1000, 750, 70.0)
+    with pytest.raises(ValueError):
+        intr.reduced(0)

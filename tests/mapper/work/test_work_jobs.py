@@ -183,3 +183,48 @@ def test_a_nearly_rigid_pose_is_cleaned_not_rejected() -> None:
     T[:3, :3] *= 1.0 + 1e-7
     q = decode_result(msg.model_copy(update={"T_world_cam": T.tolist()}), j)
     assert q is not None and np.allclose(q.T_world_cam[:3, :3] @ q.T_world_cam[:3, :3].T, np.eye(3), atol=1e-12)
+
+
+# --- frames worked reduced (issue 37) ---------------------------------------------------------------------
+def test_a_worker_decodes_each_jpeg_at_the_reduction_its_job_names() -> None:
+    """The mapper worked a 4000x4000 frame at 1/4: the job says so, and the worker's image is the mapper's."""
+    from bench.bigframes import textured_jpeg
+    from mapper.work.config import WorkerConfig
+    from mapper.work.worker import JobFailed, WorkerNode
+    from protocol.jpeg import decode_jpeg
+
+    big = textured_jpeg(4000, 4000, seed=7)
+    small = decode_jpeg(big, max_pixels=4000 * 4000, reduction=4)  # what the mapper's intake made of it
+    intr = Intrinsics.from_fov(4000, 4000, 70.0).reduced(4)
+    vs = [dataclasses.replace(views()[0], image=small, intrinsics=intr), views()[1]]
+    j = decode(encode(make_job(vs, 0, big, 1, True, MapperCoreConfig(), reductions=[4, 1])), WorkJob)
+    assert [(f.width, f.height, f.reduction) for f in j.window] == [(1000, 1000, 4), (W, H, 1)]
+    assert j.window[0].intrinsics == intr
+    worker = WorkerNode(WorkerConfig(id="w"))
+    img = worker._decode(j.window[0], j.jpeg)
+    assert np.array_equal(img, small)
+    assert view_of(j.window[0], img).image.shape == (1000, 1000, 3)
+    with pytest.raises(JobFailed, match="at 1/2 is not the job's 1000x1000"):
+        worker._decode(j.window[0].model_copy(update={"reduction": 2}), j.jpeg)
+    with pytest.raises(JobFailed, match="max_image_pixels"):
+        WorkerNode(WorkerConfig(id="w", max_image_pixels=999_999))._decode(j.window[0], j.jpeg)
+    assert make_job(vs[1:], 0, big, 1, True, MapperCoreConfig()).window[0].reduction == 1  # the default
+
+
+def test_the_offloader_puts_the_remembered_reduction_in_each_jobs_frames() -> None:
+    from mapper.work.config import OffloadConfig
+    from mapper.work.offload import Offloader
+    from protocol.keys import Keys
+    from protocol.transport import Counters
+
+    o = Offloader(OffloadConfig(), MapperCoreConfig(), Keys("t"), Counters(), perception=True)
+    o.dispatcher.worker_up("a")
+    vs = views()
+    o.remember(vs[0].key, b"jpeg0", reduction=4)
+    o.remember(vs[1].key, b"jpeg1")
+    assert o.offload(vs[0], vs, 0)
+    job = next(iter(o._pending.values())).job
+    assert [f.reduction for f in job.window] == [4, 1]
+    o._pending.clear()
+    o.prune([])  # forgotten with their JPEGs
+    assert o._reduction == {} and not o._jpegs
