@@ -1,7 +1,8 @@
 """``argus eval rooms``: the mapper's room layer scored against the simulator's rooms.
 
 A robot tours the whole scene (every navigable spot ``tour_spacing_m`` apart, nearest first, walking the
-simulator's paths between them with its head scanning left and right: a full exploration), an in-process
+simulator's paths between them with its head scanning left and right, turning once around at each spot: a full
+exploration), an in-process
 mapper maps it with true geometry (``oracle``) and RGB-only geometry (``mvs``), and its rooms
 (mapper.rooms: built from the map alone, no simulator room names) are scored:
 
@@ -40,7 +41,8 @@ class RoomsConfig(BaseModel):
     perception: str = Field(default="sim", description="2D perception (sim = ORACLE semantic camera)")
     tour_spacing_m: float = Field(default=1.2, gt=0.0, description="spacing of the spots the tour visits")
     step_m: float = Field(default=0.3, gt=0.0, description="distance between consecutive frames")
-    max_frames: int = Field(default=400, ge=2, description="frames per tour at most")
+    look_around: int = Field(default=4, ge=0, description="frames turning once around at each spot (0: none)")
+    max_frames: int = Field(default=600, ge=2, description="frames per tour at most")
     width: int = Field(default=320, ge=32, description="image width, px")
     height: int = Field(default=240, ge=24, description="image height, px")
     prior_noise_m: float = Field(default=0.02, ge=0, description="odometry prior noise (std, metres)")
@@ -50,8 +52,9 @@ class RoomsConfig(BaseModel):
 
 
 def tour_walk(scene: Any, cfg: RoomsConfig, seed: int) -> tuple[list[np.ndarray], list[np.ndarray]]:
-    """True camera poses of a tour of every navigable spot (nearest unvisited next), the head scanning, and
-    the odometry priors (true poses with Gaussian noise)."""
+    """True camera poses of a tour of every navigable spot (nearest unvisited next): frames every ``step_m`` on the
+    way, the head scanning left and right, and ``look_around`` frames turning once around at each spot; and the
+    odometry priors (true poses with Gaussian noise)."""
     from protocol.poses import camera_pose_from_base
     from sim.nav import NavMap
 
@@ -64,6 +67,14 @@ def tour_walk(scene: Any, cfg: RoomsConfig, seed: int) -> tuple[list[np.ndarray]
     todo = set(range(len(spots))) - {at}
     samples: list[tuple[float, float, float]] = []
     offsets = np.radians([0.0, 50.0, 0.0, -50.0])
+    look = np.radians(np.arange(0.0, 360.0, 360.0 / max(cfg.look_around, 1)))
+    heading = float(rng.uniform(-math.pi, math.pi))
+
+    def look_around(xy: np.ndarray, heading: float) -> None:
+        if cfg.look_around > 0:
+            samples.extend((float(xy[0]), float(xy[1]), heading + a) for a in look)
+
+    look_around(spots[at], heading)
     while todo and len(samples) < cfg.max_frames:
         nxt = min(todo, key=lambda k: float(np.linalg.norm(spots[k] - spots[at])))
         todo.discard(nxt)
@@ -79,8 +90,8 @@ def tour_walk(scene: Any, cfg: RoomsConfig, seed: int) -> tuple[list[np.ndarray]
             xy = path[i] + f * (path[i + 1] - path[i])
             heading = math.atan2(*(path[i + 1] - path[i])[::-1])
             samples.append((float(xy[0]), float(xy[1]), heading + offsets[len(samples) % 4]))
-            if len(samples) >= cfg.max_frames:
-                break
+        look_around(path[-1], heading)  # at each spot the robot turns around once: nothing left unseen
+    samples = samples[: cfg.max_frames]
     poses, priors = [], []
     for x, y, yaw in samples:
         poses.append(camera_pose_from_base(x, y, yaw, 1.0, -15.0))
