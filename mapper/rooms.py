@@ -640,11 +640,16 @@ class RoomMapper:
                ) -> RoomLayer:
         """Rebuild the grid from the map, carry room ids over, assign ``nodes`` and label the rooms. ``counts``:
         how many keyframes observed each point (the voxel map's); points seen fewer than ``min_observations``
-        times are left out (RGB-only depth scatters single-view outliers; surfaces are seen again)."""
+        times are left out (RGB-only depth scatters single-view outliers; surfaces are seen again), unless that
+        would leave less than a fifth of the map."""
         if counts is not None and self.params.min_observations > 1:
             c = np.asarray(counts).reshape(-1)
             if len(c) == len(points_world):
-                points_world = np.asarray(points_world)[c >= self.params.min_observations]
+                keep = c >= self.params.min_observations
+                # A map mostly seen once (a fixed camera's, or the first keyframes) is kept whole: filtering it
+                # would leave nothing to build rooms from.
+                if keep.sum() >= 0.2 * len(keep):
+                    points_world = np.asarray(points_world)[keep]
         rows = self._rows(nodes)
         size = len(points_world)
         if self._floor is None or abs(size - self._floor[0]) > 0.1 * max(self._floor[0], 1):

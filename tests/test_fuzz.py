@@ -42,17 +42,21 @@ from planner.config import PlannerNodeConfig
 from protocol.codec import MAGIC, REGISTRY, DecodeError, decode, encode
 from protocol.jpeg import JpegError, decode_jpeg, encode_jpeg, jpeg_problem, jpeg_size
 from protocol.keys import Keys
-from protocol.messages import ALL_MESSAGES, FrameHeader, Intrinsics
+from protocol.messages import FrameHeader, Intrinsics
 from protocol.oracle import decode_u16_png, encode_u16_png, png_to_depth
 from protocol.query import GraphQuery
 from protocol.tomlconfig import ConfigError, load_config
+from protocol.wire import WIRE_MESSAGES
 from robot_agent.config import RobotAgentConfig
 from tests.support.boxes import EYES, INTR, oracle_core, view
-from tests.support.strategies import STRATEGIES
+from tests.support.strategies import ROOM_STRATEGIES
+from tests.support.strategies import STRATEGIES as MESSAGE_STRATEGIES
 
 FAST_EXAMPLES = 150
 LONG_EXAMPLES = 15_000
 KEYS = Keys("fuzz")
+
+STRATEGIES = {**MESSAGE_STRATEGIES, **ROOM_STRATEGIES}  # every kind the codec decodes, the room layer's included
 
 # --- shared strategies ---------------------------------------------------------------------------------
 ints = st.one_of(st.integers(-(2**63), 2**64 - 1), st.sampled_from([0, -1, 1, 2**31, 2**53 + 1, 2**63 - 1]))
@@ -92,7 +96,7 @@ def _pack(obj: Any) -> bytes:
 @st.composite
 def hostile_body(draw: st.DrawFn) -> tuple[str, dict[str, Any]]:
     """A valid message's field map with some fields replaced, removed or added."""
-    cls = draw(st.sampled_from(ALL_MESSAGES))
+    cls = draw(st.sampled_from(WIRE_MESSAGES))
     body = dict(draw(STRATEGIES[cls]).model_dump(mode="python"))
     for _ in range(draw(st.integers(0, 3))):
         op = draw(st.sampled_from(["replace", "remove", "add"]))
@@ -403,7 +407,7 @@ TARGETS: dict[str, Target] = {
                              st.sampled_from([0.0, 1000.0])), check_jpeg),
     "png": Target(st.one_of(st.binary(max_size=256), st.just(PNG).flatmap(mutate),
                             lying_size(PNG, b"IHDR", 4, ">II")), check_png),
-    "envelope": Target(st.tuples(envelopes(), st.one_of(st.none(), st.sampled_from(ALL_MESSAGES))), check_envelope),
+    "envelope": Target(st.tuples(envelopes(), st.one_of(st.none(), st.sampled_from(WIRE_MESSAGES))), check_envelope),
     "frame": Target(frames(), check_frame),
     "query": Target(queries, check_query),
     "toml": Target(st.tuples(toml_texts, overrides, st.integers(0, 3)), check_toml, needs_file=True),
@@ -432,7 +436,7 @@ def campaign(name: str, examples: int, tmp_path: Path) -> int:
 
 
 def test_every_peer_reachable_message_kind_is_fuzzed() -> None:
-    assert set(STRATEGIES) == set(ALL_MESSAGES) == set(REGISTRY.values())
+    assert set(STRATEGIES) == set(WIRE_MESSAGES) == set(REGISTRY.values())
 
 
 @pytest.mark.parametrize("name", list(TARGETS))

@@ -116,3 +116,16 @@ def test_params_defaults_match_config() -> None:
     cfg = RoomsConfig()
     for f, v in RoomParams.__dataclass_fields__.items():
         assert getattr(cfg, f) == v.default, f
+
+
+def test_voxels_seen_once_are_left_out_unless_that_leaves_almost_nothing() -> None:
+    pts = two_rooms()
+    stray = np.array([[6.0, 2.0, 1.5]] * 1 + [[6.0 + 0.01 * k, 2.0, 1.2 + 0.08 * k] for k in range(10)])
+    counts = np.concatenate([np.full(len(pts), 3), np.ones(len(stray), int)])
+    both = np.concatenate([pts, stray])
+    assert len(RoomMapper().update(both, NODES).rooms) == 2  # the stray column is a wall blob: still two rooms
+    layer = RoomMapper().update(both, NODES, counts)
+    assert len(layer.rooms) == 2 and not layer.grid.wall[layer.grid.cells_of(np.array([[6.0, 2.0]]))[0][0],
+                                                          layer.grid.cells_of(np.array([[6.0, 2.0]]))[0][1]]
+    single = RoomMapper().update(pts, NODES, np.ones(len(pts), int))  # one keyframe's map: kept whole
+    assert len(single.rooms) == 2
