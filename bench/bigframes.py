@@ -1,4 +1,4 @@
-"""``python -m bench.bigframes``: the memory of an ``argus mapper`` fed streams of large frames, real and padded.
+"""``argus bench bigframes``: the memory of an ``argus mapper`` fed streams of large frames, real and padded.
 
 Each stream goes to a fresh router + mapper (real processes through :class:`deploy.up.Stack`; the mapper starts
 no local worker, so it computes every keyframe itself: the most its own memory can take). This process plays
@@ -23,10 +23,10 @@ Streams (``--streams``, default all):
 - ``real-uhd``: renders of 1920x1080 upscaled to 3840x2160, worked at 1/2: at the largest working size
   (``max_working_pixels``), so the costliest frames per pixel processed.
 
-Example (about 15 minutes on 2 cores; not in ``argus bench``'s table yet)::
+Example (about 15 minutes on 2 cores)::
 
-    python -m bench.bigframes --out bench_out/bigframes
-    python -m bench.bigframes --quick --streams ref,real-8000,padded
+    argus bench bigframes --out bench_out/bigframes
+    argus bench bigframes --quick --streams ref,real-8000,padded
 """
 
 from __future__ import annotations
@@ -283,8 +283,8 @@ def run(names: list[str], n: int, size: int, out: Path) -> dict[str, Any]:
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m bench.bigframes", description=__doc__.split("\n\n")[0],
-                                epilog="example: python -m bench.bigframes --out bench_out/bigframes")
+    p = argparse.ArgumentParser(prog="argus bench bigframes", description=__doc__.split("\n\n")[0],
+                                epilog="example: argus bench bigframes --out bench_out/bigframes")
     p.add_argument("--frames", type=int, default=6, help="frames per stream (each a keyframe)")
     p.add_argument("--render", type=int, default=1000, help="side of the simulator renders, pixels (a divisor of "
                    "4000; real-uhd renders 1920x1080)")

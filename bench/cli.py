@@ -26,9 +26,10 @@ BENCHES: dict[str, tuple[str, str]] = {
     "system": ("bench.system", "N cameras into one mapper: ingest, drops, latency, CPU, memory, queries"),
     "soak": ("bench.soak", "the whole stack under load for 30 minutes: RSS per process, latency, drops"),
     "replay": ("bench.replay", "a recorded sequence through camera, router, mapper + worker: map vs its own depth"),
+    "bigframes": ("bench.bigframes", "a mapper process's peak memory on streams of large frames, real and padded"),
 }
 
-LONG_RUNNING = {"soak", "replay"}  # not part of ``argus bench all`` (replay needs a recording: --sequence)
+LONG_RUNNING = {"soak", "replay", "bigframes"}  # not part of ``argus bench all`` (replay needs a recording: --sequence)
 
 USAGE = """usage: argus bench <name> [options]   (argus bench <name> --help)
        argus bench all [--quick] [--out DIR]
@@ -39,7 +40,7 @@ benchmarks:
 examples:
   argus bench transport --frames 300 --out bench_out/transport
   argus bench geometry --quick --out bench_out/geometry
-  argus bench all --quick --out bench_out        # every benchmark but soak and replay
+  argus bench all --quick --out bench_out        # every benchmark but soak, replay and bigframes
 
 Each writes <name>.json and <name>.md under --out; docs/benchmarks.md lists the figures and their commands.
 """
