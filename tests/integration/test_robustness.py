@@ -711,7 +711,8 @@ def test_mapper_refuses_forty_bombs_that_match_their_headers_unread(lone_mapper:
     peak0 = vm_mib(pid, "VmHWM")
     base = peer.counters(MAPPER)
     for i in range(40):
-        w = h = 6000 if i % 2 == 0 else 3000  # over the pixel cap; under it but far too few bytes for its size
+        # over the pixel cap (max_frame_pixels, 8192x8192); under it but far too few bytes for its size
+        w = h = 9000 if i % 2 == 0 else 3000
         peer.put(KEYS.robot_frame(f"bomb{i}"), jpeg_claiming(h, w), encode(header(f"bomb{i}", 1, width=w, height=h,
                                                                                   intrinsics=None)))
     expected = {"frames_too_large": 20, "frames_implausible_jpeg": 20, "decode_errors": 40}
