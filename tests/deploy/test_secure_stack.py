@@ -283,8 +283,8 @@ def test_stack_secure_flags_per_process(tmp_path: Path) -> None:
         stack.stop()
 
 
-def test_generated_router_over_tls_lets_a_camera_do_only_its_part(tmp_path: Path, procs: list[Proc]) -> None:
-    """The fast tier's check of the generated material: a router alone, the camera's login over TLS."""
+def _tls_router_alone(tmp_path: Path, procs: list[Proc]) -> Site:
+    """The shipped launch file's generated security material and its router alone, listening over TLS."""
     from deploy.secure import prepare
 
     port = free_port()
@@ -292,7 +292,12 @@ def test_generated_router_over_tls_lets_a_camera_do_only_its_part(tmp_path: Path
     site = prepare(launch, SHIPPED.parent, launch.security or SecuritySpec(), ["router"], tmp_path / "s")
     procs.append(Proc(["router", "--config", str(site.router_file), "--listen", launch.endpoint], cwd=tmp_path))
     wait_for(lambda: _port_open(port), 20, what="the TLS router")
-    s, k = Site(site.dir, launch.endpoint, Keys("home")), Keys("home")
+    return Site(site.dir, launch.endpoint, Keys("home"))
+
+
+def test_generated_router_over_tls_lets_a_camera_do_only_its_part(tmp_path: Path, procs: list[Proc]) -> None:
+    """The fast tier's check of the generated material: a router alone, the camera's login over TLS."""
+    s, k = _tls_router_alone(tmp_path, procs), Keys("home")
     frames, goals = Inbox(), Inbox()
     with s.session("mapper") as mapper, s.session("robot0") as robot, s.session("cam_kitchen") as cam:
         subs = [mapper.declare_subscriber(k.all_frames, frames),
@@ -318,15 +323,9 @@ def test_goal_answers_reach_argus_goal_over_tls(tmp_path: Path, procs: list[Proc
     """``argus goal`` on a secure site (the planner's login) gets the robot's answer; a camera cannot forge one
     (issue 37 item 6: the ACL had no rule for robot/<id>/goal/status, so every answer was dropped)."""
     from deploy.goal import make_goal, send_goal
-    from deploy.secure import prepare
     from protocol.messages import GoalStatus
 
-    port = free_port()
-    launch = LaunchFile.model_validate_json(json.dumps(_toml(_launch_text(port))))
-    site = prepare(launch, SHIPPED.parent, launch.security or SecuritySpec(), ["router"], tmp_path / "s")
-    procs.append(Proc(["router", "--config", str(site.router_file), "--listen", launch.endpoint], cwd=tmp_path))
-    wait_for(lambda: _port_open(port), 20, what="the TLS router")
-    s, k = Site(site.dir, launch.endpoint, Keys("home")), Keys("home")
+    s, k = _tls_router_alone(tmp_path, procs), Keys("home")
     with s.session("robot0") as robot, s.session("cam_kitchen") as cam, s.session("planner") as planner:
         answers = robot.declare_publisher(k.robot_goal_status("robot0"))
         forged = cam.declare_publisher(k.robot_goal_status("robot0"))
