@@ -27,7 +27,7 @@ import threading
 import time
 from collections.abc import Iterable
 from pathlib import Path
-from typing import Any
+from typing import Any, TypeVar
 
 from protocol import exits
 from protocol.codec import DecodeError, decode, peek_kind
@@ -139,47 +139,41 @@ def get_node(session: Any, keys: Keys, node_id: str, timeout_s: float = 5.0) -> 
     raise QueryError(f"no answer on {key} within {timeout_s:g} s (is a mapper running?)")
 
 
+M = TypeVar("M", GraphSnapshot, RoomLayer)  # versioned graph messages a query picks the newest of
+
+
+def _newest(session: Any, key: str, message: type[M], timeout_s: float, **get_options: Any) -> M:
+    """The newest ``version`` of ``message`` among the replies on ``key``; QueryError for a refusal, replies that
+    do not decode, or no answer."""
+    payloads, errors = _reply_payloads(session.get(key, timeout=timeout_s, **get_options))
+    best: M | None = None
+    for data in payloads:
+        try:
+            msg = decode(data, message)
+        except DecodeError:
+            continue
+        if best is None or msg.version > best.version:
+            best = msg
+    if best is None:
+        if errors:
+            raise _refusal(errors, key)
+        if payloads:
+            raise QueryError(f"{len(payloads)} undecodable replies on {key}", exits.FAILED)
+        raise QueryError(f"no answer on {key} within {timeout_s:g} s (is a mapper running?)")
+    return best
+
+
 def get_snapshot(session: Any, keys: Keys, timeout_s: float = 5.0) -> GraphSnapshot:
     """The latest full graph (the newest valid version among all replies, unconsolidated)."""
     import zenoh
 
-    payloads, errors = _reply_payloads(
-        session.get(keys.graph_snapshot, timeout=timeout_s, consolidation=zenoh.ConsolidationMode.NONE))
-    best: GraphSnapshot | None = None
-    for data in payloads:
-        try:
-            snap = decode(data, GraphSnapshot)
-        except DecodeError:
-            continue
-        if best is None or snap.version > best.version:
-            best = snap
-    if best is None:
-        if errors:
-            raise _refusal(errors, keys.graph_snapshot)
-        if payloads:
-            raise QueryError(f"{len(payloads)} undecodable replies on {keys.graph_snapshot}", exits.FAILED)
-        raise QueryError(f"no answer on {keys.graph_snapshot} within {timeout_s:g} s (is a mapper running?)")
-    return best
+    return _newest(session, keys.graph_snapshot, GraphSnapshot, timeout_s,
+                   consolidation=zenoh.ConsolidationMode.NONE)
 
 
 def get_rooms(session: Any, keys: Keys, timeout_s: float = 5.0) -> RoomLayer:
     """The room layer (the newest graph version among all replies)."""
-    payloads, errors = _reply_payloads(session.get(keys.graph_rooms, timeout=timeout_s))
-    best: RoomLayer | None = None
-    for data in payloads:
-        try:
-            layer = decode(data, RoomLayer)
-        except DecodeError:
-            continue
-        if best is None or layer.version > best.version:
-            best = layer
-    if best is None:
-        if errors:
-            raise _refusal(errors, keys.graph_rooms)
-        if payloads:
-            raise QueryError(f"{len(payloads)} undecodable replies on {keys.graph_rooms}", exits.FAILED)
-        raise QueryError(f"no answer on {keys.graph_rooms} within {timeout_s:g} s (is a mapper running?)")
-    return best
+    return _newest(session, keys.graph_rooms, RoomLayer, timeout_s)
 
 
 # --- formatting -----------------------------------------------------------------------------------
