@@ -41,6 +41,7 @@ from pydantic import BaseModel, ConfigDict, Field
 from bench.explore import mapper_config, steps_to
 from bench.report import machine, markdown_table
 from bench.rooms import RoomsConfig, rooms_markdown, rooms_plot, run_rooms
+from bench.simdrive import along_path
 from bench.simdrive import mapper_views as _mapper_views
 
 EXPERIMENTS = ("static", "external", "active")
@@ -181,13 +182,7 @@ def scan_walk(scene: Any, cfg: FramesConfig, seed: int) -> tuple[list[np.ndarray
         path = nav.path(tuple(a), tuple(b))
         if path is None or len(path) < 2:
             continue
-        seg = np.linalg.norm(np.diff(path, axis=0), axis=1)
-        s = np.concatenate([[0.0], np.cumsum(seg)])
-        for t in np.arange(0.0, s[-1], cfg.step_m):
-            i = min(int(np.searchsorted(s, t, side="right")) - 1, len(seg) - 1)
-            f = (t - s[i]) / max(seg[i], 1e-9)
-            xy = path[i] + f * (path[i + 1] - path[i])
-            heading = math.atan2(*(path[i + 1] - path[i])[::-1])
+        for xy, heading in along_path(path, cfg.step_m):
             samples.append((float(xy[0]), float(xy[1]), heading + offsets[len(samples) % 4]))
             if len(samples) >= cfg.n_frames:
                 break

@@ -29,6 +29,8 @@ from typing import Any
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
+from bench.simdrive import along_path
+
 
 class RoomsConfig(BaseModel):
     """The room experiment: families x seeds x geometries after a full tour."""
@@ -82,13 +84,7 @@ def tour_walk(scene: Any, cfg: RoomsConfig, seed: int) -> tuple[list[np.ndarray]
         at = nxt
         if path is None or len(path) < 2:
             continue
-        seg = np.linalg.norm(np.diff(path, axis=0), axis=1)
-        s = np.concatenate([[0.0], np.cumsum(seg)])
-        for t in np.arange(0.0, s[-1], cfg.step_m):
-            i = min(int(np.searchsorted(s, t, side="right")) - 1, len(seg) - 1)
-            f = (t - s[i]) / max(seg[i], 1e-9)
-            xy = path[i] + f * (path[i + 1] - path[i])
-            heading = math.atan2(*(path[i + 1] - path[i])[::-1])
+        for xy, heading in along_path(path, cfg.step_m):
             samples.append((float(xy[0]), float(xy[1]), heading + offsets[len(samples) % 4]))
         look_around(path[-1], heading)  # at each spot the robot turns around once: nothing left unseen
     samples = samples[: cfg.max_frames]

@@ -4,7 +4,7 @@ scene's fixed camera sees, with true or odometry-like pose priors (``bench.geome
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -143,3 +143,14 @@ def sim_sequences(
             seq += 1
     fixed_view = (cam, fixed)
     return keyframes, fixed_view, renderer
+
+
+def along_path(path: np.ndarray, step_m: float) -> Iterator[tuple[np.ndarray, float]]:
+    """Points every ``step_m`` along a polyline ``path`` (N >= 2, 2) from its start, each with the heading (rad) of
+    the segment it lies on: where a simulated robot takes its frames on the way."""
+    seg = np.linalg.norm(np.diff(path, axis=0), axis=1)
+    s = np.concatenate([[0.0], np.cumsum(seg)])
+    for t in np.arange(0.0, s[-1], step_m):
+        i = min(int(np.searchsorted(s, t, side="right")) - 1, len(seg) - 1)
+        f = (t - s[i]) / max(seg[i], 1e-9)
+        yield path[i] + f * (path[i + 1] - path[i]), math.atan2(*(path[i + 1] - path[i])[::-1])
