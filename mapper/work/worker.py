@@ -85,7 +85,8 @@ class Backends:
         from mapper.work.jobs import core_settings
 
         try:
-            cfg, parts = self.of(*reversed(core_settings(MapperCoreConfig())))
+            settings, digest = core_settings(MapperCoreConfig())
+            cfg, parts = self.of(digest, settings)
         except Exception:  # noqa: BLE001 - a failed warm-up only leaves its cost to the first job
             return float("nan")
         return warm_up(*parts, cfg)
