@@ -26,6 +26,7 @@ from typing import Any
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
+from mapper.absence import AbsenceParams, Verdict, judge
 from mapper.association import KeyframeView, containment
 from mapper.perception.base import Detection, unit
 from protocol.messages import GraphNode, LabelScore, OrientedBox
@@ -212,12 +213,88 @@ class FusionConfig(BaseModel):
         "detections (as ghost merging does): books side by side on a shelf, whose estimated depth makes their "
         "boxes overlap, are two objects",
     )
+    absence_check: bool = Field(
+        default=True,
+        description="evidence for absence (mapper/absence.py): a measured keyframe that should see a node (in view, "
+        "in range, not occluded by anything nearer) and sees through where it stands counts against it; "
+        "absence_to_retire such keyframes with no detection of it in between retire it (removed in a delta, kept "
+        "queryable as retired). Detected again, or a surface seen where it stands, clears the count",
+    )
+    absence_to_retire: int = Field(
+        default=2, ge=1,
+        description="keyframes that must see a node's place empty, with no detection of it in between, to retire "
+        "it: two agree where one keyframe's wrong estimated depth would not (a fixed camera's next keyframe, or "
+        "another robot keyframe, confirms)",
+    )
+    absence_max_range_m: float = Field(
+        default=6.0, gt=0.0, description="absence: nodes farther than this from the camera are not judged"
+    )
+    absence_min_pixels: int = Field(
+        default=20, ge=1,
+        description="absence: a node covering fewer pixels of the keyframe's depth map is not judged (too small "
+        "there to have been detected)",
+    )
+    absence_min_in_view: float = Field(
+        default=0.6, ge=0.0, le=1.0,
+        description="absence: at least this fraction of a node's points must project inside the image",
+    )
+    absence_min_known: float = Field(
+        default=0.5, ge=0.0, le=1.0,
+        description="absence: at least this fraction of the node's pixels must have confident depth (missing "
+        "depth is no evidence)",
+    )
+    absence_max_occluded: float = Field(
+        default=0.3, ge=0.0, le=1.0,
+        description="absence: a node with more of its pixels behind something nearer (a passer-by) is not judged: "
+        "occlusion is not absence",
+    )
+    absence_min_free: float = Field(
+        default=0.7, ge=0.5, le=1.0,
+        description="absence: this fraction of the node's unoccluded pixels with depth must show depth clearly "
+        "beyond it (free); the same fraction at its depth says it is there",
+    )
+    absence_margin_m: float = Field(
+        default=0.1, ge=0.0,
+        description="absence: depth beyond (or before) the node's surface by this much, metres, plus "
+        "absence_margin_rel of its depth, is clearly beyond (nearer)",
+    )
+    absence_margin_rel: float = Field(default=0.05, ge=0.0, description="... relative part of that margin")
+    absence_confirm_s: float = Field(
+        default=1.0, ge=0.0,
+        description="a calibrated fixed camera whose keyframe saw a node's place empty makes its next frame at "
+        "least this many seconds later a keyframe too (it keyframes only on image change, and one keyframe is "
+        "not enough to retire); 0 disables",
+    )
+    move_min_similarity: float = Field(
+        default=0.8, ge=-1.0, le=1.0,
+        description="moves: a detection that matches no node, has a node's label and at least this descriptor "
+        "similarity to it, while that node's place is seen empty (this keyframe or an earlier one since it was "
+        "last detected), moves that node there (same id, a move record) instead of making a new node",
+    )
+    move_min_m: float = Field(
+        default=0.3, ge=0.0, description="moves: ... when the detection is at least this far from the node's centre"
+    )
+    people_labels: list[str] = Field(
+        default_factory=lambda: ["person"],
+        description="detection labels that are people: not fused into object nodes (unless fuse_people); their "
+        "depth still counts as occlusion, so a passer-by hides objects without making them absent",
+    )
+    fuse_people: bool = Field(default=False, description="fuse people_labels detections into nodes like objects")
     max_label_alternatives: int = Field(default=3, ge=0, description="label alternatives kept per node")
     seed: int = Field(default=0, description="seed of point subsampling")
 
     @property
     def radius_m(self) -> float:
         return self.overlap_radius_m if self.overlap_radius_m is not None else self.voxel_m
+
+    def absence_params(self) -> AbsenceParams:
+        """The ``absence_*`` thresholds as :func:`mapper.absence.judge` takes them."""
+        return AbsenceParams(
+            max_range_m=self.absence_max_range_m, min_pixels=self.absence_min_pixels,
+            min_in_view=self.absence_min_in_view, min_known=self.absence_min_known,
+            max_occluded=self.absence_max_occluded, min_free=self.absence_min_free,
+            margin_m=self.absence_margin_m, margin_rel=self.absence_margin_rel,
+        )
 
 
 # ------------------------------------------------------------------------------------------------
@@ -491,6 +568,11 @@ class NodeState:
     seen_in: list[int] = field(default_factory=list)
     # The largest horizontal size (footprint diagonal, metres) one measured observation showed (growth_factor).
     view_size_m: float = 0.0
+    # Keyframes that saw the node's place empty since it was last detected there (mapper.absence).
+    absent: int = 0
+    # Capture time of the keyframe that last moved the node (0: never moved), and how often it moved.
+    last_moved_ns: int = 0
+    moves: int = 0
     _tree: Any = field(default=None, repr=False)
     _box: OrientedBox | None = field(default=None, repr=False)
     _full_box: OrientedBox | None = field(default=None, repr=False)
@@ -668,6 +750,10 @@ class UpdateResult:
     associated: int = 0
     merged_duplicates: int = 0
     pruned: int = 0
+    # Of ``removed``: the nodes retired because keyframes saw their place empty, as they were when retired.
+    retired: dict[str, NodeState] = field(default_factory=dict)
+    # Nodes moved to where a detection showed them: id -> (centre before, centre after).
+    moved: dict[str, tuple[tuple[float, float, float], tuple[float, float, float]]] = field(default_factory=dict)
 
 
 class ObjectMap:
@@ -844,6 +930,8 @@ class ObjectMap:
         that one detection's mask holds are merged as fragments of its object."""
         self.updates += 1
         res = UpdateResult()
+        # What this keyframe's depth says about the nodes it should see, judged before its detections move any.
+        verdicts = self.absence_verdicts(view) if view is not None and self.cfg.absence_check else {}
         inside = (self.containment(objects, view) if view is not None and self.cfg.mask_association
                   else [{} for _ in objects])
         # Match everything against the map as it was before this view: detections of one view are
@@ -855,9 +943,15 @@ class ObjectMap:
             matches = [self._near_similar(obj) if node is None and obj.ray_origin is not None else node
                        for obj, node in zip(objects, matches, strict=True)]
         targets: list[str] = []
+        matched = {n.node_id for n in matches if n is not None}
         for obj, node in zip(objects, matches, strict=True):
+            if node is None and view is not None:
+                node = self._moving(obj, verdicts, matched | set(targets))
+                if node is not None:
+                    self._move(node, obj, stamp_ns, res)
             if node is not None and node.node_id in self.nodes:
                 self._absorb(node, obj, source_id, stamp_ns)
+                node.absent = 0
                 res.associated += 1
                 res.changed.add(node.node_id)
                 targets.append(node.node_id)
@@ -867,11 +961,97 @@ class ObjectMap:
                 res.created += 1
             self._remember_sight(self.nodes[targets[-1]], obj, view)
         self._merge_fragments(objects, targets, inside, res)
+        self._weigh_absence(verdicts, set(targets), res)
         if self.updates % self.cfg.merge_every_updates == 0:
             self.maintain(res)
         self._enforce_cap(res)
         res.changed -= res.removed
         return res
+
+    # -- absence and moves -------------------------------------------------------------------------
+    def absence_verdicts(self, view: KeyframeView) -> dict[str, Verdict]:
+        """Per measured node that ``view`` judges (``mapper.absence``), FREE or THERE. Single-view (coarse) nodes
+        are not judged: their depth is a guess (``check_coarse`` and ``forget_gone`` handle them)."""
+        params = self.cfg.absence_params()
+        o = np.asarray(view.T_world_cam[:3, 3], np.float64)
+        reach = params.max_range_m + 2.0  # a node whose box is that far cannot have its median point in range
+        out: dict[str, Verdict] = {}
+        for node_id in sorted(self.nodes):
+            node = self.nodes[node_id]
+            if node.rays or len(node.points) == 0:
+                continue
+            lo, hi = node.aabb
+            if float(np.linalg.norm(np.clip(o, lo, hi) - o)) > reach:
+                continue
+            v = judge(view, node.points, params).verdict
+            if v is not Verdict.UNKNOWN:
+                out[node_id] = v
+        return out
+
+    def _moving(self, obj: Object3D, verdicts: dict[str, Verdict], taken: set[str]) -> NodeState | None:
+        """The node that a detection matching no node shows moved (``move_*``): one with its label and a similar
+        descriptor, at least ``move_min_m`` away, whose place this keyframe or an earlier one (since it was last
+        detected) saw empty, and that no other detection of this keyframe took; the nearest such one."""
+        cfg = self.cfg
+        if obj.ray_origin is not None or len(obj.points) == 0:
+            return None
+        c = obj.points.mean(0).astype(np.float64)
+        best: tuple[float, str] | None = None
+        for node_id, node in self.nodes.items():
+            if node_id in taken or node.rays:
+                continue
+            if not (verdicts.get(node_id) is Verdict.FREE or node.absent > 0):
+                continue
+            if verdicts.get(node_id) is Verdict.THERE:
+                continue
+            ranking = node.label_ranking()
+            if not ranking or ranking[0][0] != obj.label:
+                continue
+            if similarity(obj.descriptor, node.descriptor) < cfg.move_min_similarity:
+                continue
+            d = float(np.linalg.norm(np.asarray(node.centre, np.float64) - c))
+            if d >= cfg.move_min_m and (best is None or (d, node_id) < best):
+                best = (d, node_id)
+        return None if best is None else self.nodes[best[1]]
+
+    def _move(self, node: NodeState, obj: Object3D, stamp_ns: int, res: UpdateResult) -> None:
+        """Put ``node`` where ``obj`` shows it (its old points, rays and sight lines are of the old place); the
+        caller then absorbs ``obj`` as an observation."""
+        before = node.centre
+        node.points = self._cap(obj.points.astype(np.float32))
+        node.rays, node.sight = [], []
+        node.view_size_m = _view_size(obj)
+        node.last_moved_ns = stamp_ns
+        node.moves += 1
+        node.touch()
+        start = res.moved[node.node_id][0] if node.node_id in res.moved else before
+        res.moved[node.node_id] = (start, node.centre)
+
+    def _weigh_absence(self, verdicts: dict[str, Verdict], detected: set[str], res: UpdateResult) -> None:
+        """Add this keyframe's verdicts to each node's count (a detection or a surface where it stands clears
+        it); retire the nodes that reach ``absence_to_retire``."""
+        for node_id, verdict in sorted(verdicts.items()):
+            node = self.nodes.get(node_id)
+            if node is None or node_id in detected or node_id in res.moved:
+                continue
+            if verdict is Verdict.THERE:
+                node.absent = 0
+                continue
+            node.absent += 1
+            if node.absent >= self.cfg.absence_to_retire:
+                self.retire(node_id, res)
+
+    def retire(self, node_id: str, res: UpdateResult) -> None:
+        """Remove ``node_id`` because its place was seen empty: ``res`` records it as removed and retired."""
+        node = self.nodes.pop(node_id)
+        res.removed.add(node_id)
+        res.retired[node_id] = node
+        res.changed.discard(node_id)
+        res.pruned += 1
+
+    def absent_pending(self) -> int:
+        """How many nodes some keyframe saw empty since they were last detected (not yet retired)."""
+        return sum(1 for n in self.nodes.values() if n.absent > 0)
 
     def _remember_sight(self, node: NodeState, obj: Object3D, view: KeyframeView | None) -> None:
         """Note that this update's detection ``obj`` joined ``node`` and, for measured depth seen from ``view``'s
@@ -943,6 +1123,9 @@ class ObjectMap:
             keep.sight = (keep.sight + gone.sight)[-self.cfg.max_sight_lines:]
         keep.seen_in = sorted(set(keep.seen_in) | set(gone.seen_in))[-self.cfg.max_keyframes_per_node:]
         keep.view_size_m = max(keep.view_size_m, gone.view_size_m)
+        keep.absent = min(keep.absent, gone.absent)
+        keep.last_moved_ns = max(keep.last_moved_ns, gone.last_moved_ns)
+        keep.moves += gone.moves
         keep.touch()
         del self.nodes[gone.node_id]
 
@@ -1130,8 +1313,10 @@ class ObjectMap:
     def forget_gone(self, seen: Any, res: UpdateResult | None = None, min_points: int = 15,
                     min_free: float = 0.6) -> int:
         """Coarse nodes that the camera of ``seen`` (a ``SeenView`` of its new keyframe) placed before and now
-        sees as free floor are gone (moved or taken away): removed, and ``res`` says so. Nodes this keyframe
-        just updated stay. Returns how many went."""
+        sees as free floor are gone (moved or taken away): retired (:meth:`retire`), and ``res`` says so. This is
+        the single-view camera's evidence for absence (measured keyframes judge nodes in ``absence_verdicts``);
+        the camera that placed the node from this very view is trusted at once. Nodes this keyframe just
+        updated stay. Returns how many went."""
         res = res if res is not None else UpdateResult()
         origin = seen.T_world_cam[:3, 3]
         gone = 0
@@ -1141,9 +1326,7 @@ class ObjectMap:
                 continue
             n, free, _ = seen.votes(node.points, node.descriptor, self.cfg.merge_similarity)
             if n >= min_points and free >= min_free * n:
-                del self.nodes[node_id]
-                res.removed.add(node_id)
-                res.pruned += 1
+                self.retire(node_id, res)
                 gone += 1
         return gone
 
@@ -1230,6 +1413,9 @@ class ObjectMap:
                     "sight": [[float(x) for x in (*o, *d)] for o, d in n.sight],
                     "seen_in": list(n.seen_in),
                     "view_size_m": float(n.view_size_m),
+                    "absent": int(n.absent),
+                    "last_moved_ns": int(n.last_moved_ns),
+                    "moves": int(n.moves),
                 }
                 for n in (self.nodes[k] for k in sorted(self.nodes))
             ],
@@ -1258,6 +1444,10 @@ class ObjectMap:
                     footprint_diagonal(pts.min(0), pts.max(0)) if len(pts) else 0.0),
                 box_trim=self.cfg.box_trim_fraction,
                 centroid_trim=self.cfg.centroid_trim_fraction,
+                # states written before absence and moves: never seen gone, never moved
+                absent=int(d.get("absent", 0)),
+                last_moved_ns=int(d.get("last_moved_ns", 0)),
+                moves=int(d.get("moves", 0)),
             )
         self.nodes = nodes
         self.next_id = int(state["next_id"])

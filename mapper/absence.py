@@ -1,0 +1,105 @@
+"""Evidence for absence: what a keyframe's measured depth says about each node it should see (pure: no I/O).
+
+A node whose points project into a keyframe, in range and well inside the image, is judged pixel by pixel at
+the depth map's resolution, against the nearest of its own points there (its front surface in that view):
+
+- the keyframe's confident depth is nearer than that surface by more than the margin: something stands in
+  front (a passer-by, another object). Occluded pixels say nothing about the node;
+- it is farther by more than the margin: the camera sees *through* the place the node occupies (the floor
+  behind it, the wall): free;
+- within the margin: a surface where the node is (the object, possibly undetected): there;
+- no confident depth: unknown (stereo gives none on textureless surfaces; none of that counts).
+
+A view is evidence of absence (``FREE``) only when the node covers enough pixels to be detected at all, most of
+its pixels have confident depth, few are occluded and most of the unoccluded ones are free. It says the node
+is ``THERE`` when most of its unoccluded pixels show a surface at its depth. Anything else is ``UNKNOWN``. The
+margin grows with depth (estimated depth errs by a fraction of it). See ``mapper.fusion.FusionConfig.absence_*``
+for the thresholds and ``ObjectMap.integrate`` for how verdicts add up to a retirement.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from enum import Enum
+
+import numpy as np
+
+from mapper.association import KeyframeView
+from protocol.poses import invert, project
+
+
+class Verdict(Enum):
+    """What one keyframe says about one node it should see."""
+
+    UNKNOWN = 0  # out of view, too small, too far, occluded or without confident depth: no evidence
+    FREE = 1  # the keyframe sees through where the node stands: evidence that it is gone
+    THERE = 2  # the keyframe sees a surface where the node stands: it is (still) there
+
+
+@dataclass(frozen=True)
+class AbsenceParams:
+    """Thresholds of :func:`judge` (the ``absence_*`` fields of ``FusionConfig``)."""
+
+    max_range_m: float = 6.0  # nodes farther from the camera than this are not judged
+    min_pixels: int = 20  # a node covering fewer depth pixels could not have been detected there
+    min_in_view: float = 0.6  # fraction of the node's points that must project inside the image
+    min_known: float = 0.5  # fraction of its pixels that must have confident depth
+    max_occluded: float = 0.3  # more of its pixels occluded (something nearer): no verdict
+    min_free: float = 0.7  # fraction of the unoccluded known pixels that must be free for FREE
+    margin_m: float = 0.1  # depth margin, metres ...
+    margin_rel: float = 0.05  # ... plus this fraction of the node's depth
+    max_points: int = 600  # the node's points are thinned to at most this many (fixed stride)
+
+
+@dataclass(frozen=True)
+class Judgement:
+    """A verdict with the pixel counts behind it (for logs and tests)."""
+
+    verdict: Verdict
+    pixels: int = 0
+    known: int = 0
+    occluded: int = 0
+    free: int = 0
+    there: int = 0
+
+
+def judge(view: KeyframeView, points_world: np.ndarray, params: AbsenceParams) -> Judgement:
+    """What ``view`` (a keyframe's camera and confident depth, 0 where unknown) says about a node made of
+    ``points_world`` (N, 3): see the module docstring."""
+    pts = np.asarray(points_world, np.float64).reshape(-1, 3)
+    if len(pts) == 0:
+        return Judgement(Verdict.UNKNOWN)
+    pts = pts[:: max(1, -(-len(pts) // params.max_points))]
+    h, w = view.depth_m.shape
+    T_cam_world = invert(view.T_world_cam)
+    p = pts @ np.ascontiguousarray(T_cam_world[:3, :3].T) + T_cam_world[:3, 3]
+    uv, z = project(view.K, p)
+    with np.errstate(invalid="ignore"):
+        col, row = np.floor(uv[:, 0]), np.floor(uv[:, 1])
+        inside = (z > 0.05) & np.isfinite(col) & np.isfinite(row) & (col >= 0) & (col < w) & (row >= 0) & (row < h)
+    if int(inside.sum()) < params.min_in_view * len(pts) or float(np.median(z[inside])) > params.max_range_m:
+        return Judgement(Verdict.UNKNOWN)
+    pix = row[inside].astype(np.intp) * w + col[inside].astype(np.intp)
+    order = np.lexsort((z[inside], pix))  # per pixel, its nearest point first
+    pix_sorted = pix[order]
+    first = np.ones(len(pix_sorted), bool)
+    first[1:] = pix_sorted[1:] != pix_sorted[:-1]
+    px = pix_sorted[first]
+    front = z[inside][order][first]  # the node's nearest surface at each pixel it covers
+    n = len(px)
+    if n < params.min_pixels:
+        return Judgement(Verdict.UNKNOWN, pixels=n)
+    d = view.depth_m.reshape(-1)[px].astype(np.float64)
+    known = np.isfinite(d) & (d > 0)
+    margin = params.margin_m + params.margin_rel * front
+    occluded = known & (d < front - margin)
+    free = known & (d > front + margin)
+    there = known & ~occluded & ~free
+    k, o, f, t = int(known.sum()), int(occluded.sum()), int(free.sum()), int(there.sum())
+    verdict = Verdict.UNKNOWN
+    if k >= params.min_known * n and o <= params.max_occluded * n and f + t > 0:
+        if f >= params.min_free * (f + t):
+            verdict = Verdict.FREE
+        elif t >= params.min_free * (f + t):
+            verdict = Verdict.THERE
+    return Judgement(verdict, pixels=n, known=k, occluded=o, free=f, there=t)

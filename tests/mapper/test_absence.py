@@ -1,0 +1,212 @@
+"""Evidence for absence and moves (mapper.absence, ObjectMap.integrate): ray-cast keyframes of a room with a
+floor and a back wall, so that where an object stood the camera sees the floor or the wall behind it."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from mapper.absence import AbsenceParams, Verdict, judge
+from mapper.association import KeyframeView
+from mapper.fusion import FusionConfig, Object3D, ObjectMap, voxel_downsample
+from mapper.geometry.singleview import depth_to_world
+from mapper.perception.base import label_descriptor
+from protocol.poses import look_at
+from tests.support.boxes import INTR, raycast
+
+Box = tuple[np.ndarray, np.ndarray]
+
+
+def box(lo: list[float], hi: list[float]) -> Box:
+    return np.array(lo, np.float64), np.array(hi, np.float64)
+
+
+FLOOR = box([-3.0, -3.0, -0.05], [6.0, 6.0, 0.0])
+WALL = box([4.0, -3.0, 0.0], [4.1, 6.0, 2.6])
+CHAIR = box([1.3, 0.1, 0.0], [1.75, 0.55, 0.9])
+MOVED = (CHAIR[0] + [0.0, 1.0, 0.0], CHAIR[1] + [0.0, 1.0, 0.0])  # the chair, 1 m to the side
+LAMP = box([1.4, -1.4, 0.0], [1.7, -1.1, 1.5])
+PERSON = box([0.15, 0.0, 0.0], [0.55, 0.65, 1.8])  # a passer-by between the camera and the chair
+EYE = [-1.5, 0.6, 1.6]
+TARGET = (1.5, 0.6, 0.5)
+
+
+def keyframe(objects: dict[str, Box], occluders: tuple[Box, ...] = (), eye: list[float] = EYE,
+             depth_scale: float = 1.0, hole: Box | None = None, target: tuple[float, float, float] = TARGET,
+             ) -> tuple[KeyframeView, list[Object3D]]:
+    """A keyframe of the room (floor, wall), ``objects`` (label -> box, each detected) and ``occluders``
+    (undetected: people). ``depth_scale`` scales the depth (wrong estimated depth); ``hole``: no confident
+    depth where that box would be seen (textureless)."""
+    T = look_at(eye, list(target))
+    scene = [FLOOR, WALL, *objects.values(), *occluders]
+    depth, idx = raycast(T, scene)
+    depth = np.where(np.isfinite(depth), depth * depth_scale, 0.0).astype(np.float32)
+    if hole is not None:
+        _, hidx = raycast(T, [hole])
+        depth[hidx >= 0] = 0.0
+    pts = depth_to_world(depth, INTR.K(), T)
+    objs = []
+    for k, label in enumerate(objects, start=2):
+        m = (idx == k) & (depth > 0)
+        if m.sum() >= 5:
+            objs.append(Object3D(voxel_downsample(pts[m], 0.03).astype(np.float32), label, 0.9,
+                                 label_descriptor(label), mask=idx == k))
+    return KeyframeView(INTR.K(), T, depth), objs
+
+
+def mapped(objects: dict[str, Box], cfg: FusionConfig | None = None) -> ObjectMap:
+    """An object map that saw ``objects`` from two places."""
+    om = ObjectMap(cfg or FusionConfig(merge_every_updates=100))
+    for t, eye in enumerate((EYE, [-1.2, -0.4, 1.5])):
+        kv, objs = keyframe(objects, eye=eye)
+        om.integrate(objs, "cam1", t + 1, kv)
+    assert len(om.nodes) == len(objects)
+    return om
+
+
+def node_of(om: ObjectMap, label: str) -> str:
+    return next(k for k, n in om.nodes.items() if n.label_ranking()[0][0] == label)
+
+
+class TestJudge:
+    def test_a_node_where_the_keyframe_sees_it_is_there(self) -> None:
+        kv, objs = keyframe({"chair": CHAIR})
+        assert judge(kv, objs[0].points, AbsenceParams()).verdict is Verdict.THERE
+
+    def test_an_empty_place_is_free(self) -> None:
+        _, objs = keyframe({"chair": CHAIR})
+        kv, _ = keyframe({})
+        j = judge(kv, objs[0].points, AbsenceParams())
+        assert j.verdict is Verdict.FREE and j.free > 0.9 * j.known
+
+    def test_a_passer_by_in_front_is_no_evidence(self) -> None:
+        _, objs = keyframe({"chair": CHAIR})
+        kv, _ = keyframe({}, occluders=(PERSON,))
+        j = judge(kv, objs[0].points, AbsenceParams())
+        assert j.verdict is Verdict.UNKNOWN and j.occluded > 0.5 * j.pixels
+
+    def test_missing_depth_is_no_evidence(self) -> None:
+        _, objs = keyframe({"chair": CHAIR})
+        kv, _ = keyframe({}, hole=box([1.0, -0.2, 0.0], [4.2, 0.9, 2.0]))
+        assert judge(kv, objs[0].points, AbsenceParams()).verdict is Verdict.UNKNOWN
+
+    def test_out_of_view_or_out_of_range_is_no_evidence(self) -> None:
+        _, objs = keyframe({"chair": CHAIR})
+        behind, _ = keyframe({}, target=(-3.0, 0.6, 0.5))  # looking away from the chair
+        assert judge(behind, objs[0].points, AbsenceParams()).verdict is Verdict.UNKNOWN
+        kv, _ = keyframe({})
+        assert judge(kv, objs[0].points, AbsenceParams(max_range_m=1.0)).verdict is Verdict.UNKNOWN
+
+    def test_no_points(self) -> None:
+        kv, _ = keyframe({})
+        assert judge(kv, np.zeros((0, 3)), AbsenceParams()).verdict is Verdict.UNKNOWN
+
+
+class TestRetirement:
+    def test_a_node_seen_empty_from_two_keyframes_is_retired(self) -> None:
+        om = mapped({"chair": CHAIR, "lamp": LAMP})
+        chair, lamp = node_of(om, "chair"), node_of(om, "lamp")
+        kv, objs = keyframe({"lamp": LAMP})
+        res = om.integrate(objs, "cam1", 10, kv)
+        assert chair in om.nodes and om.nodes[chair].absent == 1 and not res.removed
+        kv, objs = keyframe({"lamp": LAMP}, eye=[-1.4, 0.4, 1.7])
+        res = om.integrate(objs, "cam1", 11, kv)
+        assert res.removed == {chair} and set(res.retired) == {chair} and chair not in res.changed
+        assert list(om.nodes) == [lamp]
+
+    def test_one_keyframe_is_not_enough_and_a_detection_clears_the_count(self) -> None:
+        om = mapped({"chair": CHAIR})
+        chair = node_of(om, "chair")
+        kv, objs = keyframe({})
+        om.integrate(objs, "cam1", 10, kv)
+        assert om.nodes[chair].absent == 1
+        kv, objs = keyframe({"chair": CHAIR})
+        om.integrate(objs, "cam1", 11, kv)
+        assert om.nodes[chair].absent == 0
+        kv, objs = keyframe({})
+        res = om.integrate(objs, "cam1", 12, kv)
+        assert chair in om.nodes and not res.removed
+
+    def test_a_passer_by_in_front_retires_nothing(self) -> None:
+        om = mapped({"chair": CHAIR})
+        chair = node_of(om, "chair")
+        for t in range(6):  # the chair is still there, hidden: and also when it has gone, hidden
+            kv, objs = keyframe({"chair": CHAIR} if t % 2 else {}, occluders=(PERSON,))
+            res = om.integrate([o for o in objs if o.label != "chair"], "cam1", 10 + t, kv)
+            assert not res.removed
+        assert chair in om.nodes and om.nodes[chair].absent == 0
+
+    def test_missing_or_wrong_depth_in_one_keyframe_retires_nothing(self) -> None:
+        om = mapped({"chair": CHAIR})
+        chair = node_of(om, "chair")
+        hole = box([1.0, -0.2, 0.0], [4.2, 0.9, 2.0])
+        for t in range(4):  # the chair is there but its pixels have no depth, and it is not detected
+            kv, _ = keyframe({"chair": CHAIR}, hole=hole)
+            assert not om.integrate([], "cam1", 10 + t, kv).removed
+        kv, _ = keyframe({"chair": CHAIR}, depth_scale=1.6)  # estimated depth far beyond, once
+        om.integrate([], "cam1", 20, kv)
+        kv, _ = keyframe({"chair": CHAIR})  # then right again, still undetected: a surface where it stands
+        om.integrate([], "cam1", 21, kv)
+        assert chair in om.nodes and om.nodes[chair].absent == 0
+
+    def test_absence_check_can_be_switched_off(self) -> None:
+        om = mapped({"chair": CHAIR}, FusionConfig(merge_every_updates=100, absence_check=False))
+        for t in range(3):
+            kv, _ = keyframe({})
+            assert not om.integrate([], "cam1", 10 + t, kv).removed
+        assert len(om.nodes) == 1
+
+
+class TestMoves:
+    def test_a_moved_chair_keeps_its_id(self) -> None:
+        om = mapped({"chair": CHAIR, "lamp": LAMP})
+        chair = node_of(om, "chair")
+        before = np.asarray(om.nodes[chair].centre)
+        kv, objs = keyframe({"chair": MOVED, "lamp": LAMP})
+        res = om.integrate(objs, "cam1", 10, kv)
+        assert len(om.nodes) == 2 and res.created == 0 and chair in res.changed and set(res.moved) == {chair}
+        node = om.nodes[chair]
+        after = np.asarray(node.centre)
+        assert np.linalg.norm(after - before - [0.0, 1.0, 0.0]) < 0.1
+        assert node.last_moved_ns == 10 and node.moves == 1 and node.absent == 0 and node.observations == 3
+        assert np.allclose(res.moved[chair][0], before) and np.allclose(res.moved[chair][1], after)
+        msg = om.messages([chair])[0]
+        assert msg.node_id == chair and abs(msg.centroid[1] - after[1]) < 1e-6
+
+    def test_a_second_identical_chair_while_the_first_is_seen_is_a_new_node(self) -> None:
+        om = mapped({"chair": CHAIR})
+        chair = node_of(om, "chair")
+        kv, objs = keyframe({"chair": CHAIR, "chair2": MOVED})
+        objs = [Object3D(o.points, "chair", o.confidence, label_descriptor("chair"), mask=o.mask) for o in objs]
+        res = om.integrate(objs, "cam1", 10, kv)
+        assert res.created == 1 and not res.moved and len(om.nodes) == 2 and chair in om.nodes
+
+    def test_a_new_object_of_another_label_is_a_new_node(self) -> None:
+        om = mapped({"chair": CHAIR})
+        chair = node_of(om, "chair")
+        before = om.nodes[chair].centre
+        kv, objs = keyframe({"lamp": MOVED})  # the chair's place is empty, a lamp elsewhere: not the chair
+        res = om.integrate(objs, "cam1", 10, kv)
+        assert res.created == 1 and not res.moved and om.nodes[chair].centre == before
+        assert om.nodes[chair].absent == 1
+
+    def test_a_chair_seen_gone_earlier_moves_when_seen_again_elsewhere(self) -> None:
+        om = mapped({"chair": CHAIR, "lamp": LAMP})
+        chair = node_of(om, "chair")
+        kv, objs = keyframe({"lamp": LAMP})  # gone from its place (one keyframe)
+        om.integrate(objs, "cam1", 10, kv)
+        far = (CHAIR[0] + [0.0, 2.5, 0.0], CHAIR[1] + [0.0, 2.5, 0.0])
+        kv, objs = keyframe({"chair": far}, eye=[-1.0, 3.5, 1.6])  # a view that does not see the old place
+        res = om.integrate(objs, "cam1", 11, kv)
+        assert set(res.moved) == {chair} and res.created == 0 and om.nodes[chair].last_moved_ns == 11
+
+    def test_state_round_trip_keeps_the_counts(self) -> None:
+        om = mapped({"chair": CHAIR, "lamp": LAMP})
+        chair = node_of(om, "chair")
+        kv, objs = keyframe({"chair": MOVED})
+        om.integrate(objs, "cam1", 10, kv)
+        lamp = node_of(om, "lamp")
+        assert om.nodes[lamp].absent == 1
+        again = ObjectMap(om.cfg)
+        again.load_state(om.state())
+        assert again.nodes[chair].last_moved_ns == 10 and again.nodes[chair].moves == 1
+        assert again.nodes[lamp].absent == 1
