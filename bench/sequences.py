@@ -32,7 +32,7 @@ import numpy as np
 from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
 
 from edge_camera.sources.base import SourceConfigError
-from edge_camera.sources.recorded import list_color_images, read_intrinsics_matrix, read_pose
+from edge_camera.sources.recorded import list_color_images, read_intrinsics_matrix, read_pose, world_transform
 from mapper.geometry.contract import View
 from protocol.messages import FrameHeader, Intrinsics
 from protocol.poses import PoseAccuracy, covariance_from_accuracy
@@ -62,6 +62,11 @@ class SequenceMeta(BaseModel):
     pose_sigma_rot_deg: float | None = Field(
         default=None, gt=0, description="stated accuracy of the recorded poses: rotation std-dev, degrees"
     )
+    world_from_recording: list[list[float]] | None = Field(
+        default=None,
+        description="rigid 4x4 taking the recording's world frame to Argus's (z up, floor at z = 0); every pose is "
+        "read as world_from_recording @ T_world_cam, as the edge camera's recorded source sends it",
+    )
     licence: str = Field(default="", description="the data's licence")
     pose_source: str = Field(default="", description="where the poses come from")
 
@@ -69,6 +74,7 @@ class SequenceMeta(BaseModel):
     def _both_or_neither(self) -> SequenceMeta:
         if (self.pose_sigma_trans_m is None) != (self.pose_sigma_rot_deg is None):
             raise ValueError("pose_sigma_trans_m and pose_sigma_rot_deg go together (both or neither)")
+        world_transform(self.world_from_recording, "meta")  # raises ValueError (PoseError) when not rigid
         return self
 
     def declared(self) -> PoseAccuracy | None:
@@ -152,6 +158,7 @@ def load(folder: Path, start: int = 0, stop: int | None = None) -> Sequence:
         raise SequenceError(f"{frames_dir}: no frame-NNNNNN.color.* images")
     frames, projected = [], 0
     lo, hi = meta.valid_depth_m
+    W = world_transform(meta.world_from_recording, "meta")
     for i, p in enumerate(colours[start:stop], start=start):
         stem = p.name.split(".color.")[0]
         pose_file = p.parent / f"{stem}.pose.txt"
@@ -170,7 +177,8 @@ def load(folder: Path, start: int = 0, stop: int | None = None) -> Sequence:
                                 f"{raw.shape} {raw.dtype}")
         depth = (raw >> meta.depth_shift).astype(np.float32) / np.float32(meta.depth_divisor)
         rgb = np.asarray(cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB), dtype=np.uint8)
-        frames.append(RecordedFrame(i, rgb, K, chk.T, depth, (depth > lo) & (depth < hi)))
+        T = chk.T if W is None else W @ chk.T
+        frames.append(RecordedFrame(i, rgb, K, T, depth, (depth > lo) & (depth < hi)))
     return Sequence(folder.resolve().name, folder, meta, frames, projected)
 
 

@@ -9,15 +9,24 @@ The sequence folder::
     frames/frame-NNNNNN.color.png    the image (.jpg / .jpeg also taken), in frame-number order
     frames/frame-NNNNNN.pose.txt     4x4 T_world_cam (camera to world, metres, OpenCV camera axes)
     camera-intrinsics.txt            the 3x3 K in its first three rows, whitespace separated
-    meta.json                        optional: "rate_hz" (the recorded frame rate) and the declared pose
-                                     accuracy "pose_sigma_trans_m" / "pose_sigma_rot_deg"; other keys
-                                     (depth_divisor, licence, pose_source...) are ignored
+    meta.json                        optional: "rate_hz" (the recorded frame rate), the declared pose
+                                     accuracy "pose_sigma_trans_m" / "pose_sigma_rot_deg" and
+                                     "world_from_recording" (below); other keys (depth_divisor, licence,
+                                     pose_source...) are ignored
 
 Each frame carries its intrinsics (K at the image's size) and its pose, checked with
 :func:`protocol.poses.check_pose`. Recorded poses are priors (``pose_trusted = false``). With a declared
 accuracy (config, else meta.json; both sigmas or neither) each frame also carries the 6x6
 ``pose_covariance`` the mapper reads as that pose's accuracy; without one there is none and the mapper
 judges the poses from the images. A calibration file's intrinsics and pose still override these.
+
+**World frame.** Argus's world has z up (against gravity) and the floor at z = 0: rooms, the floor-slab check
+of fusion and relations such as "on" rely on it. A recording whose poses live in another frame (a HoloLens or
+ARKit session is y-up, a SLAM run starts wherever its first camera was) states the rigid 4x4
+``world_from_recording`` (config, else meta.json) that takes its frame to Argus's; every pose is sent as
+``world_from_recording @ T_world_cam``. Without one the poses are sent as recorded, and a recording whose
+cameras' mean image-down direction is more than :data:`UP_WARN_DEG` from world -z is warned about when built
+(:func:`down_angle_deg`), since its keyframes would mostly be rejected as depth under the floor.
 
 The header's ``source_kind`` stays ``"fixed"``: it is the camera's own key (the ACL lets a camera put only
 its own cam keys). A pose per frame with ``pose_trusted = false`` is what tells the mapper this camera
@@ -55,6 +64,8 @@ log = logging.getLogger(__name__)
 
 DEFAULT_RATE_HZ = 5.0
 """Frames per second when neither the config nor meta.json gives a rate."""
+UP_WARN_DEG = 60.0
+"""A recording without ``world_from_recording`` whose cameras look, on average, this far off level is warned about."""
 _COLOR = re.compile(r"^frame-(\d+)\.color\.(png|jpg|jpeg)$", re.IGNORECASE)
 
 
@@ -78,6 +89,11 @@ class Config(SourceConfig):
         default=None, gt=0, allow_inf_nan=False,
         description="declared std-dev of each pose rotation axis, degrees (with pose_sigma_trans_m)",
     )
+    world_from_recording: list[list[float]] | None = Field(
+        default=None,
+        description="rigid 4x4 taking the recording's world frame to Argus's (z up, floor at z = 0), applied to "
+        "every pose; default: meta.json's, else the poses as recorded",
+    )
 
     @model_validator(mode="after")
     def _consistent(self) -> Config:
@@ -85,6 +101,8 @@ class Config(SourceConfig):
             raise ValueError("pose_sigma_trans_m and pose_sigma_rot_deg go together (both or neither)")
         if self.stop is not None and self.stop <= self.start:
             raise ValueError(f"stop ({self.stop}) must be greater than start ({self.start})")
+        if self.world_from_recording is not None:
+            world_transform(self.world_from_recording, "world_from_recording")  # raises ValueError when not rigid
         return self
 
 
@@ -119,6 +137,27 @@ def read_intrinsics_matrix(path: Path) -> np.ndarray:
     return K
 
 
+def world_transform(value: Any, where: str) -> np.ndarray | None:
+    """``world_from_recording`` as a checked rigid 4x4 (None when ``value`` is None); ``ValueError`` naming
+    ``where`` when it is not a rigid transform."""
+    if value is None:
+        return None
+    return check_pose(value, source=f"{where} (world_from_recording)").T
+
+
+def down_angle_deg(poses: list[np.ndarray]) -> float:
+    """Angle between the cameras' mean image-down direction (the y axis of OpenCV camera axes, in the world
+    frame) and world -z, degrees: near 0 for an upright camera in a z-up world (a camera pitched 30 deg down
+    still reads about 30), near 90 for a y-up world such as a HoloLens or ARKit session's; NaN without poses."""
+    if not poses:
+        return math.nan
+    down = np.mean([np.asarray(T, np.float64)[:3, 1] for T in poses], axis=0)
+    n = float(np.linalg.norm(down))
+    if n < 1e-9:
+        return 90.0
+    return math.degrees(math.acos(float(np.clip(-down[2] / n, -1.0, 1.0))))
+
+
 def read_meta(path: Path) -> dict[str, Any]:
     """meta.json as a dict (empty when absent); :class:`SourceConfigError` naming it when it is bad."""
     if not path.exists():
@@ -135,6 +174,10 @@ def read_meta(path: Path) -> dict[str, Any]:
         v = meta.get(key)
         if v is not None and (isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v <= 0):
             raise _fail(f"{path}: {key} must be a number > 0, got {v!r}")
+    try:
+        world_transform(meta.get("world_from_recording"), str(path))
+    except ValueError as e:
+        raise _fail(str(e)) from None
     return meta
 
 
@@ -184,6 +227,10 @@ class RecordedSequence(SourceBase):
                     meta.get("pose_sigma_trans_m"), meta.get("pose_sigma_rot_deg"), str(folder / "meta.json"))
             except ValueError as e:
                 raise _fail(str(e)) from None
+        given = config.world_from_recording if config.world_from_recording is not None else meta.get(
+            "world_from_recording")
+        self.world_from_recording = world_transform(given, "config" if config.world_from_recording is not None
+                                                    else str(folder / "meta.json"))
         chosen = images[config.start:config.stop]
         if not chosen:
             raise _fail(f"start = {config.start} is past the last of the {len(images)} frames in {frames_dir}")
@@ -191,11 +238,19 @@ class RecordedSequence(SourceBase):
         for image in chosen:
             pose_path = image.with_name(image.name.split(".", 1)[0] + ".pose.txt")
             try:
-                self.frames.append(RecordedFrame(image, read_pose(pose_path).T))
+                T = read_pose(pose_path).T
             except ValueError as e:  # PoseError included
                 self._skip(f"skipping frame {image.name}: {e}")
+                continue
+            W = self.world_from_recording
+            self.frames.append(RecordedFrame(image, T if W is None else check_pose(W @ T, str(pose_path)).T))
         if not self.frames:
             raise _fail(f"no frame of {folder} has a usable pose file (see the warnings above)")
+        tilt = down_angle_deg([f.T_world_cam for f in self.frames])
+        if self.world_from_recording is None and tilt > UP_WARN_DEG:
+            log.warning("%s: the cameras look %.0f deg off level on average: this recording's world frame does not "
+                        "look z-up. Argus's world has z up and the floor at z = 0; state world_from_recording in "
+                        "meta.json or the source config (docs/deploy.md, 'Recordings')", folder, tilt)
         self._index = 0  # kept across close/open, so a reopen resumes instead of replaying
         self._open = False
         self._ended = False

@@ -42,6 +42,15 @@ def test_declared_accuracy_is_both_sigmas_or_neither(tmp_path: Path) -> None:
         seqs.load(tmp_path / "t")
 
 
+def test_world_from_recording_moves_the_poses_the_camera_would_send(tmp_path: Path) -> None:
+    W = [[0, -1, 0, 1.0], [1, 0, 0, 0], [0, 0, 1, 0.5], [0, 0, 0, 1]]
+    seq = seqs.load(_with_depth(tmp_path / "s", meta=dict(META, world_from_recording=W)))
+    assert np.allclose(seq.frames[2].T_world_cam, np.array(W) @ pose_of(2), atol=1e-9)
+    _with_depth(tmp_path / "t", meta=dict(META, world_from_recording=[[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0]]))
+    with pytest.raises(seqs.SequenceError, match="world_from_recording"):
+        seqs.load(tmp_path / "t")
+
+
 @pytest.mark.parametrize("breakage, named", [
     ("no_meta", "meta.json: missing"),
     ("bad_meta", "meta.json: depth_divisor"),

@@ -103,6 +103,29 @@ class TestRecordedSource:
         assert np.allclose(T[:3, :3].T @ T[:3, :3], np.eye(3), atol=1e-12)
         assert np.allclose(T, pose_of(0), atol=1e-3)
 
+    def test_world_from_recording_moves_every_pose_config_over_meta(self, tmp_path):
+        # A y-up recording (HoloLens, ARKit) with its floor 1.2 m below its origin, into z up / floor at z = 0.
+        W = [[1, 0, 0, 0], [0, 0, -1, 0], [0, 1, 0, 1.2], [0, 0, 0, 1]]
+        folder = write_sequence(tmp_path / "seq", n=2, meta={"world_from_recording": W})
+        src = make(folder)
+        for i in range(2):
+            assert np.allclose(src.read().T_world_cam, np.array(W) @ pose_of(i), atol=1e-9)
+        shift = [[1, 0, 0, 5.0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]
+        T = make(folder, world_from_recording=shift).read().T_world_cam
+        assert np.allclose(T, np.array(shift) @ pose_of(0), atol=1e-9)
+
+    def test_a_world_frame_that_does_not_look_z_up_is_warned_about(self, tmp_path, caplog):
+        y_up = [[1, 0, 0, 0], [0, 0, 1, 0], [0, -1, 0, 0], [0, 0, 0, 1]]  # the inverse: z-up poses made y-up
+        make(write_sequence(tmp_path / "a", n=2, meta={"world_from_recording": y_up}))
+        assert "does not look z-up" not in caplog.text  # stated: the user chose it
+        make(write_sequence(tmp_path / "b", n=2))
+        assert "does not look z-up" not in caplog.text
+        folder = write_sequence(tmp_path / "c", n=2)
+        for i in range(2):
+            np.savetxt(folder / "frames" / f"frame-{i:06d}.pose.txt", np.array(y_up) @ pose_of(i))
+        make(folder)
+        assert "does not look z-up" in caplog.text and "world_from_recording" in caplog.text
+
     def test_all_images_unreadable_names_the_folder(self, tmp_path):
         folder = write_sequence(tmp_path / "seq", n=2)
         for p in (folder / "frames").glob("*.color.png"):
@@ -149,6 +172,9 @@ def _broken(folder: Path, case: str) -> str:
     if case == "meta one sigma":
         meta.write_text('{"pose_sigma_trans_m": 0.1}')
         return str(meta)
+    if case == "meta world not rigid":
+        meta.write_text('{"world_from_recording": [[2, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0], [0, 0, 0, 1]]}')
+        return str(meta)
     if case == "no usable pose":
         for p in frames.glob("*.pose.txt"):
             p.write_text("nan")
@@ -158,7 +184,8 @@ def _broken(folder: Path, case: str) -> str:
 
 @pytest.mark.parametrize("case", ["no frames dir", "no frames", "no intrinsics", "intrinsics not a matrix",
                                   "intrinsics too short", "intrinsics zero focal", "meta not json",
-                                  "meta not an object", "meta bad rate", "meta one sigma", "no usable pose"])
+                                  "meta not an object", "meta bad rate", "meta one sigma", "meta world not rigid",
+                                  "no usable pose"])
 def test_broken_folder_is_one_clear_configuration_error_naming_the_file(tmp_path, case):
     named = _broken(tmp_path / "seq", case)
     with pytest.raises(SourceConfigError) as err:
