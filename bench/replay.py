@@ -523,10 +523,10 @@ def replay_launch(launch_path: Path, sequence: Path, rate_hz: float, accuracy: P
                   ) -> tuple[Any, str, dict[str, Any]]:
     """The launch file's stack set up for this replay: on ``endpoint``, its camera playing ``sequence`` once at
     ``rate_hz`` declaring ``accuracy`` (None: nothing) with the sequence's ``world_from_recording`` (None: the
-    poses as recorded; a folder described by a sidecar has no meta.json the camera could read it from), its mapper saving to ``state_dir`` and, when
-    ``perception`` names one of :data:`PERCEPTIONS`, segmenting and labelling with it (the launch file's backend
-    options are kept where the backend is the same). Returns the launch, the camera's id and the mapper's
-    settings; ``ValueError`` when the file is not a replay stack."""
+    poses as recorded; a folder described by a sidecar has no meta.json the camera could read it from), its
+    mapper saving to ``state_dir`` and, when ``perception`` names one of :data:`PERCEPTIONS`, segmenting and
+    labelling with it (the launch file's backend options are kept where the backend is the same). Returns the
+    launch, the camera's id and the mapper's settings; ``ValueError`` when the file is not a replay stack."""
     from deploy.up import load_launch
 
     launch = load_launch(launch_path)
