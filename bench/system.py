@@ -276,6 +276,10 @@ class GraphWatch:
             self.last_change_t = time.monotonic()
             if (ms := delta_latency_ms(d, now)) is not None:
                 self.latencies_ms.append(ms)
+                self._latency(d, ms)
+
+    def _latency(self, delta: GraphDelta, ms: float) -> None:
+        """Called (under the lock) with each latency sample and its delta; for subclasses."""
 
     def _on_status(self, sample: Any) -> None:
         try:

@@ -291,6 +291,12 @@ class TestLaunch:
         undeclared = replay.replay_launch(replay.DEFAULT_LAUNCH, tmp_path, 0.5, None, "tcp/127.0.0.1:1", tmp_path)[0]
         src = next(p for p in undeclared.process if p.command == "edge-camera").settings["source"]  # type: ignore[index]
         assert "pose_sigma_trans_m" not in src and "pose_sigma_rot_deg" not in src
+        assert "world_from_recording" not in src
+        W = [[1, 0, 0, 0], [0, 0, -1, 0], [0, 1, 0, 1.5], [0, 0, 0, 1]]  # a sidecar's, which the camera cannot read
+        turned = replay.replay_launch(replay.DEFAULT_LAUNCH, tmp_path, 0.5, None, "tcp/127.0.0.1:1", tmp_path,
+                                      world_from_recording=W)[0]
+        src = next(p for p in turned.process if p.command == "edge-camera").settings["source"]  # type: ignore[index]
+        assert src["world_from_recording"] == W
 
     def test_a_launch_file_without_a_recorded_camera_is_refused(self, tmp_path: Path) -> None:
         bad = tmp_path / "bad.toml"
@@ -353,13 +359,28 @@ def test_summary_rows_say_which_bars_are_met() -> None:
             "node_points_within_pooled": 0.95, "nodes_90pct_within": 1.0, "duplicates": 0.0, "keyframes": 3.0,
             "pose_trans_cm_median": 0.1, "pose_rot_deg_median": 0.05}
     res = {"replay": figs, "in_process": dict(figs, accuracy_median_m=0.03), "comparison": {"gap_max": 0.3},
-           "figures": {"latency_p50_s": 1.0, "latency_p99_s": 1.5, "frames_sent": 3, "frames_in_folder": 3},
+           "figures": {"latency_p50_s": 1.0, "latency_p99_s": 2.5, "latency_rest_p50_s": 1.0, "latency_rest_p99_s": 1.5,
+                       "latency_first_s": [2.5], "first_keyframe_wait_s": 2.0, "frames_sent": 3, "frames_in_folder": 3},
            "in_process_run": {"counters": {"keyframes": 3.0}}}
     met = {r["figure"]: r["met"] for r in replay.summary_rows(res)}
     assert met["accuracy, median"] == "met" and met["completion @ 5 cm"] == "**miss**"
     assert met["node points within 10 cm (mean over nodes)"] == "met"
-    assert met["capture -> graph latency p99"] == "met"
+    assert met["capture -> graph latency p99"] == "**miss**"
+    assert met["  the same, p50 / p99 without the first keyframe"] == "met"
     assert met["replay vs in-process, largest gap of the four above"] == "**miss**"
+
+
+def test_the_first_keyframe_and_its_wait_for_a_second_view_are_reported_apart() -> None:
+    captured = {0: 10_000_000_000, 1: 12_000_000_000, 2: 14_000_000_000}  # 0.5 Hz
+    samples = [(10_000_000_000, 3100.0), (12_000_000_000, 1200.0), (10_000_000_000, 3300.0),
+               (14_000_000_000, 1400.0)]
+    out = replay.split_first_keyframe(samples, captured)
+    assert out["latency_rest_s"] == [1.2, 1.4] and out["latency_first_s"] == [3.1, 3.3]
+    assert out["first_keyframe_wait_s"] == 2.0 and out["latency_rest_p50_s"] == pytest.approx(1.3)
+    assert out["latency_rest_p99_s"] == pytest.approx(1.398)
+    empty = replay.split_first_keyframe([], {})
+    assert empty["latency_rest_s"] == [] and math.isnan(empty["latency_rest_p99_s"])
+    assert math.isnan(empty["first_keyframe_wait_s"])
 
 
 def test_accuracy_is_binned_by_distance_from_the_cameras() -> None:
