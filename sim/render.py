@@ -139,8 +139,12 @@ class Renderer:
         inst = np.where(prim >= 0, self.face_instance[np.maximum(prim, 0)], -1).astype(np.int32)
         return t, inst
 
-    def render(self, intrinsics: Intrinsics, T_world_cam: np.ndarray) -> RenderOutput:
-        """Render one frame from camera pose ``T_world_cam`` (OpenCV axes, see protocol.poses)."""
+    def render(self, intrinsics: Intrinsics, T_world_cam: np.ndarray, overlay: Overlay | None = None) -> RenderOutput:
+        """Render one frame from camera pose ``T_world_cam`` (OpenCV axes, see protocol.poses).
+
+        ``overlay``: moving geometry drawn into the same frame (:class:`sim.people.PeopleLayer`): each ray keeps the
+        nearer of its hits in this scene and in the overlay, so a passer-by occludes what is behind it in RGB, depth
+        and instance ids alike. Without one the frame is exactly the scene's."""
         T = np.asarray(T_world_cam, dtype=np.float64)
         if T.shape != (4, 4) or not np.all(np.isfinite(T)):
             raise ValueError("T_world_cam must be a finite 4x4 pose")
@@ -151,32 +155,58 @@ class Renderer:
         origin = T[:3, 3]
         origins = np.broadcast_to(origin, d_world.shape)
         t, prim = self.caster.cast(origins, d_world)
-        hit = prim >= 0
         n_pix = K.width * K.height
-        depth = np.zeros(n_pix, np.float32)
-        depth[hit] = t[hit]
-        inst = np.full(n_pix, -1, np.int32)
-        ph = prim[hit]
-        inst[hit] = self.face_instance[ph]
         rgb = np.empty((n_pix, 3), np.uint8)
         rgb[:] = self.background
-        if hit.any():
-            pts = origin + d_world[hit] * t[hit][:, None]
-            nrm = self.face_normals[ph].astype(np.float64)
-            facing = np.einsum("ij,ij->i", nrm, d_world[hit]) > 0
-            nrm[facing] *= -1.0
-            col = albedo(pts, nrm, self.face_material[ph], self.scene.materials)
-            shade = np.full(len(pts), _AMBIENT)
-            for L, w in _LIGHTS:
-                shade += w * np.clip(nrm @ L, 0.0, None)
-            # a little distance falloff reads as indoor lighting and separates depth layers
-            shade *= 1.0 / (1.0 + 0.025 * t[hit])
-            rgb[hit] = np.clip(col * shade[:, None] * 255.0, 0, 255).astype(np.uint8)
+        depth = np.zeros(n_pix, np.float32)
+        inst = np.full(n_pix, -1, np.int32)
+        hit = prim >= 0
+        if overlay is not None:
+            t_o, prim_o = overlay.caster.cast(origins, d_world)
+            front = (prim_o >= 0) & (t_o < t)
+            hit &= ~front
+            _shade_hits(front, t_o, prim_o, origin, d_world, overlay.face_instance, overlay.face_normals,
+                        overlay.face_material, overlay.materials, rgb, depth, inst)
+        _shade_hits(hit, t, prim, origin, d_world, self.face_instance, self.face_normals, self.face_material,
+                    self.scene.materials, rgb, depth, inst)
         return RenderOutput(
             rgb=rgb.reshape(K.height, K.width, 3),
             depth_m=depth.reshape(K.height, K.width),
             instance_id=inst.reshape(K.height, K.width),
         )
+
+
+class Overlay(Protocol):
+    """Moving geometry :meth:`Renderer.render` draws over a scene: a ray caster over its own triangles with each
+    face's instance id, unit normal and material (an index into ``materials``)."""
+
+    caster: RayCaster
+    face_instance: np.ndarray
+    face_normals: np.ndarray
+    face_material: np.ndarray
+    materials: list[Any]
+
+
+def _shade_hits(hit: np.ndarray, t: np.ndarray, prim: np.ndarray, origin: np.ndarray, d_world: np.ndarray,
+                face_instance: np.ndarray, face_normals: np.ndarray, face_material: np.ndarray, materials: list[Any],
+                rgb: np.ndarray, depth: np.ndarray, inst: np.ndarray) -> None:
+    """Write depth, instance id and shaded colour of the rays ``hit`` selects (first hits ``t``, triangles
+    ``prim``) into the flat frame buffers."""
+    depth[hit] = t[hit]
+    ph = prim[hit]
+    inst[hit] = face_instance[ph]
+    if hit.any():
+        pts = origin + d_world[hit] * t[hit][:, None]
+        nrm = face_normals[ph].astype(np.float64)
+        facing = np.einsum("ij,ij->i", nrm, d_world[hit]) > 0
+        nrm[facing] *= -1.0
+        col = albedo(pts, nrm, face_material[ph], materials)
+        shade = np.full(len(pts), _AMBIENT)
+        for L, w in _LIGHTS:
+            shade += w * np.clip(nrm @ L, 0.0, None)
+        # a little distance falloff reads as indoor lighting and separates depth layers
+        shade *= 1.0 / (1.0 + 0.025 * t[hit])
+        rgb[hit] = np.clip(col * shade[:, None] * 255.0, 0, 255).astype(np.uint8)
 
 
 def benchmark(scene: Any, intrinsics: Intrinsics, poses: list[np.ndarray], backends: tuple[str, ...] = ("embree",
