@@ -11,6 +11,9 @@
 - ``external`` (paper Table II): 1, 2 and 3 fixed cameras and no robot, on both scene families.
 - ``rooms`` (run only when named): the mapper's room layer against the simulator's rooms after a full tour
   (room count, IoU, object-to-room and room-label accuracy; ``bench.rooms``).
+- ``changes`` (run only when named): an apartment that changes (objects moved, removed, added) while people walk
+  through, watched by fixed cameras and a touring robot: time until the graph is right about each edit, stale nodes,
+  false retirements, F1 over time (``bench.changes``).
 
 Each writes ``<name>.json``, ``<name>.md`` and PNG plots under ``--out``; ``summary.md`` collects the
 tables. 2D perception defaults to the simulator's semantic camera (``sim``: an ORACLE for masks and
@@ -38,6 +41,7 @@ from typing import Any
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
+from bench.changes import ChangesConfig, changes_markdown, changes_plot, quick_changes, run_changes
 from bench.explore import mapper_config, steps_to
 from bench.report import machine, markdown_table
 from bench.rooms import RoomsConfig, rooms_markdown, rooms_plot, run_rooms
@@ -45,7 +49,7 @@ from bench.simdrive import along_path
 from bench.simdrive import mapper_views as _mapper_views
 
 EXPERIMENTS = ("static", "external", "active")
-OPTIONAL = ("rooms",)  # run only when named
+OPTIONAL = ("rooms", "changes")  # run only when named
 
 
 class FramesConfig(BaseModel):
@@ -143,6 +147,7 @@ class EvalConfig(BaseModel):
     active: ActiveConfig = Field(default_factory=ActiveConfig, description="Fig. 2")
     external: ExternalConfig = Field(default_factory=ExternalConfig, description="Table II")
     rooms: RoomsConfig = Field(default_factory=RoomsConfig, description="the room layer against the true rooms")
+    changes: ChangesConfig = Field(default_factory=ChangesConfig, description="a scene that changes while watched")
     torch_threads: int = Field(default=2, ge=1, description="torch CPU threads")
 
 
@@ -154,6 +159,7 @@ def quick_config(out: Path) -> EvalConfig:
         static=StaticConfig(seeds=[0], frames=frames),
         active=ActiveConfig(family="furnished_room", steps=4, starts=1, reference_geometry=None),
         external=ExternalConfig(families=["furnished_room"], seeds=[0], cameras=[1, 3], width=320, height=240),
+        changes=quick_changes(),
         experiments=list(EXPERIMENTS),
     )
 
@@ -548,6 +554,7 @@ RUNNERS: dict[str, tuple[Callable[..., dict[str, Any]], Callable[[dict[str, Any]
     "active": (run_active, active_markdown, active_plot),
     "external": (run_external, external_markdown, external_plot),
     "rooms": (run_rooms, rooms_markdown, rooms_plot),
+    "changes": (run_changes, changes_markdown, changes_plot),
 }
 
 
@@ -587,14 +594,15 @@ def main(argv: list[str] | None = None) -> int:
         prog="argus eval",
         description="Reproduce the paper's experiments (static, active, external) on simulated scenes: "
         "JSON, Markdown tables and PNG plots under --out.",
-        epilog="examples: argus eval --quick --out eval_out | argus eval static --scenes 5 --out eval_out",
+        epilog="examples: argus eval --quick --out eval_out | argus eval static --scenes 5 --out eval_out | "
+        "argus eval changes --quick --out eval_out",
     )
     p.add_argument("experiments", nargs="*",
                    help=f"which of {', '.join(EXPERIMENTS + OPTIONAL)} (default: {', '.join(EXPERIMENTS)})")
     p.add_argument("--out", type=Path, default=None, help="output folder (default: the config's out, else eval_out)")
     p.add_argument("--quick", action="store_true", help="small subset for CI (< 5 min on 2 cores)")
     p.add_argument("--config", type=Path, default=None, help="TOML file with an EvalConfig (overrides defaults)")
-    p.add_argument("--scenes", type=int, default=None, help="scenes per setting (static, external, rooms)")
+    p.add_argument("--scenes", type=int, default=None, help="scenes per setting (static, external, rooms, changes)")
     p.add_argument("--starts", type=int, default=None, help="start poses (active)")
     p.add_argument("--steps", type=int, default=None, help="exploration steps (active)")
     p.add_argument("--perception", default=None, help="2D perception for all: sim (ORACLE) or classical")
@@ -626,6 +634,7 @@ def main(argv: list[str] | None = None) -> int:
             cfg.static.seeds = list(range(a.scenes))
             cfg.external.seeds = list(range(a.scenes))
             cfg.rooms.seeds = list(range(a.scenes))
+            cfg.changes.seeds = list(range(a.scenes))
         if a.starts is not None:
             cfg.active.starts = a.starts
         if a.steps is not None:
@@ -636,7 +645,7 @@ def main(argv: list[str] | None = None) -> int:
             cfg.active.reference_geometry = None if a.active_reference == "none" else a.active_reference
         if a.perception is not None:
             cfg.static.perception = cfg.external.perception = cfg.active.perception = a.perception
-            cfg.rooms.perception = a.perception
+            cfg.rooms.perception = cfg.changes.perception = a.perception
     except (ValueError, OSError) as e:
         print(f"argus eval: {e}", file=sys.stderr)
         return 2
