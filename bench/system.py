@@ -28,6 +28,7 @@ Example::
 from __future__ import annotations
 
 import argparse
+import math
 import os
 import sys
 import threading
@@ -371,16 +372,85 @@ def run(cameras: int, fps: float, phase_s: float, warmup_s: float, width: int, h
     for n in counts:
         phases = _run_stack(cams, fps, phase_s, warmup_s, consumers, mapper_settings, consumer_rate_hz, n)
         results["phases"] += [{"workers": n, **ph} for ph in phases]
-    rows = [{k: v for k, v in ph.items() if k not in ("mapper_status", "model_curve")} for ph in results["phases"]]
+    rows = [{k: v for k, v in ph.items() if k not in ("mapper_status", "model_curve", "job_cpu_s")}
+            for ph in results["phases"]]
     if workers is None:
         rows = [{k: v for k, v in r.items() if k != "workers"} for r in rows]
     write_report(out, "system", results, rows,
                  title=f"System: {cameras} simulated cameras at {fps:g} fps into one mapper "
                        f"({width}x{height}, {mapper_settings}; consumers query at {consumer_rate_hz:g} Hz each"
                        + (f"; argus worker processes: {counts}" if workers else "") + ")")
+    with_headline(out / "system.md", headline(results["phases"], cameras, fps))
     if workers:
         append_model(out / "system.md", results["phases"])
     return results
+
+
+def job_profile(before: dict[str, dict[str, float]], after: dict[str, dict[str, float]]) -> dict[str, float]:
+    """CPU-seconds per keyframe job by stage over all workers between two worker-status snapshots (worker id ->
+    its counters): the growth of each ``cpu_s.<stage>`` counter (``mapper.work.worker``) over the growth of
+    ``jobs_done``; ``total`` is their sum. Empty when no job was done. A worker first seen in ``after`` counts
+    from its start, both in its CPU and in its jobs, so the ratio stays a per-job figure."""
+    spent: dict[str, float] = {}
+    jobs = 0.0
+    for wid, c1 in after.items():
+        c0 = before.get(wid, {})
+        jobs += c1.get("jobs_done", 0.0) - c0.get("jobs_done", 0.0)
+        for k, v in c1.items():
+            if k.startswith("cpu_s."):
+                spent[k[len("cpu_s."):]] = spent.get(k[len("cpu_s."):], 0.0) + v - c0.get(k, 0.0)
+    if jobs <= 0:
+        return {}
+    out = {k: v / jobs for k, v in sorted(spent.items(), key=lambda kv: -kv[1])}
+    out["total"] = sum(out.values())
+    return out
+
+
+def cameras_per_core(cpu_s_per_kf: float | None, keyframes_per_s: float, cameras: int) -> float | None:
+    """How many such cameras one core carries: one core's second over what one camera's keyframes cost per
+    second (``keyframes_per_s`` offered by all ``cameras``, times ``cpu_s_per_kf`` of every process)."""
+    if not cpu_s_per_kf or cameras <= 0 or keyframes_per_s <= 0:
+        return None
+    return 1.0 / (cpu_s_per_kf * keyframes_per_s / cameras)
+
+
+def headline(phases: list[dict[str, Any]], cameras: int, fps: float) -> list[str]:
+    """The report's first lines: per phase, CPU-seconds per keyframe (every process, workers included) with the
+    latency beside it and the cameras one core carries; then where a worker's job spends its CPU."""
+    from bench.report import markdown_table
+
+    text = ["## CPU per keyframe", ""]
+    for ph in phases:
+        label = (f"{ph['workers']} workers, " if "workers" in ph else "") + f"{ph.get('consumers', 0)} consumers"
+        all_s = ph.get("cpu_s_per_kf.all")
+        if not all_s:
+            text.append(f"- {label}: no keyframe done")
+            continue
+        kf_per_cam = ph.get("keyframes_per_s", 0.0) / max(cameras, 1)
+        per_core = cameras_per_core(all_s, ph.get("keyframes_per_s", 0.0), cameras)
+        carries = (f"one core carries {per_core:.2f} such cameras ({fps:g} fps, {kf_per_cam:.2f} keyframes/s each)"
+                   if per_core else "no keyframes offered")
+        p50, p99 = (ph.get(k) or math.nan for k in ("latency_p50_ms", "latency_p99_ms"))
+        text.append(f"- {label}: **{all_s:.3f} CPU-s per keyframe** (all processes, workers included); capture -> "
+                    f"graph p50 {p50 / 1000:.2f} s, p99 {p99 / 1000:.2f} s; load {ph.get('load_avg_1m', math.nan):.1f}"
+                    f"; {carries}")
+    for ph in phases:
+        jp = ph.get("job_cpu_s") or {}
+        if not jp:
+            continue
+        total = jp["total"]
+        rows = [{"stage": k, "CPU s per job": round(v, 4), "share": f"{100 * v / total:.0f} %" if total > 0 else "-"}
+                for k, v in jp.items() if k != "total"]
+        rows.append({"stage": "total (worker)", "CPU s per job": round(total, 4), "share": "100 %"})
+        text += ["", f"Where a worker's keyframe job spends its CPU ({ph.get('consumers', 0)} consumers; the workers' "
+                 "`cpu_s.<stage>` status counters):", "", markdown_table(rows)]
+    return text
+
+
+def with_headline(md: Path, lines: list[str]) -> None:
+    """``lines`` put under the first line (the title) of the Markdown report ``md``."""
+    text = md.read_text().splitlines()
+    md.write_text("\n".join(text[:1] + [""] + lines + text[1:]) + "\n")
 
 
 def append_model(md: Path, phases: list[dict[str, Any]]) -> None:
@@ -541,6 +611,7 @@ def _run_stack(cams: list[CameraFrames], fps: float, phase_s: float, warmup_s: f
             self_cpu0 = proc_cpu_s(os.getpid())
             roles0 = clock.sample()
             status0 = watch.take()[2]
+            workers0 = watch.worker_status()
             time.sleep(phase_s)
             dt = time.monotonic() - t0
             cpu1, sent1 = proc_cpu_s(mapper_pid), sum(p.sent for p in players)
@@ -576,6 +647,7 @@ def _run_stack(cams: list[CameraFrames], fps: float, phase_s: float, warmup_s: f
                 "mapper_cpu_cores": (cpu1 - cpu0) / dt,
                 "workers_cpu_cores": workers_cpu_s(roles0, roles1) / dt,  # the mapper's local workers too
                 **work_model(diff, watch.worker_status()),
+                "job_cpu_s": job_profile(workers0, watch.worker_status()),
                 "bench_cpu_cores": (self_cpu1 - self_cpu0) / dt,  # cameras + consumers share the machine
                 "mapper_rss_mb": mem["rss_mb"], "mapper_peak_rss_mb": mem["peak_rss_mb"],
                 "mapper_status": status1,

@@ -36,6 +36,10 @@ class KeyframeProducts:
     K: np.ndarray
     detections: list[Detection] | None
     timings_s: dict[str, float] = field(default_factory=dict)
+    cpu_s: dict[str, float] = field(default_factory=dict)
+    """CPU seconds of this process per stage: ``geometry.<stage>`` (the reconstructor's own stages when it reports
+    them in ``info["cpu_stage_s"]``, as ``mvs`` does; ``geometry.place`` for anchoring and composing), and
+    ``perception``."""
 
 
 def runs_perception(config: MapperCoreConfig) -> bool:
@@ -52,25 +56,38 @@ def compute_keyframe(reconstructor: Reconstructor, segmenter: Segmenter, embedde
 
     Perception is skipped for depth that puts too much of the view outside the room's slab: the mapper
     rejects such a keyframe before perception anyway (``keyframes_rejected_depth``)."""
-    t = time.perf_counter()
+    t, c = time.perf_counter(), time.process_time()
     recon = reconstructor.reconstruct(views, targets=[target])
+    c_recon = time.process_time()
     try:
         T_world_first = anchor_pose(recon, views)
     except ValueError:
         return None
     geo = compose(recon, T_world_first)
     times = {"geometry": time.perf_counter() - t}
+    cpu = stage_cpu(recon.info, c_recon - c)
+    cpu["geometry.place"] = time.process_time() - c_recon
     vg = ViewGeometry(points_world=geo.points_world[target], depth_m=geo.depth_m[target],
                       confidence=geo.confidence[target])
     dets = None
     if runs_perception(config) if perception is None else perception:
         fc = config.fusion
         if outside_fraction(vg.points_world, vg.confidence, vg.depth_m, fc) <= fc.max_outside_fraction:
-            t = time.perf_counter()
+            t, c = time.perf_counter(), time.process_time()
             view = views[target]
             dets = embedder.embed(view, segmenter.segment(view, vg))
             times["perception"] = time.perf_counter() - t
-    return KeyframeProducts(vg, geo.T_world_cam[target], geo.intrinsics[target].K(), dets, times)
+            cpu["perception"] = time.process_time() - c
+    return KeyframeProducts(vg, geo.T_world_cam[target], geo.intrinsics[target].K(), dets, times, cpu)
+
+
+def stage_cpu(info: dict[str, object], total_s: float) -> dict[str, float]:
+    """A reconstruction's CPU seconds by stage as ``geometry.<stage>``, from ``info["cpu_stage_s"]`` (less its
+    ``total``) when the reconstructor reports one, else all of ``total_s`` as ``geometry.reconstruct``."""
+    stages = info.get("cpu_stage_s")
+    if not isinstance(stages, dict):
+        return {"geometry.reconstruct": total_s}
+    return {f"geometry.{k}": float(v) for k, v in stages.items() if k != "total" and isinstance(v, (int, float))}
 
 
 def warm_up_views(width: int = 320, height: int = 240, seed: int = 0) -> list[View]:

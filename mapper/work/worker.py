@@ -189,14 +189,20 @@ class WorkerNode(Process):
         t0 = time.perf_counter()
         try:
             cfg, (rec, seg, emb) = self.backends.get(job)
-            t = time.perf_counter()
+            t, c = time.perf_counter(), time.process_time()
             views = []
             for i, f in enumerate(job.window):
                 img = self._decode(f, job.jpeg) if i == job.target_index else self._source_image(f)
                 views.append(view_of(f, img))
-            fetch_s = time.perf_counter() - t
+            fetch_s, fetch_cpu = time.perf_counter() - t, time.process_time() - c
             products = compute_keyframe(rec, seg, emb, cfg, views, job.target_index, perception=job.perception)
+            c = time.process_time()
             result = encode_products(products, job, self.config.id, {"fetch": fetch_s})
+            # Where a job's CPU goes (status ``cpu_s.<stage>``, cumulative; ``argus bench system`` reads them):
+            # fetching and decoding the window's JPEGs, the reconstructor's stages, perception, the result's encoding.
+            stages = products.cpu_s if products is not None else {}
+            for stage, spent in {"decode": fetch_cpu, **stages, "encode": time.process_time() - c}.items():
+                self.counters.add(f"cpu_s.{stage}", spent)
         except Exception as e:  # noqa: BLE001 - one bad job must never stop the worker
             self.counters.add("jobs_failed")
             self.bad_input.warning("jobs_failed", "job %s (attempt %d) failed: %s: %s", job.job_id, job.attempt,

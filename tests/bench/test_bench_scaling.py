@@ -129,3 +129,30 @@ def test_the_mappers_local_worker_started_after_the_clock_is_in_the_workers_cpu(
     assert costs["cpu_s_per_kf.all"] >= s1["worker.mapper-local0"]  # type: ignore[operator]
     assert workers_cpu_s(s0, s1) == pytest.approx(s1["worker.mapper-local0"])
     assert clock.sample()["worker.mapper-local0"] >= s1["worker.mapper-local0"]  # ended: its CPU kept, not 0
+
+
+def test_job_profile_is_cpu_per_job_by_stage_over_all_workers() -> None:
+    from bench.system import job_profile
+
+    before = {"w1": {"jobs_done": 10.0, "cpu_s.geometry.sweep": 2.0, "cpu_s.decode": 0.5}}
+    after = {"w1": {"jobs_done": 12.0, "cpu_s.geometry.sweep": 2.6, "cpu_s.decode": 0.54, "frames_in": 9.0},
+             "w2": {"jobs_done": 2.0, "cpu_s.geometry.sweep": 0.6, "cpu_s.perception": 0.2}}  # first seen now
+    prof = job_profile(before, after)
+    assert list(prof) == ["geometry.sweep", "perception", "decode", "total"]  # the costliest first
+    assert prof["geometry.sweep"] == pytest.approx(0.3) and prof["perception"] == pytest.approx(0.05)
+    assert prof["decode"] == pytest.approx(0.01) and prof["total"] == pytest.approx(0.36)
+    assert job_profile(before, before) == {}
+
+
+def test_the_headline_is_cpu_per_keyframe_and_the_cameras_one_core_carries() -> None:
+    from bench.system import cameras_per_core, headline
+
+    assert cameras_per_core(0.5, 2.0, 2) == pytest.approx(2.0)  # each camera: 1 keyframe/s x 0.5 s
+    assert cameras_per_core(None, 2.0, 2) is None and cameras_per_core(0.5, 0.0, 2) is None
+    phases = [{"consumers": 0, "cpu_s_per_kf.all": 0.5, "keyframes_per_s": 2.0, "latency_p50_ms": 900.0,
+               "latency_p99_ms": 1600.0, "load_avg_1m": 1.1, "job_cpu_s": {"geometry.sweep": 0.3, "total": 0.3}},
+              {"consumers": 1, "cpu_s_per_kf.all": None}]
+    text = "\n".join(headline(phases, 2, 2.0))
+    assert "**0.500 CPU-s per keyframe**" in text and "p50 0.90 s, p99 1.60 s" in text
+    assert "one core carries 2.00 such cameras (2 fps, 1.00 keyframes/s each)" in text
+    assert "1 consumers: no keyframe done" in text and "| geometry.sweep | 0.3 | 100 % |" in text

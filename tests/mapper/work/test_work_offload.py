@@ -145,6 +145,11 @@ def test_worker_answers_a_job_like_the_mapper_would() -> None:
     assert np.allclose(got.T_world_cam, want.T_world_cam, atol=1e-9)
     assert np.abs(got.geometry.depth_m - want.geometry.depth_m).max() <= 0.0006
     assert [d.label for d in got.detections] == [d.label for d in want.detections]
+    # where the job's CPU went, by stage, for ``argus bench system``'s profile (mvs reports its own stages)
+    spent = {k: node.counters.get(k) for k in ("cpu_s.decode", "cpu_s.geometry.features", "cpu_s.geometry.sweep",
+                                                 "cpu_s.geometry.place", "cpu_s.perception", "cpu_s.encode")}
+    assert all(v >= 0.0 for v in spent.values()) and spent["cpu_s.geometry.sweep"] > 0.0, spent
+    assert node.counters.get("cpu_s.geometry.total") == 0.0  # the reconstructor's total is not a stage
     # a source it cannot get is a failed job with the reason, never an exception
     node2 = WorkerNode(WorkerConfig(id="w"))
     bad = job.model_copy(update={"jpeg": b"\xff\xd8 not a jpeg"})
