@@ -379,15 +379,17 @@ def core_settings(mapper_settings: dict[str, Any]) -> Any:
 
 
 def map_in_process(frames: Sequence[RecordedFrame], declared: PoseAccuracy | None, mapper_settings: dict[str, Any],
-                   source_id: str = "replay", progress: Callable[[str], None] = _log) -> MapResult:
-    """Every frame through the mapper's intake (header + JPEG, as from the wire) into an in-process ``MapperCore``
-    with ``mapper_settings``: its keyframe selection, geometry, perception and fusion, no processes. Keyframe poses:
+                   source_id: str = "replay", progress: Callable[[str], None] = _log, rate_hz: float = 30.0
+                   ) -> MapResult:
+    """Every frame through the mapper's intake (header + JPEG, as from the wire, stamped as captured at ``rate_hz``:
+    the replay's rate, since keyframe selection reads time) into an in-process ``MapperCore`` with
+    ``mapper_settings``: its keyframe selection, geometry, perception and fusion, no processes. Keyframe poses:
     the core's last keyframe after each frame (a deferred keyframe retried in the same frame hides the other)."""
     from mapper.core import MapperCore
 
     t0 = time.monotonic()
     core = MapperCore(core_settings(mapper_settings))
-    views = seqs.wire_views(list(frames), declared, source_id)
+    views = seqs.wire_views(list(frames), declared, source_id, rate_hz)
     poses: dict[int, np.ndarray] = {}
     last = None
     for k, v in enumerate(views):
@@ -1055,7 +1057,7 @@ def run(setup: ReplaySetup, stop: threading.Event | None = None, seq: seqs.Seque
     inproc = None
     if setup.in_process and not (stop is not None and stop.is_set()):
         _log("the same frames through an in-process MapperCore")
-        inproc = map_in_process(frames, accuracy, replay.figures["mapper_settings"])
+        inproc = map_in_process(frames, accuracy, replay.figures["mapper_settings"], rate_hz=setup.rate_hz)
     voxel_m = reference_voxel_m(frames)
     _log(f"reference: TSDF of the recorded depth, voxel {voxel_m * 100:.1f} cm, truncation {4 * voxel_m * 100:.1f} cm")
     reference, ref_colors = reference_surface(frames, voxel_m)

@@ -242,8 +242,11 @@ class WireFeed:
 
 
 def wire_views(frames: list[RecordedFrame], declared: PoseAccuracy | None,
-               source_id: str = "replay") -> list[View]:
-    """Every frame's view through one :class:`WireFeed` (frames the intake refuses are left out)."""
+               source_id: str = "replay", rate_hz: float = 30.0) -> list[View]:
+    """Every frame's view through one :class:`WireFeed` (frames the intake refuses are left out), stamped as if
+    captured at ``rate_hz`` (the keyframe selection reads time: a frame over ``keyframes.refresh_s`` after the
+    last keyframe is reconsidered)."""
     feed = WireFeed(source_id)
-    views = [feed.view(f, declared) for f in frames]
+    step_ns = round(1e9 / rate_hz)
+    views = [feed.view(f, declared, stamp_ns=(k + 1) * step_ns) for k, f in enumerate(frames)]
     return [v for v in views if v is not None]
