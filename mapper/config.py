@@ -127,7 +127,19 @@ class KeyframeConfig(BaseModel):
         default=0.08, ge=0.0, description="mean abs. change of a 32x24 grey thumbnail (0..1) that counts as new"
     )
     refresh_s: float = Field(
-        default=30.0, ge=0.0, description="a static camera is reconsidered after this long (if its image changed)"
+        default=2.0, ge=0.0,
+        description="a static camera is reconsidered after this long (if its image changed): a fixed camera sees an "
+        "object moved or taken away at its next keyframe (30 s before the graph followed changes)",
+    )
+    change_threshold: float = Field(
+        default=0.1, gt=0.0, le=1.0,
+        description="a static posed camera's thumbnail cell (32x24 grey, 0..1) that changed by this much changed ...",
+    )
+    change_fraction: float = Field(
+        default=0.01, gt=0.0, le=1.0,
+        description="... and this fraction of changed cells makes its next frame after refresh_s a keyframe, "
+        "whatever the mean change: a chair taken away changes a few percent of the image, far below "
+        "novelty_threshold on average",
     )
     max_keyframes: int = Field(default=32, ge=2, description="keyframes kept as source candidates (oldest dropped)")
     max_deferred: int = Field(default=8, ge=0, description="keyframes without usable sources kept for a retry")
@@ -372,6 +384,13 @@ class MapperCoreConfig(BaseModel):
     )
     rooms: RoomsConfig = Field(default_factory=RoomsConfig, description="the room layer over the objects")
     node_embeddings: bool = Field(default=True, description="publish each node's descriptor")
+    max_retired: int = Field(
+        default=256, ge=0,
+        description="retired nodes (seen gone) kept queryable (graph/nodes?include_retired=true), the newest",
+    )
+    retired_keep_s: float = Field(
+        default=3600.0, ge=0.0, description="... for at most this long after retirement (capture time), seconds"
+    )
     torch_threads: int = Field(default=2, ge=1, le=64, description="torch CPU threads")
 
 

@@ -51,7 +51,7 @@ from mapper.relations import EdgeCache, compute_edges, refine_with_points
 from mapper.rooms import RoomLayer, RoomMapper, RoomParams, room_message
 from mapper.work.compute import KeyframeProducts, compute_keyframe
 from mapper.work.latency import StageTimes
-from protocol.messages import GraphDelta, GraphNode, GraphSnapshot, PointMap
+from protocol.messages import GraphDelta, GraphNode, GraphSnapshot, NodeMove, PointMap, RetiredNode
 from protocol.query import GraphQuery
 from protocol.ratelog import RateLimitedLog
 from protocol.rooms import RoomLayer as RoomLayerMessage
@@ -110,7 +110,7 @@ class MapperCore:
             embedder = embedder or make_embedder(cfg.perception.embedder, cfg.perception.embedder_options)
         self.reconstructor, self.segmenter, self.embedder = reconstructor, segmenter, embedder
         self.objects = ObjectMap(cfg.fusion)
-        self.store = GraphStore()
+        self.store = GraphStore(max_retired=cfg.max_retired, retired_keep_s=cfg.retired_keep_s)
         self.voxels = VoxelMap(cfg.point_map.voxel_m, cfg.point_map.max_voxels)
         self.rooms = _room_mapper(cfg) if cfg.rooms.enabled else None
         self._rooms_lock = threading.RLock()
@@ -145,6 +145,9 @@ class MapperCore:
         self._fused_from: dict[str, list[Key]] = {}
         self.stages = StageTimes()  # where keyframes' capture-to-graph time goes (status: kf_s.*)
         self._retried: collections.deque[tuple[str, int]] = collections.deque(maxlen=16)  # deferred, retried
+        # Calibrated fixed cameras whose last keyframe saw a node's place empty: source -> that keyframe's stamp.
+        # Their next frame absence_confirm_s later is a keyframe too (they keyframe only on image change).
+        self._confirm: dict[str, int] = {}
 
     def views_to_keep(self) -> list[View]:
         """Every view a later window or retry may still use: the stored keyframes and recent frames, and the
@@ -172,7 +175,7 @@ class MapperCore:
             self._failed_key = view.key
             self._bad_input.warning(reason, "refused a view from %s#%d: %s", view.source_id, view.seq, detail)
             return None
-        if not (self.selector.consider(view) or force_keyframe):
+        if not (self.selector.consider(view) or force_keyframe or self._confirm_due(view)):
             self._count("views_not_keyframe")
             self.keyframes.note_frame(self._corrected(view))
             return None
@@ -193,6 +196,16 @@ class MapperCore:
             self.update_rooms()
             self.stages.add("rooms", time.perf_counter() - t)
         return delta
+
+    def _confirm_due(self, view: View) -> bool:
+        """Whether ``view`` confirms what its fixed camera's last keyframe saw empty (``absence_confirm_s``)."""
+        since = self._confirm.get(view.source_id)
+        wait_s = self.config.fusion.absence_confirm_s
+        if since is None or wait_s <= 0 or view.stamp_ns - since < wait_s * 1e9:
+            return False
+        del self._confirm[view.source_id]
+        self._count("keyframes_confirming_absence")
+        return True
 
     def _drifts(self, view: View) -> bool:
         """Whether ``view``'s pose is odometry that drifts: a prior, not a calibration, whose errors are not
@@ -271,7 +284,15 @@ class MapperCore:
         if changed or removed:
             retry = "_retry" if view.key in self._retried else ""
             self.stages.age(f"age_at_commit{retry}", view.stamp_ns, time.time_ns())
-        return self._commit(changed, removed, view.stamp_ns or time.time_ns(), {view.source_id: view.seq})
+        stamp_ns = view.stamp_ns or time.time_ns()
+        moves = [NodeMove(node_id=k, stamp_ns=stamp_ns, from_centroid=a, to_centroid=b,
+                          moves=max(1, self.objects.nodes[k].moves))
+                 for r in results for k, (a, b) in sorted(r.moved.items()) if k in changed and k in self.objects.nodes]
+        retired = {k: n.to_message(self.config.fusion.max_label_alternatives, self.config.node_embeddings)
+                   for r in results for k, n in r.retired.items()}
+        self._count("nodes_moved", len(moves))
+        self._count("nodes_retired", len(retired))
+        return self._commit(changed, removed, stamp_ns, {view.source_id: view.seq}, moves, retired)
 
     def complete(self, view: View, products: KeyframeProducts | None) -> GraphDelta | None:
         """Finish a keyframe whose heavy work was offloaded (:attr:`offload`) with its ``products`` (None: its
@@ -320,7 +341,8 @@ class MapperCore:
             return self.store.commit_frames({view.source_id: view.seq}, view.stamp_ns or time.time_ns())
 
     def _commit(self, changed: set[str], removed: set[str], stamp_ns: int,
-                frames: dict[str, int] | None = None) -> GraphDelta | None:
+                frames: dict[str, int] | None = None, moves: list[NodeMove] | None = None,
+                retired: dict[str, GraphNode] | None = None) -> GraphDelta | None:
         t = time.perf_counter()
         boxes = self.objects.boxes()
         edges = compute_edges(boxes, self.config.relations, self._edges)
@@ -329,7 +351,7 @@ class MapperCore:
         ups = self.objects.messages(sorted(changed), with_embedding=self.config.node_embeddings)
         self._reserve()
         with self.lock:
-            delta = self.store.commit(ups, removed, edges, stamp_ns, frames)
+            delta = self.store.commit(ups, removed, edges, stamp_ns, frames, moves or (), retired)
         if self.last is not None:
             self.last.timings_s["edges"] = time.perf_counter() - t
         return delta
@@ -467,6 +489,7 @@ class MapperCore:
             dets = self.embedder.embed(view, masks)
             times["perception"] = time.perf_counter() - t
         t = time.perf_counter()
+        all_dets, dets = dets, self._not_people(dets)
         focal = intrinsics_of(view).K()[0, 0] * vg.depth_m.shape[1] / view.image.shape[1]
         objs, lift = lift_detections(dets, vg.points_world, vg.confidence, vg.depth_m, self.config.fusion, focal)
         self._count("detections", len(dets))
@@ -480,12 +503,16 @@ class MapperCore:
         seen: SeenView | None = None
         if floor_masks is not None:  # a single-view keyframe
             objs = [dataclasses.replace(o, ray_origin=T_world_cam[:3, 3].copy()) for o in objs]
-            if dets:
+            if all_dets:  # people too: where one stands the camera did not see the floor
                 seen = SeenView.build(
-                    view.image, [d.mask for d in dets], [d.descriptor for d in dets], intrinsics_of(view).K(),
+                    view.image, [d.mask for d in all_dets], [d.descriptor for d in all_dets], intrinsics_of(view).K(),
                     T_world_cam, floor_masks, self.config.single_view.floor_z_m)
                 self._seen.put(view.source_id, seen)
         res = self.objects.integrate(objs, view.source_id, view.stamp_ns or time.time_ns(), kv)
+        if kv is not None and view.pose_trusted and res.seen_gone:
+            self._confirm[view.source_id] = view.stamp_ns
+        else:
+            self._confirm.pop(view.source_id, None)
         if self.loops is not None:
             self._note_fused(view.key, res)
         if single_view:
@@ -508,9 +535,21 @@ class MapperCore:
         self.last = KeyframeResult(view, T_world_cam, vg, len(dets), lift, times)
         return res
 
+    def _not_people(self, dets: list[Detection]) -> list[Detection]:
+        """``dets`` less the people (``fusion.people_labels``, unless ``fusion.fuse_people``): a person is not a
+        furniture node, and one walking through would leave a trail of them."""
+        fc = self.config.fusion
+        if fc.fuse_people or not fc.people_labels:
+            return dets
+        people = {p.lower() for p in fc.people_labels}
+        kept = [d for d in dets if d.label.lower() not in people]
+        self._count("detections_people", len(dets) - len(kept))
+        return kept
+
     def _note_fused(self, key: Key, res: UpdateResult, keep: int = 16) -> None:
-        """Remember that keyframe ``key`` changed the nodes of ``res`` (its last ``keep`` keyframes per node)."""
-        for node_id in res.removed:
+        """Remember that keyframe ``key`` changed the nodes of ``res`` (its last ``keep`` keyframes per node; a
+        moved node's earlier keyframes saw it elsewhere)."""
+        for node_id in res.removed | set(res.moved):
             self._fused_from.pop(node_id, None)
         for node_id in res.changed - res.removed:
             keys = self._fused_from.setdefault(node_id, [])
@@ -630,6 +669,14 @@ class MapperCore:
         with self.lock:
             out = self.store.query(q)
         return out if members is None else [n for n in out if n.node_id in members]
+
+    def retired(self, q: GraphQuery) -> list[RetiredNode]:
+        """The retired nodes (seen gone, kept ``max_retired`` / ``retired_keep_s``) that ``q`` selects, newest
+        first; none with ``q.room`` (rooms hold live nodes only)."""
+        if q.room is not None:
+            return []
+        with self.lock:
+            return self.store.retired_matching(q)
 
     def room_layer(self) -> RoomLayerMessage | None:
         """The room layer as its wire message, rebuilt when the graph version moved since the last build (None

@@ -752,6 +752,8 @@ class UpdateResult:
     pruned: int = 0
     # Of ``removed``: the nodes retired because keyframes saw their place empty, as they were when retired.
     retired: dict[str, NodeState] = field(default_factory=dict)
+    # Nodes this update saw gone that are not retired yet (their count is below absence_to_retire).
+    seen_gone: set[str] = field(default_factory=set)
     # Nodes moved to where a detection showed them: id -> (centre before, centre after).
     moved: dict[str, tuple[tuple[float, float, float], tuple[float, float, float]]] = field(default_factory=dict)
 
@@ -1040,6 +1042,8 @@ class ObjectMap:
             node.absent += 1
             if node.absent >= self.cfg.absence_to_retire:
                 self.retire(node_id, res)
+            else:
+                res.seen_gone.add(node_id)
 
     def retire(self, node_id: str, res: UpdateResult) -> None:
         """Remove ``node_id`` because its place was seen empty: ``res`` records it as removed and retired."""
@@ -1048,10 +1052,6 @@ class ObjectMap:
         res.retired[node_id] = node
         res.changed.discard(node_id)
         res.pruned += 1
-
-    def absent_pending(self) -> int:
-        """How many nodes some keyframe saw empty since they were last detected (not yet retired)."""
-        return sum(1 for n in self.nodes.values() if n.absent > 0)
 
     def _remember_sight(self, node: NodeState, obj: Object3D, view: KeyframeView | None) -> None:
         """Note that this update's detection ``obj`` joined ``node`` and, for measured depth seen from ``view``'s

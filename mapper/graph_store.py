@@ -1,13 +1,18 @@
-"""The served graph: versioned nodes and edges, deltas, and query selection (pure: no I/O)."""
+"""The served graph: versioned nodes and edges, deltas, and query selection (pure: no I/O).
+
+Besides the live graph it keeps each node's last move (:class:`NodeMove`) and the nodes retired because their
+place was seen empty (:class:`RetiredNode`): the newest ``max_retired``, for ``retired_keep_s`` seconds of
+capture time, answered to ``include_retired`` queries."""
 
 from __future__ import annotations
 
-from collections.abc import Iterable, Sequence
+import collections
+from collections.abc import Iterable, Mapping, Sequence
 from typing import Any
 
 from protocol.codec import decode, encode
 from protocol.graph import edge_key
-from protocol.messages import GraphDelta, GraphEdge, GraphNode, GraphSnapshot
+from protocol.messages import GraphDelta, GraphEdge, GraphNode, GraphSnapshot, NodeMove, RetiredNode
 from protocol.query import GraphQuery
 
 
@@ -17,8 +22,12 @@ class GraphStore:
     ``epoch`` names the version sequence (see :mod:`mapper.persistence`); every snapshot and delta carries it.
     """
 
-    def __init__(self, epoch: str = "") -> None:
+    def __init__(self, epoch: str = "", max_retired: int = 256, retired_keep_s: float = 3600.0) -> None:
         self.epoch = epoch
+        self.max_retired = max_retired
+        self.retired_keep_ns = int(retired_keep_s * 1e9)
+        self.moves: dict[str, NodeMove] = {}  # per live node that ever moved, its last move
+        self.retired: collections.OrderedDict[str, RetiredNode] = collections.OrderedDict()  # oldest first
         self.version = 0
         self.stamp_ns = 0
         self.nodes: dict[str, GraphNode] = {}
@@ -33,12 +42,15 @@ class GraphStore:
         edges: Sequence[GraphEdge],
         stamp_ns: int,
         frames: dict[str, int] | None = None,
+        moves: Sequence[NodeMove] = (),
+        retired: Mapping[str, GraphNode] | None = None,
     ) -> GraphDelta | None:
         """Apply a change set; returns its delta, or None when nothing actually changed.
 
         ``edges`` is the complete new edge set (edges are recomputed as a whole after each update);
         ``frames``: the frames (source -> seq) processed for it, carried by the delta when they advance (with
-        no change they are not recorded: :meth:`commit_frames` says so on its own).
+        no change they are not recorded: :meth:`commit_frames` says so on its own). ``moves``: the moves of
+        upserted nodes; ``retired``: of ``removed``, the nodes retired because seen gone, as they were then.
         """
         removed_ids = sorted({r for r in removed if r in self.nodes})
         gone = set(removed_ids)
@@ -62,6 +74,17 @@ class GraphStore:
             self.nodes[n.node_id] = n
             self.changed_at[n.node_id] = self.version
         self.edges = new_edges
+        alive_ups = {n.node_id for n in ups}
+        moved = sorted((m for m in moves if m.node_id in alive_ups), key=lambda m: m.node_id)
+        self.moves.update((m.node_id, m) for m in moved)
+        records = []
+        for node_id in removed_ids:
+            last = self.moves.pop(node_id, None)
+            node = (retired or {}).get(node_id)
+            if node is not None:
+                records.append(RetiredNode(node=node, retired_ns=stamp_ns, version=self.version,
+                                           last_moved_ns=last.stamp_ns if last is not None else 0))
+        self._keep_retired(records, stamp_ns)
         return GraphDelta(
             epoch=self.epoch,
             version=self.version,
@@ -71,7 +94,18 @@ class GraphStore:
             edges_added=added,
             edges_removed=dropped,
             frames=advanced,
+            moves=moved,
+            retired=records,
         )
+
+    def _keep_retired(self, records: Sequence[RetiredNode], stamp_ns: int) -> None:
+        """Remember ``records``; forget the oldest beyond ``max_retired`` or ``retired_keep_ns`` old."""
+        for r in records:
+            self.retired.pop(r.node.node_id, None)
+            self.retired[r.node.node_id] = r
+        while self.retired and (len(self.retired) > self.max_retired or next(iter(
+                self.retired.values())).retired_ns < stamp_ns - self.retired_keep_ns):
+            self.retired.popitem(last=False)
 
     def _advance(self, frames: dict[str, int] | None) -> dict[str, int]:
         advanced = {k: int(v) for k, v in (frames or {}).items() if int(v) > self.frames.get(k, -1)}
@@ -88,8 +122,10 @@ class GraphStore:
         self.stamp_ns = stamp_ns
         return GraphDelta(epoch=self.epoch, version=self.version, stamp_ns=stamp_ns, frames=advanced)
 
-    def snapshot(self) -> GraphSnapshot:
-        """The whole graph at the current version (nodes by id, edges by triple)."""
+    def snapshot(self, with_retired: bool = False) -> GraphSnapshot:
+        """The whole graph at the current version (nodes by id, edges by triple, the last move of every node
+        that moved); ``with_retired``: the retired nodes too (newest first)."""
+        retired = list(reversed(self.retired.values())) if with_retired else []
         return GraphSnapshot(
             epoch=self.epoch,
             version=self.version,
@@ -97,7 +133,22 @@ class GraphStore:
             nodes=[self.nodes[k] for k in sorted(self.nodes)],
             edges=[self.edges[k] for k in sorted(self.edges)],
             frames=dict(self.frames),
+            moves=self.moves_of(self.nodes),
+            retired=retired,
         )
+
+    def moves_of(self, ids: Iterable[str]) -> list[NodeMove]:
+        """The last moves of the live nodes ``ids`` that ever moved, by id (a retired node's last move time is
+        in its record)."""
+        return sorted((self.moves[k] for k in set(ids) if k in self.moves), key=lambda m: m.node_id)
+
+    def retired_matching(self, q: GraphQuery) -> list[RetiredNode]:
+        """The retired nodes ``q`` selects (its node parameters; ``since_version``: retired after it), newest
+        first."""
+        out = [r for r in reversed(self.retired.values()) if q.matches(r.node)]
+        if q.since_version is not None:
+            out = [r for r in out if r.version > q.since_version]
+        return out
 
     def query(self, q: GraphQuery) -> list[GraphNode]:
         """Nodes selected by ``q`` (``since_version``: changed after that version), sorted by id."""
@@ -112,10 +163,14 @@ class GraphStore:
 
     # -- persistence --------------------------------------------------------------------------
     def state(self) -> dict[str, Any]:
-        return {"snapshot": encode(self.snapshot()), "changed_at": dict(self.changed_at)}
+        snap = self.snapshot(with_retired=True)
+        return {"snapshot": encode(snap), "changed_at": dict(self.changed_at)}
 
     def load_state(self, state: dict[str, Any]) -> None:
         snap = decode(state["snapshot"], GraphSnapshot)
+        # states written before schema 1.3 have neither: no moves, nothing retired
+        self.moves = {m.node_id: m for m in snap.moves if m.node_id in {n.node_id for n in snap.nodes}}
+        self.retired = collections.OrderedDict((r.node.node_id, r) for r in reversed(snap.retired))
         self.epoch = snap.epoch
         self.version = snap.version
         self.stamp_ns = snap.stamp_ns

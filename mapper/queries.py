@@ -1,7 +1,7 @@
 """Graph queries the mapper answers: ``graph/snapshot``, ``graph/nodes?label=..;near=..;radius=..;id=..;
-since_version=..;room=..``, ``graph/node/<id>``, ``graph/rooms`` (the room layer) and wildcards such as
-``graph/**`` (msgpack envelopes), and the same keys below ``graph/json/`` (JSON objects). A bad query gets an
-error reply, never a crash.
+since_version=..;room=..;include_retired=..``, ``graph/node/<id>``, ``graph/rooms`` (the room layer) and
+wildcards such as ``graph/**`` (msgpack envelopes), and the same keys below ``graph/json/`` (JSON objects). A
+bad query gets an error reply, never a crash.
 
 Error replies (Zenoh ``reply_err``, encoding ``text/plain``) are one UTF-8 line ``<code>: <detail>``; codes:
 ``not_found`` (``graph/node/<id>`` of a node the graph does not hold) and ``bad_query`` (a parameter that does
@@ -108,7 +108,9 @@ class GraphQueries:
             snap = self.core.snapshot()
             edges = [e for e in snap.edges if e.subject_id in ids and e.object_id in ids]
             return [(key, GraphSnapshot(epoch=snap.epoch, version=snap.version, stamp_ns=snap.stamp_ns,
-                                        nodes=nodes, edges=edges))]
+                                        nodes=nodes, edges=edges,
+                                        moves=[m for m in snap.moves if m.node_id in ids],
+                                        retired=self.core.retired(q) if q.include_retired else []))]
         try:
             node_id = self.keys.parse_node(key)
         except ValueError:

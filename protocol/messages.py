@@ -366,6 +366,36 @@ class GraphEdge(Message):
     object_id: str = Field(description="node id of the object (e.g. the table)")
 
 
+class NodeMove(Message):
+    """A node moved: the mapper saw its object at a new place while its old place was seen empty, and kept its id.
+    ``stamp_ns`` is the node's last move time (``last_moved``)."""
+
+    KIND: ClassVar[str] = "node_move"
+    node_id: str = Field(min_length=1, max_length=64, description="the node that moved (same id before and after)")
+    stamp_ns: int = Field(ge=0, description="capture time of the keyframe that saw it at its new place, ns since "
+                          "the epoch (the node's last_moved time)")
+    from_centroid: Vec3 = Field(description="its centroid before the move, x, y, z in metres (world frame)")
+    to_centroid: Vec3 = Field(description="its centroid after the move, x, y, z in metres (world frame)")
+    moves: int = Field(default=1, ge=1, description="how many times the node has moved, this move included")
+
+
+RetireReason = Literal["absent"]
+
+
+class RetiredNode(Message):
+    """A node the mapper retired (removed from the graph) because keyframes saw its place empty; kept queryable
+    for a while (``graph/nodes?include_retired=true``). Its id is never reused."""
+
+    KIND: ClassVar[str] = "retired_node"
+    node: GraphNode = Field(description="the node as it was when retired (its centroid is where it was last seen)")
+    retired_ns: int = Field(ge=0, description="capture time of the keyframe that retired it, ns since the epoch")
+    version: int = Field(ge=0, description="the graph version whose delta removed it")
+    reason: RetireReason = Field(
+        default="absent", description="why: absent = cameras saw its place empty (not merely hidden) often enough"
+    )
+    last_moved_ns: int = Field(default=0, ge=0, description="its last move time (0: never moved)")
+
+
 EPOCH_DESCRIPTION = (
     "the mapper's version/id sequence this message belongs to (schema 1.2; '' from older mappers): within one "
     "epoch versions only grow, one version is one graph and one node id one object, across mapper restarts "
@@ -379,7 +409,7 @@ class GraphSnapshot(Message):
     """The whole graph at one version of one epoch."""
 
     KIND: ClassVar[str] = "graph_snapshot"
-    SCHEMA: ClassVar[tuple[int, int]] = (1, 2)
+    SCHEMA: ClassVar[tuple[int, int]] = (1, 3)
     epoch: str = Field(default="", max_length=MAX_EPOCH_CHARS, description=EPOCH_DESCRIPTION)
     version: int = Field(ge=0)
     stamp_ns: int = Field(ge=0)
@@ -389,13 +419,23 @@ class GraphSnapshot(Message):
         default_factory=dict,
         description="per source id, the newest frame seq the mapper had processed at this version (schema 1.1)",
     )
+    moves: list[NodeMove] = Field(
+        default_factory=list,
+        description="the last move of each node of nodes that ever moved, by node_id: a node's last_moved time is "
+        "its entry's stamp_ns (no entry: never moved; a retired node's is in its record) (schema 1.3)",
+    )
+    retired: list[RetiredNode] = Field(
+        default_factory=list,
+        description="retired nodes, newest first: only in answers to graph/nodes?include_retired=true (the "
+        "selection's other parameters apply to them too); empty otherwise (schema 1.3)",
+    )
 
 
 class GraphDelta(Message):
     """Changes from version ``version - 1`` to ``version`` of one epoch (versions increase by exactly one)."""
 
     KIND: ClassVar[str] = "graph_delta"
-    SCHEMA: ClassVar[tuple[int, int]] = (1, 2)
+    SCHEMA: ClassVar[tuple[int, int]] = (1, 3)
     epoch: str = Field(default="", max_length=MAX_EPOCH_CHARS, description=EPOCH_DESCRIPTION)
     version: int = Field(ge=1)
     stamp_ns: int = Field(ge=0)
@@ -407,6 +447,15 @@ class GraphDelta(Message):
         default_factory=dict,
         description="sources whose newest processed frame seq advanced with this version, and that seq; a delta "
         "may carry only this (a robot's arrival frame that changed nothing) (schema 1.1)",
+    )
+    moves: list[NodeMove] = Field(
+        default_factory=list,
+        description="nodes of upserted that moved at this version (same id, new place) (schema 1.3)",
+    )
+    retired: list[RetiredNode] = Field(
+        default_factory=list,
+        description="nodes of removed that were retired because their place was seen empty (the others were "
+        "merged into another node or pruned as noise) (schema 1.3)",
     )
 
 
@@ -637,6 +686,8 @@ ALL_MESSAGES: tuple[type[Message], ...] = (
     LabelScore,
     GraphNode,
     GraphEdge,
+    NodeMove,
+    RetiredNode,
     GraphSnapshot,
     GraphDelta,
     PointMap,

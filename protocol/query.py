@@ -12,6 +12,8 @@ from pydantic import BaseModel, ConfigDict, Field
 
 from protocol.messages import GraphNode
 
+_FLAGS = {"true": True, "1": True, "yes": True, "false": False, "0": False, "no": False}
+
 
 class GraphQuery(BaseModel):
     """A node selection. Empty fields select everything."""
@@ -23,6 +25,11 @@ class GraphQuery(BaseModel):
     id: str | None = Field(default=None, description="one node id")
     since_version: int | None = Field(default=None, ge=0, description="only nodes changed after it")
     room: str | None = Field(default=None, min_length=1, description="only nodes in this room (a room id)")
+    include_retired: bool | None = Field(
+        default=None,
+        description="also answer with the retired nodes (seen gone, kept for a while) that the other parameters "
+        "select, in the reply's retired list",
+    )
 
     def to_parameters(self) -> str:
         """Selector parameter string (without the leading ``?``)."""
@@ -39,6 +46,8 @@ class GraphQuery(BaseModel):
             parts.append(f"since_version={self.since_version}")
         if self.room is not None:
             parts.append(f"room={self.room}")
+        if self.include_retired is not None:
+            parts.append(f"include_retired={'true' if self.include_retired else 'false'}")
         return ";".join(parts)
 
     @classmethod
@@ -60,6 +69,11 @@ class GraphQuery(BaseModel):
                 fields["since_version"] = int(value)
             elif name in ("label", "id", "room"):
                 fields[name] = value
+            elif name == "include_retired":
+                flag = _FLAGS.get(value.lower())
+                if flag is None:
+                    raise ValueError("include_retired needs true or false")
+                fields[name] = flag
             else:
                 raise ValueError(f"unknown query parameter {name!r}")
         return cls.model_validate(fields)

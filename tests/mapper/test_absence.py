@@ -7,11 +7,14 @@ import numpy as np
 
 from mapper.absence import AbsenceParams, Verdict, judge
 from mapper.association import KeyframeView
+from mapper.core import MapperCore
 from mapper.fusion import FusionConfig, Object3D, ObjectMap, voxel_downsample
+from mapper.geometry.contract import OracleData, View
 from mapper.geometry.singleview import depth_to_world
 from mapper.perception.base import label_descriptor
 from protocol.poses import look_at
-from tests.support.boxes import INTR, raycast
+from protocol.query import GraphQuery
+from tests.support.boxes import INTR, oracle_core, raycast
 
 Box = tuple[np.ndarray, np.ndarray]
 
@@ -210,3 +213,69 @@ class TestMoves:
         again.load_state(om.state())
         assert again.nodes[chair].last_moved_ns == 10 and again.nodes[chair].moves == 1
         assert again.nodes[lamp].absent == 1
+
+
+# ------------------------------------------------------------------------------------------------
+# Through MapperCore: a calibrated fixed camera with ORACLE depth and masks (people labelled "person")
+
+
+def fixed_view(objects: dict[str, Box], seq: int, people: tuple[Box, ...] = ()) -> View:
+    """A calibrated fixed camera's frame of the room with ``objects`` and ``people`` (ORACLE masks: the
+    objects by their labels, people as "person"; floor and wall are structure), 0.5 s apart by ``seq``."""
+    T = look_at(EYE, list(TARGET))
+    depth, idx = raycast(T, [FLOOR, WALL, *objects.values(), *people])
+    inst = np.where(idx >= 2, idx - 1, 0).astype(np.int32)
+    labels = {i + 1: lab for i, lab in enumerate(objects)}
+    labels.update({len(objects) + 1 + j: "person" for j in range(len(people))})
+    rgb = np.full((INTR.height, INTR.width, 3), 90, np.uint8)
+    rgb[inst > 0] = np.array([230, 20, 170, 250], np.uint8)[inst[inst > 0] % 4, None]  # objects stand out
+    oracle = OracleData(depth_m=depth, T_world_cam_true=T, instance_id=inst, labels=labels)
+    return View(image=rgb, source_id="cam1", intrinsics=INTR, T_world_cam=T, pose_trusted=True,
+                stamp_ns=seq * 500_000_000, seq=seq, oracle=oracle)
+
+
+def core_that_saw(objects: dict[str, Box], **fusion: object) -> tuple[MapperCore, dict[str, str]]:
+    core = oracle_core(**fusion)
+    core.ingest(fixed_view(objects, 0))
+    ids = {n.label: n.node_id for n in core.nodes()}
+    assert set(ids) == set(objects)
+    return core, ids
+
+
+class TestMapperCore:
+    def test_a_removed_object_is_retired_and_a_delta_says_so(self) -> None:
+        core, ids = core_that_saw({"chair": CHAIR, "lamp": LAMP})
+        # taken away: the camera's image changes (a keyframe), one second later it confirms (another)
+        deltas = [core.ingest(fixed_view({"lamp": LAMP}, seq)) for seq in range(1, 8)]
+        removals = [d for d in deltas if d is not None and d.removed]
+        assert len(removals) == 1 and removals[0].removed == [ids["chair"]]
+        (record,) = removals[0].retired
+        assert record.node.node_id == ids["chair"] and record.node.label == "chair" and record.reason == "absent"
+        assert [n.node_id for n in core.nodes()] == [ids["lamp"]]
+        assert core.counters["nodes_retired"] == 1 and core.counters["keyframes_confirming_absence"] >= 1
+        assert [r.node.node_id for r in core.retired(GraphQuery(include_retired=True))] == [ids["chair"]]
+        assert core.retired(GraphQuery(label="lamp")) == []
+
+    def test_a_passer_by_retires_nothing_and_is_no_node(self) -> None:
+        core, ids = core_that_saw({"chair": CHAIR, "lamp": LAMP})
+        walk = [(PERSON[0] + [0.0, dy, 0.0], PERSON[1] + [0.0, dy, 0.0]) for dy in (-0.4, 0.0, 0.2, 0.0, -0.2)]
+        for seq, person in enumerate(walk * 2, start=1):
+            d = core.ingest(fixed_view({"chair": CHAIR, "lamp": LAMP}, seq, people=(person,)), force_keyframe=True)
+            assert d is None or not d.removed
+        assert {n.node_id for n in core.nodes()} == set(ids.values())
+        assert core.counters["detections_people"] >= 5 and "person" not in {n.label for n in core.nodes()}
+
+    def test_people_are_nodes_when_asked(self) -> None:
+        core = oracle_core(fuse_people=True)
+        core.ingest(fixed_view({"lamp": LAMP}, 0, people=(PERSON,)))
+        assert {n.label for n in core.nodes()} == {"lamp", "person"}
+
+    def test_a_moved_object_keeps_its_id_and_the_delta_has_a_move(self) -> None:
+        core, ids = core_that_saw({"chair": CHAIR, "lamp": LAMP})
+        d = core.ingest(fixed_view({"chair": MOVED, "lamp": LAMP}, 4))  # its next keyframe (refresh_s later)
+        assert d is not None and not d.removed and [m.node_id for m in d.moves] == [ids["chair"]]
+        m = d.moves[0]
+        assert m.stamp_ns == 2_000_000_000 and abs(m.to_centroid[1] - m.from_centroid[1] - 1.0) < 0.1
+        chair = next(n for n in d.upserted if n.node_id == ids["chair"])
+        assert abs(chair.centroid[1] - m.to_centroid[1]) < 1e-9 and len(core.nodes()) == 2
+        assert [x.node_id for x in core.snapshot().moves] == [ids["chair"]]

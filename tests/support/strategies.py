@@ -16,9 +16,11 @@ from protocol.messages import (
     Intrinsics,
     LabelScore,
     NbvGoal,
+    NodeMove,
     OracleFrame,
     OrientedBox,
     PointMap,
+    RetiredNode,
     RobotState,
     Status,
     Viewpoint,
@@ -69,6 +71,10 @@ nodes = st.builds(
 edges = st.builds(GraphEdge, subject_id=ids, object_id=ids,
                   predicate=st.sampled_from(["on_top_of", "under", "over", "inside", "next_to"]))
 
+node_moves = st.builds(NodeMove, node_id=ids, stamp_ns=stamps, from_centroid=vec3, to_centroid=vec3,
+                       moves=st.integers(1, 10**6))
+retired_nodes = st.builds(RetiredNode, node=nodes, retired_ns=stamps, version=st.integers(0, 2**40),
+                          last_moved_ns=stamps)
 work_frames = st.builds(WorkFrame, source_id=ids, seq=st.integers(0, 2**40), stamp_ns=stamps,
                         width=st.integers(1, 4096), height=st.integers(1, 4096),
                         intrinsics=st.one_of(st.none(), intrinsics), T_world_cam=st.one_of(st.none(), poses()),
@@ -105,11 +111,15 @@ STRATEGIES = {
     LabelScore: st.builds(LabelScore, label=st.text(max_size=10), score=finite),
     GraphNode: nodes,
     GraphEdge: edges,
+    NodeMove: node_moves,
+    RetiredNode: retired_nodes,
     GraphSnapshot: st.builds(GraphSnapshot, version=st.integers(0, 2**40), stamp_ns=stamps,
-                             nodes=st.lists(nodes, max_size=3), edges=st.lists(edges, max_size=3)),
+                             nodes=st.lists(nodes, max_size=3), edges=st.lists(edges, max_size=3),
+                             moves=st.lists(node_moves, max_size=2), retired=st.lists(retired_nodes, max_size=2)),
     GraphDelta: st.builds(GraphDelta, version=st.integers(1, 2**40), stamp_ns=stamps,
                           upserted=st.lists(nodes, max_size=3), removed=st.lists(ids, max_size=3),
-                          edges_added=st.lists(edges, max_size=3)),
+                          edges_added=st.lists(edges, max_size=3), moves=st.lists(node_moves, max_size=2),
+                          retired=st.lists(retired_nodes, max_size=2)),
     PointMap: arrays().flatmap(lambda pts: st.builds(
         PointMap, version=st.integers(0, 100), stamp_ns=stamps, voxel_m=pos, points=st.just(pts),
         counts=st.one_of(st.none(), st.lists(st.integers(0, 65535), min_size=len(pts), max_size=len(pts)).map(
