@@ -3,7 +3,8 @@
 A posed view becomes a keyframe when it moved far enough from its source's last keyframe *relative to the
 scene depth* (baseline / depth >= ``min_baseline_ratio``), or turned enough; at 30 fps most frames are
 1-3 cm apart and add no depth a keyframe does not already give. A camera without a pose (or a static
-one after ``refresh_s``) becomes a keyframe when its image changed enough.
+one after ``refresh_s``) becomes a keyframe when its image changed enough (a static one also when a small part
+of it changed much: an object moved or taken away).
 
 The window for the reconstructor is the new keyframe plus the stored keyframes of ANY source (robots and
 calibrated fixed cameras alike) that make the best stereo partners for it: triangulation angle at its
@@ -81,7 +82,9 @@ class KeyframeSelector:
         cfg = self.cfg
         thumb = thumbnail(view.image)
         last = self._last.get(view.source_id)
-        novelty = 1.0 if last is None or last.thumb.shape != thumb.shape else float(np.abs(thumb - last.thumb).mean())
+        diff = None if last is None or last.thumb.shape != thumb.shape else np.abs(thumb - last.thumb)
+        novelty = 1.0 if diff is None else float(diff.mean())
+        changed = 1.0 if diff is None else float(np.mean(diff >= cfg.change_threshold))
         if last is None:
             new = True
         elif view.T_world_cam is not None and last.T_world_cam is not None:
@@ -90,7 +93,7 @@ class KeyframeSelector:
             stale = cfg.refresh_s > 0 and (view.stamp_ns - last.stamp_ns) >= cfg.refresh_s * 1e9
             enough_parallax = moved >= cfg.min_baseline_ratio * self.scene_depth(view.source_id)
             new = enough_parallax or moved >= cfg.min_translation_m or turned >= cfg.min_rotation_deg or (
-                stale and novelty >= cfg.novelty_threshold
+                stale and (novelty >= cfg.novelty_threshold or changed >= cfg.change_fraction)
             )
         else:
             new = novelty >= cfg.novelty_threshold
