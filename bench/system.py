@@ -380,7 +380,7 @@ def run(cameras: int, fps: float, phase_s: float, warmup_s: float, width: int, h
                  title=f"System: {cameras} simulated cameras at {fps:g} fps into one mapper "
                        f"({width}x{height}, {mapper_settings}; consumers query at {consumer_rate_hz:g} Hz each"
                        + (f"; argus worker processes: {counts}" if workers else "") + ")")
-    with_headline(out / "system.md", headline(results["phases"], cameras, fps))
+    with_headline(out / "system.md", headline(results["phases"], cameras, fps, curve=workers is not None))
     if workers:
         append_model(out / "system.md", results["phases"])
     return results
@@ -414,14 +414,17 @@ def cameras_per_core(cpu_s_per_kf: float | None, keyframes_per_s: float, cameras
     return 1.0 / (cpu_s_per_kf * keyframes_per_s / cameras)
 
 
-def headline(phases: list[dict[str, Any]], cameras: int, fps: float) -> list[str]:
+def headline(phases: list[dict[str, Any]], cameras: int, fps: float, curve: bool = False) -> list[str]:
     """The report's first lines: per phase, CPU-seconds per keyframe (every process, workers included) with the
-    latency beside it and the cameras one core carries; then where a worker's job spends its CPU."""
+    latency beside it and the cameras one core carries; then where a worker's job spends its CPU. ``curve``: the
+    phases are a scaling curve's (``argus worker`` processes counted per phase) rather than the mapper as deployed
+    (its own local worker)."""
     from bench.report import markdown_table
 
     text = ["## CPU per keyframe", ""]
     for ph in phases:
-        label = (f"{ph['workers']} workers, " if "workers" in ph else "") + f"{ph.get('consumers', 0)} consumers"
+        label = (f"{ph.get('workers', 0)} argus worker processes, " if curve else "") + \
+            f"{ph.get('consumers', 0)} consumers"
         all_s = ph.get("cpu_s_per_kf.all")
         if not all_s:
             text.append(f"- {label}: no keyframe done")
