@@ -285,9 +285,10 @@ class MapperCore:
             retry = "_retry" if view.key in self._retried else ""
             self.stages.age(f"age_at_commit{retry}", view.stamp_ns, time.time_ns())
         stamp_ns = view.stamp_ns or time.time_ns()
-        moves = [NodeMove(node_id=k, stamp_ns=stamp_ns, from_centroid=a, to_centroid=b,
-                          moves=max(1, self.objects.nodes[k].moves))
-                 for r in results for k, (a, b) in sorted(r.moved.items()) if k in changed and k in self.objects.nodes]
+        moves = [NodeMove(node_id=k, stamp_ns=n.last_moved_ns or stamp_ns, from_centroid=a, to_centroid=b,
+                          moves=max(1, n.moves))
+                 for r in results for k, (a, b) in sorted(r.moved.items())
+                 if k in changed and (n := self.objects.nodes.get(k)) is not None]
         retired = {k: n.to_message(self.config.fusion.max_label_alternatives, self.config.node_embeddings)
                    for r in results for k, n in r.retired.items()}
         self._count("nodes_moved", len(moves))

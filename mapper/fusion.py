@@ -1040,10 +1040,46 @@ class ObjectMap:
                 node.absent = 0
                 continue
             node.absent += 1
-            if node.absent >= self.cfg.absence_to_retire:
-                self.retire(node_id, res)
-            else:
+            if node.absent < self.cfg.absence_to_retire:
                 res.seen_gone.add(node_id)
+                continue
+            newcomer = self._moved_before(node, verdicts)
+            if newcomer is None:
+                self.retire(node_id, res)
+                continue
+            # Seen at its new place first (a robot that came round the other way): the node moves there and the
+            # newcomer, a copy of it under another id, folds into it.
+            self._move(node, Object3D(newcomer.points, "", 0.0, newcomer.descriptor), newcomer.first_seen_ns, res)
+            self.merge_nodes(node, newcomer)
+            node.absent = 0
+            res.removed.add(newcomer.node_id)
+            res.changed.add(node_id)
+            res.merged_duplicates += 1
+
+    def _moved_before(self, node: NodeState, verdicts: dict[str, Verdict]) -> NodeState | None:
+        """A node that is ``node`` seen at a new place before its old place was seen empty: first detected after
+        ``node`` was last detected, never in one keyframe with it, its label and a similar descriptor
+        (``move_min_similarity``), at least ``move_min_m`` away and not itself seen gone; the nearest such one."""
+        cfg = self.cfg
+        ranking = node.label_ranking()
+        if node.rays or not ranking:
+            return None
+        c = np.asarray(node.centre, np.float64)
+        best: tuple[float, str] | None = None
+        for other_id, other in self.nodes.items():
+            if other is node or other.rays or other.first_seen_ns <= node.last_seen_ns or other.absent > 0:
+                continue
+            if verdicts.get(other_id) is Verdict.FREE or seen_together(node, other):
+                continue
+            top = other.label_ranking()
+            if not top or top[0][0] != ranking[0][0]:
+                continue
+            if similarity(node.descriptor, other.descriptor) < cfg.move_min_similarity:
+                continue
+            d = float(np.linalg.norm(np.asarray(other.centre, np.float64) - c))
+            if d >= cfg.move_min_m and (best is None or (d, other_id) < best):
+                best = (d, other_id)
+        return None if best is None else self.nodes[best[1]]
 
     def retire(self, node_id: str, res: UpdateResult) -> None:
         """Remove ``node_id`` because its place was seen empty: ``res`` records it as removed and retired."""

@@ -279,3 +279,22 @@ class TestMapperCore:
         chair = next(n for n in d.upserted if n.node_id == ids["chair"])
         assert abs(chair.centroid[1] - m.to_centroid[1]) < 1e-9 and len(core.nodes()) == 2
         assert [x.node_id for x in core.snapshot().moves] == [ids["chair"]]
+
+
+def test_a_chair_seen_elsewhere_first_takes_its_old_id_when_its_place_is_seen_empty() -> None:
+    """A robot that comes round the other way sees the moved chair first (a new node), then the old place
+    empty: the old node moves there and the newcomer folds into it."""
+    om = mapped({"chair": CHAIR, "lamp": LAMP})
+    chair = node_of(om, "chair")
+    far = (CHAIR[0] + [-3.5, 0.0, 0.0], CHAIR[1] + [-3.5, 0.0, 0.0])  # behind the cameras that saw it
+    kv, objs = keyframe({"chair": far}, eye=[-0.3, 0.3, 1.6], target=(-2.0, 0.3, 0.4))  # facing away from it
+    res = om.integrate(objs, "robot1", 10, kv)
+    (newcomer,) = {k for k in res.changed if k != chair}
+    assert res.created == 1 and not res.moved
+    for t, eye in enumerate((EYE, [-1.4, 0.4, 1.7])):  # the old place, empty, from two keyframes
+        kv, objs = keyframe({"lamp": LAMP}, eye=eye)
+        res = om.integrate(objs, "robot1", 11 + t, kv)
+    assert res.removed == {newcomer} and not res.retired and set(res.moved) == {chair}
+    node = om.nodes[chair]
+    assert abs(node.centre[0] - (CHAIR[0][0] + CHAIR[1][0]) / 2 + 3.5) < 0.1 and node.last_moved_ns == 10
+    assert sorted(om.nodes) == sorted([chair, node_of(om, "lamp")])
