@@ -298,3 +298,49 @@ def test_a_chair_seen_elsewhere_first_takes_its_old_id_when_its_place_is_seen_em
     node = om.nodes[chair]
     assert abs(node.centre[0] - (CHAIR[0][0] + CHAIR[1][0]) / 2 + 3.5) < 0.1 and node.last_moved_ns == 10
     assert sorted(om.nodes) == sorted([chair, node_of(om, "lamp")])
+
+
+class _Query:
+    """What GraphQueries reads of a Zenoh query, recording the replies."""
+
+    def __init__(self, key: str, parameters: str = "") -> None:
+        self.key_expr, self.parameters = key, parameters
+        self.replies: list[tuple[str, object]] = []
+        self.errors: list[str] = []
+
+    def reply(self, key: str, payload: object, encoding: object = None) -> None:
+        self.replies.append((key, payload))
+
+    def reply_err(self, payload: str, encoding: object = None) -> None:
+        self.errors.append(payload)
+
+
+def test_retired_nodes_are_answered_to_include_retired_queries_json_and_msgpack() -> None:
+    import json
+
+    from mapper.queries import GraphQueries
+    from protocol.codec import decode
+    from protocol.keys import Keys
+    from protocol.messages import GraphSnapshot
+    from protocol.transport import Counters
+
+    core, ids = core_that_saw({"chair": CHAIR, "lamp": LAMP})
+    for seq in range(1, 7):
+        core.ingest(fixed_view({"lamp": LAMP}, seq))
+    keys = Keys("s")
+    queries = GraphQueries(core, keys, Counters(), lambda *a: None)
+    q = _Query(keys.graph_json(keys.graph_nodes), "include_retired=true")
+    queries.on_json_query(q)
+    (_, payload), = q.replies
+    body = json.loads(str(payload))
+    assert [n["node_id"] for n in body["nodes"]] == [ids["lamp"]]
+    assert [r["node"]["node_id"] for r in body["retired"]] == [ids["chair"]]
+    assert body["retired"][0]["reason"] == "absent" and body["retired"][0]["retired_ns"] == 3_000_000_000
+    q = _Query(keys.graph_nodes, "label=chair;include_retired=1")
+    queries.on_query(q)
+    (_, data), = q.replies
+    snap = decode(bytes(data), GraphSnapshot)  # type: ignore[arg-type]
+    assert snap.nodes == [] and [r.node.node_id for r in snap.retired] == [ids["chair"]]
+    q = _Query(keys.graph_nodes, "label=chair")
+    queries.on_query(q)
+    assert decode(bytes(q.replies[0][1]), GraphSnapshot).retired == []  # type: ignore[arg-type]
