@@ -946,9 +946,9 @@ class ObjectMap:
                        for obj, node in zip(objects, matches, strict=True)]
         targets: list[str] = []
         matched = {n.node_id for n in matches if n is not None}
-        for obj, node in zip(objects, matches, strict=True):
+        for obj, node, held in zip(objects, matches, inside, strict=True):
             if node is None and view is not None:
-                node = self._moving(obj, verdicts, matched | set(targets))
+                node = self._moving(obj, verdicts, matched | set(targets) | set(held))
                 if node is not None:
                     self._move(node, obj, stamp_ns, res)
             if node is not None and node.node_id in self.nodes:
@@ -963,7 +963,11 @@ class ObjectMap:
                 res.created += 1
             self._remember_sight(self.nodes[targets[-1]], obj, view)
         self._merge_fragments(objects, targets, inside, res)
-        self._weigh_absence(verdicts, set(targets), res)
+        # A node a similar detection's mask holds was detected here, whatever depth the detection came with.
+        in_masks = {k for obj, held in zip(objects, inside, strict=True) for k, v in held.items()
+                    if v >= self.cfg.min_containment and k in self.nodes
+                    and similarity(obj.descriptor, self.nodes[k].descriptor) >= self.cfg.merge_similarity}
+        self._weigh_absence(verdicts, set(targets) | in_masks, res)
         if self.updates % self.cfg.merge_every_updates == 0:
             self.maintain(res)
         self._enforce_cap(res)
@@ -993,7 +997,8 @@ class ObjectMap:
     def _moving(self, obj: Object3D, verdicts: dict[str, Verdict], taken: set[str]) -> NodeState | None:
         """The node that a detection matching no node shows moved (``move_*``): one with its label and a similar
         descriptor, at least ``move_min_m`` away, whose place this keyframe or an earlier one (since it was last
-        detected) saw empty, and that no other detection of this keyframe took; the nearest such one."""
+        detected) saw empty, and not ``taken`` (by another detection of this keyframe, or projecting inside this
+        detection's mask: then the detection is that node at a wrong estimated depth, not moved); the nearest."""
         cfg = self.cfg
         if obj.ray_origin is not None or len(obj.points) == 0:
             return None

@@ -151,6 +151,18 @@ class TestRetirement:
         om.integrate([], "cam1", 21, kv)
         assert chair in om.nodes and om.nodes[chair].absent == 0
 
+    def test_a_detection_at_a_wrong_depth_is_still_a_detection(self) -> None:
+        """Estimated depth far beyond the chair, on its pixels and on its detection alike: the detection's mask
+        holds the node, so the node was seen (not absent) and did not move to where the wrong depth put it."""
+        om = mapped({"chair": CHAIR})
+        chair = node_of(om, "chair")
+        before = om.nodes[chair].centre
+        for t in range(3):
+            kv, objs = keyframe({"chair": CHAIR}, depth_scale=1.6)
+            res = om.integrate(objs, "cam1", 10 + t, kv)
+            assert chair in om.nodes and not res.moved and not res.retired
+        assert om.nodes[chair].centre == before and om.nodes[chair].absent == 0
+
     def test_absence_check_can_be_switched_off(self) -> None:
         om = mapped({"chair": CHAIR}, FusionConfig(merge_every_updates=100, absence_check=False))
         for t in range(3):
