@@ -543,11 +543,12 @@ def check_perception(name: str | None) -> None:
 
 
 def replay_launch(launch_path: Path, sequence: Path, rate_hz: float, accuracy: PoseAccuracy | None, endpoint: str,
-                  state_dir: Path, perception: str | None = None, world_from_recording: list[list[float]] | None = None
-                  ) -> tuple[Any, str, dict[str, Any]]:
+                  state_dir: Path, perception: str | None = None, world_from_recording: list[list[float]] | None = None,
+                  intrinsics_file: str | None = None) -> tuple[Any, str, dict[str, Any]]:
     """The launch file's stack set up for this replay: on ``endpoint``, its camera playing ``sequence`` once at
     ``rate_hz`` declaring ``accuracy`` (None: nothing) with the sequence's ``world_from_recording`` (None: the
-    poses as recorded; a folder described by a sidecar has no meta.json the camera could read it from), its
+    poses as recorded) and ``intrinsics_file`` (None: the camera's default; a folder described by a sidecar has
+    no meta.json the camera could read either from), its
     mapper saving to ``state_dir`` and, when ``perception`` names one of :data:`PERCEPTIONS`, segmenting and
     labelling with it (the launch file's backend options are kept where the backend is the same). Returns the
     launch, the camera's id and the mapper's settings; ``ValueError`` when the file is not a replay stack."""
@@ -570,7 +571,8 @@ def replay_launch(launch_path: Path, sequence: Path, rate_hz: float, accuracy: P
                 settings["perception"] = perception_settings(dict(settings.get("perception", {})), perception)
         if p.command == "edge-camera" and settings is not None:
             source = {k: v for k, v in dict(settings.get("source", {})).items()
-                      if k not in ("pose_sigma_trans_m", "pose_sigma_rot_deg", "start", "stop", "world_from_recording")}
+                      if k not in ("pose_sigma_trans_m", "pose_sigma_rot_deg", "start", "stop", "world_from_recording",
+                                   "intrinsics_file")}
             if source.get("type") != "recorded":
                 raise ValueError(f"{launch_path}: the camera's source must be type = \"recorded\"")
             source.update(path=str(sequence.resolve()), rate_hz=rate_hz, loop=False)
@@ -578,6 +580,8 @@ def replay_launch(launch_path: Path, sequence: Path, rate_hz: float, accuracy: P
                 source.update(pose_sigma_trans_m=accuracy.trans_m, pose_sigma_rot_deg=accuracy.rot_deg)
             if world_from_recording is not None:
                 source.update(world_from_recording=world_from_recording)
+            if intrinsics_file is not None:
+                source.update(intrinsics_file=intrinsics_file)
             publish = dict(settings.get("publish", {}))
             publish["max_rate_hz"] = min(120.0, max(float(publish.get("max_rate_hz", 5.0)), 2.0 * rate_hz))
             settings.update(source=source, publish=publish)
@@ -623,7 +627,8 @@ def _wait_workers(session: Any, keys: Any, timeout_s: float, stop: threading.Eve
 
 
 def play(setup: ReplaySetup, frames: Sequence[RecordedFrame], accuracy: PoseAccuracy | None,
-         stop: threading.Event | None = None, world_from_recording: list[list[float]] | None = None) -> MapResult:
+         stop: threading.Event | None = None, world_from_recording: list[list[float]] | None = None,
+         intrinsics_file: str | None = None) -> MapResult:
     """Run the replay stack until the sequence was played and the graph settled; its map, nodes and figures."""
     from deploy.demo import free_endpoint
     from deploy.query import QueryError, get_snapshot
@@ -639,7 +644,8 @@ def play(setup: ReplaySetup, frames: Sequence[RecordedFrame], accuracy: PoseAccu
     state_tmp = Path(tempfile.mkdtemp(prefix="argus-replay-state-"))
     endpoint = free_endpoint()
     launch, camera_id, mapper_settings = replay_launch(setup.launch, setup.sequence, setup.rate_hz, accuracy,
-                                                       endpoint, state_tmp, setup.perception, world_from_recording)
+                                                       endpoint, state_tmp, setup.perception, world_from_recording,
+                                                       intrinsics_file)
     keys = Keys(launch.site)
     # The camera starts once the mapper and its worker are up, so that every frame meets the deployed mapper.
     core = launch.model_copy(update={"process": [p for p in launch.process if p.command != "edge-camera"]})
@@ -1029,9 +1035,6 @@ def load_checked(setup: ReplaySetup) -> seqs.Sequence:
     """The sequence, read for the reference and checked for what the recorded camera needs; one-line
     :class:`SequenceError` naming the file otherwise."""
     seq = seqs.load(setup.sequence)
-    if seq.meta.intrinsics_file != "camera-intrinsics.txt":
-        raise SequenceError(f"{setup.sequence / 'camera-intrinsics.txt'}: missing (the recorded camera reads K there; "
-                            f"this folder has it in {seq.meta.intrinsics_file})")
     own_meta = seqs.meta_path(setup.sequence)
     if not setup.declared and own_meta == setup.sequence / "meta.json" and seq.meta.declared() is not None:
         raise SequenceError(f"{own_meta}: declares a pose accuracy, which the recorded camera always sends: "
@@ -1051,7 +1054,7 @@ def run(setup: ReplaySetup, stop: threading.Event | None = None, seq: seqs.Seque
     setup.out.mkdir(parents=True, exist_ok=True)
     _log(f"{seq.name}: {len(frames)} frames, {frames[0].rgb.shape[1]}x{frames[0].rgb.shape[0]}; pose accuracy "
          f"{accuracy_text(accuracy)}")
-    replay = play(setup, frames, accuracy, stop, seq.meta.world_from_recording)
+    replay = play(setup, frames, accuracy, stop, seq.meta.world_from_recording, seq.meta.intrinsics_file)
     _log(f"replay: {len(replay.points)} map points, {len(replay.nodes)} nodes, "
          f"{replay.figures['keyframe_results_seen']} keyframe results seen; settled: {replay.figures['settled']}")
     inproc = None

@@ -8,11 +8,12 @@ The sequence folder::
 
     frames/frame-NNNNNN.color.png    the image (.jpg / .jpeg also taken), in frame-number order
     frames/frame-NNNNNN.pose.txt     4x4 T_world_cam (camera to world, metres, OpenCV camera axes)
-    camera-intrinsics.txt            the 3x3 K in its first three rows, whitespace separated
+    camera-intrinsics.txt            the 3x3 K in its first three rows, whitespace separated (another name:
+                                     "intrinsics_file" in the config or meta.json)
     meta.json                        optional: "rate_hz" (the recorded frame rate), the declared pose
-                                     accuracy "pose_sigma_trans_m" / "pose_sigma_rot_deg" and
-                                     "world_from_recording" (below); other keys (depth_divisor, licence,
-                                     pose_source...) are ignored
+                                     accuracy "pose_sigma_trans_m" / "pose_sigma_rot_deg",
+                                     "world_from_recording" (below) and "intrinsics_file"; other keys
+                                     (depth_divisor, licence, pose_source...) are ignored
 
 Each frame carries its intrinsics (K at the image's size) and its pose, checked with
 :func:`protocol.poses.check_pose`. Recorded poses are priors (``pose_trusted = false``). With a declared
@@ -64,6 +65,8 @@ log = logging.getLogger(__name__)
 
 DEFAULT_RATE_HZ = 5.0
 """Frames per second when neither the config nor meta.json gives a rate."""
+DEFAULT_INTRINSICS_FILE = "camera-intrinsics.txt"
+"""The file holding K when neither the config nor meta.json names another."""
 UP_WARN_DEG = 60.0
 """A recording without ``world_from_recording`` whose cameras look, on average, this far off level is warned about."""
 _COLOR = re.compile(r"^frame-(\d+)\.color\.(png|jpg|jpeg)$", re.IGNORECASE)
@@ -88,6 +91,10 @@ class Config(SourceConfig):
     pose_sigma_rot_deg: float | None = Field(
         default=None, gt=0, allow_inf_nan=False,
         description="declared std-dev of each pose rotation axis, degrees (with pose_sigma_trans_m)",
+    )
+    intrinsics_file: str | None = Field(
+        default=None, min_length=1,
+        description="file in the folder holding K; default: meta.json's intrinsics_file, else camera-intrinsics.txt",
     )
     world_from_recording: list[list[float]] | None = Field(
         default=None,
@@ -174,6 +181,9 @@ def read_meta(path: Path) -> dict[str, Any]:
         v = meta.get(key)
         if v is not None and (isinstance(v, bool) or not isinstance(v, (int, float)) or not math.isfinite(v) or v <= 0):
             raise _fail(f"{path}: {key} must be a number > 0, got {v!r}")
+    name = meta.get("intrinsics_file")
+    if name is not None and (not isinstance(name, str) or not name):
+        raise _fail(f"{path}: intrinsics_file must be a file name, got {name!r}")
     try:
         world_transform(meta.get("world_from_recording"), str(path))
     except ValueError as e:
@@ -216,8 +226,9 @@ class RecordedSequence(SourceBase):
         images = list_color_images(frames_dir)
         if not images:
             raise _fail(f"{frames_dir} holds no frame-NNNNNN.color.png / .jpg images")
-        self.K = read_intrinsics_matrix(folder / "camera-intrinsics.txt")
         meta = read_meta(folder / "meta.json")
+        self.K = read_intrinsics_matrix(folder / (config.intrinsics_file or meta.get("intrinsics_file")
+                                                  or DEFAULT_INTRINSICS_FILE))
         self.rate_hz = config.rate_hz or meta.get("rate_hz") or DEFAULT_RATE_HZ
         if config.pose_sigma_trans_m is not None and config.pose_sigma_rot_deg is not None:
             self.pose_covariance = declared_covariance(config.pose_sigma_trans_m, config.pose_sigma_rot_deg, "config")

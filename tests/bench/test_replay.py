@@ -324,11 +324,14 @@ class TestErrors:
         assert len(err) == 1 and "frame-000001.pose.txt: missing" in err[0]
         assert not (tmp_path / "out").exists()
 
-    def test_k_where_the_camera_does_not_read_it_is_refused(self, tmp_path: Path) -> None:
+    def test_k_under_another_name_reaches_the_camera(self, tmp_path: Path) -> None:
         folder = with_depth(tmp_path / "s", meta=dict(META, intrinsics_file="camera-intrinsics.color.txt"))
         (folder / "camera-intrinsics.txt").rename(folder / "camera-intrinsics.color.txt")
-        with pytest.raises(seqs.SequenceError, match="recorded camera reads K there"):
-            replay.load_checked(replay.ReplaySetup(sequence=folder))
+        seq = replay.load_checked(replay.ReplaySetup(sequence=folder))  # labelfusion's layout: K's own file name
+        launch = replay.replay_launch(replay.DEFAULT_LAUNCH, folder, 0.5, None, "tcp/127.0.0.1:1", tmp_path,
+                                      intrinsics_file=seq.meta.intrinsics_file)[0]
+        src = next(p for p in launch.process if p.command == "edge-camera").settings["source"]  # type: ignore[index]
+        assert src["intrinsics_file"] == "camera-intrinsics.color.txt"
 
     def test_undeclared_cannot_replay_a_folder_that_declares(self, tmp_path: Path) -> None:
         folder = with_depth(tmp_path / "s", meta=dict(META, pose_sigma_trans_m=0.01, pose_sigma_rot_deg=1.0))

@@ -114,6 +114,15 @@ class TestRecordedSource:
         T = make(folder, world_from_recording=shift).read().T_world_cam
         assert np.allclose(T, np.array(shift) @ pose_of(0), atol=1e-9)
 
+    def test_k_in_a_file_of_another_name(self, tmp_path):
+        folder = write_sequence(tmp_path / "seq", n=1, meta={"intrinsics_file": "camera-intrinsics.color.txt"})
+        (folder / "camera-intrinsics.txt").rename(folder / "camera-intrinsics.color.txt")
+        assert make(folder).read().intrinsics.fx == 50.0
+        (folder / "meta.json").unlink()
+        assert make(folder, intrinsics_file="camera-intrinsics.color.txt").read().intrinsics.fy == 52.0
+        with pytest.raises(SourceConfigError, match="camera-intrinsics.txt"):
+            make(folder)
+
     def test_a_world_frame_that_does_not_look_z_up_is_warned_about(self, tmp_path, caplog):
         y_up = [[1, 0, 0, 0], [0, 0, 1, 0], [0, -1, 0, 0], [0, 0, 0, 1]]  # the inverse: z-up poses made y-up
         make(write_sequence(tmp_path / "a", n=2, meta={"world_from_recording": y_up}))
