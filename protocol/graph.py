@@ -23,7 +23,8 @@ def apply_delta(snapshot: GraphSnapshot, delta: GraphDelta) -> GraphSnapshot:
     """The graph after ``delta``; raises :class:`GraphVersionError` when versions do not follow.
 
     Nodes are upserted by id and removed by id; edges are removed and added by their triple, and
-    edges left dangling by a removed node are dropped. Nodes come out sorted by id and edges by
+    edges left dangling by a removed node are dropped; each node's last move is the delta's, else the
+    snapshot's (schema 1.3), and a removed node's is dropped. Nodes come out sorted by id and edges by
     their triple, the order the mapper uses, so a snapshot rebuilt from deltas compares equal to
     the mapper's own snapshot of the same version.
     """
@@ -42,6 +43,8 @@ def apply_delta(snapshot: GraphSnapshot, delta: GraphDelta) -> GraphSnapshot:
     for e in delta.edges_added:
         edges[edge_key(e)] = e
     kept = [e for k, e in sorted(edges.items()) if e.subject_id in nodes and e.object_id in nodes]
+    moves = {m.node_id: m for m in snapshot.moves}
+    moves.update((m.node_id, m) for m in delta.moves)
     return GraphSnapshot(
         epoch=delta.epoch,
         version=delta.version,
@@ -49,6 +52,7 @@ def apply_delta(snapshot: GraphSnapshot, delta: GraphDelta) -> GraphSnapshot:
         nodes=[nodes[k] for k in sorted(nodes)],
         edges=kept,
         frames={**snapshot.frames, **delta.frames},
+        moves=[moves[k] for k in sorted(moves) if k in nodes],
     )
 
 

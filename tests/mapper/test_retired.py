@@ -80,6 +80,22 @@ class TestStore:
         assert again.snapshot() == s.snapshot()
 
 
+def test_a_follower_rebuilds_the_mappers_snapshot_moves_included() -> None:
+    from protocol.graph import apply_delta
+
+    s = GraphStore("E")
+    s.commit([node("n1"), node("n2", "lamp", 2.0)], [], [], 10)
+    followed = s.snapshot()
+    for args in (([node("n1", x=1.0)], [], [], 20, None, [move("n1", 20, 0.0, 1.0)]),
+                 ([node("n2", "lamp", 3.0)], [], [], 30, None, [move("n2", 30, 2.0, 3.0)]),
+                 ([], ["n1"], [], 40, None, (), {"n1": node("n1", x=1.0)})):
+        d = s.commit(*args)  # type: ignore[arg-type]
+        assert d is not None
+        followed = apply_delta(followed, d)
+        assert followed == s.snapshot()
+    assert [m.node_id for m in followed.moves] == ["n2"]
+
+
 class TestWire:
     def test_include_retired_parses_and_round_trips(self) -> None:
         for text, flag in (("true", True), ("1", True), ("false", False), ("no", False)):
