@@ -215,8 +215,17 @@ class PlannerNodeConfig(_Model):
     )
     fusion_wait_s: float = Field(
         default=5.0, ge=0.0,
-        description="after a robot arrives, wait up to this long for a graph version that covers its arrival frame "
-        "(RobotState.last_frame_seq against the graph's frames) before planning its next goal; 0: do not wait",
+        description="after a robot arrives, wait at least up to this long for a graph version that covers its arrival "
+        "frame (RobotState.last_frame_seq against the graph's frames) before planning its next goal; 0: do not wait",
+    )
+    fusion_wait_max_s: float = Field(
+        default=30.0, ge=0.0,
+        description="... and at most this long: the wait follows the mapper's measured pace (fusion_wait_factor x "
+        "the 90th percentile of the last 16 arrival-to-graph delays), so a loaded mapper's late keyframes are waited "
+        "for; status fusion_wait_limit_s says the wait now",
+    )
+    fusion_wait_factor: float = Field(
+        default=1.5, gt=0.0, description="the wait in units of the measured arrival-to-graph delay (its p90)"
     )
     unannounced_expire_s: float = Field(
         default=30.0, gt=0.0,

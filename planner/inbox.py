@@ -53,7 +53,8 @@ class PlannerInbox:
         self._snapshots: collections.deque[GraphSnapshot] = collections.deque(maxlen=MAX_PENDING_SNAPSHOTS)
         self.point_map: PointMap | None = None
         self.states: dict[str, RobotState] = {}
-        self.fusion_wait = FusionWait(config.fusion_wait_s)  # robots waiting for their arrival frame to be fused
+        # robots waiting for their arrival frame to be fused, as long as the mapper's measured pace asks
+        self.fusion_wait = FusionWait(config.fusion_wait_s, config.fusion_wait_max_s, config.fusion_wait_factor)
         self.viewpoints: dict[str, ViewpointSet] = {}
         self.pending: dict[str, Pending] = {}
         self._gone: set[str] = set()  # robots whose liveliness token went away (until it comes back)

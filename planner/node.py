@@ -44,6 +44,8 @@ class PlannerNode(PlannerInbox, Process):
         """Robots that need a (new) goal now, with their state and viewpoints."""
         out = {}
         n_nodes, cfg = len(self.graph.nodes), self.config
+        self.fusion_wait.note(self.graph.frames, now_s)  # waits covered since, run out or not: the mapper's pace
+        self.counters.set("fusion_wait_limit_s", self.fusion_wait.limit_s())
         with self._lock:
             items = [(rid, st, self.viewpoints.get(rid)) for rid, st in self.states.items()]
         for rid, st, vps in items:

@@ -2,9 +2,11 @@
 
 from __future__ import annotations
 
-import math
+import collections
 from dataclasses import dataclass
 from typing import Literal
+
+import numpy as np
 
 from protocol.messages import RobotState
 
@@ -45,13 +47,43 @@ def goal_due(st: RobotState, pending: Pending | None, n_nodes: int, now_s: float
 
 
 class FusionWait:
-    """Per robot, the wait for a graph version that covers its arrival frame (``wait_s``; 0: never wait), so the
-    next goal is chosen on a map that includes what the robot just saw."""
+    """Per robot, the wait for a graph version that covers its arrival frame, so the next goal is chosen on a map
+    that includes what the robot just saw.
 
-    def __init__(self, wait_s: float) -> None:
+    The wait follows the mapper's measured pace: each arrival that had to wait gives a delay (arrival to the graph
+    covering its frame, also when it came after the wait ran out: :meth:`note` sees it), and a wait lasts
+    ``factor`` x the 90th percentile of the last ``keep`` delays, never under ``wait_s`` nor over ``max_wait_s``.
+    A loaded mapper that takes 8 s per keyframe is waited for; a quick one still gets ``wait_s``. ``wait_s`` 0:
+    never wait. Only arrivals that had to wait are measured (a frame already in the graph has no delay to see), so
+    the estimate leans long."""
+
+    def __init__(self, wait_s: float, max_wait_s: float | None = None, factor: float = 1.5, keep: int = 16) -> None:
         self.wait_s = wait_s
-        self._since: dict[str, tuple[int | None, float]] = {}  # robot -> (arrival frame seq, when the wait began)
+        self.max_wait_s = wait_s if max_wait_s is None else max(wait_s, max_wait_s)
+        self.factor = factor
+        self.delays_s: collections.deque[float] = collections.deque(maxlen=max(1, keep))
+        # robot -> (arrival frame seq, when the wait began, whether it ran out)
+        self._since: dict[str, tuple[int, float, bool]] = {}
         self.waited_s = 0.0  # how long the last wait that ran out lasted
+
+    def limit_s(self) -> float:
+        """How long a wait lasts now."""
+        if not self.delays_s:
+            return self.wait_s
+        p90 = float(np.percentile(np.asarray(self.delays_s, np.float64), 90))
+        return min(self.max_wait_s, max(self.wait_s, self.factor * p90))
+
+    def _covered(self, rid: str, seq: int, now_s: float) -> None:
+        entry = self._since.pop(rid, None)
+        if entry is not None and entry[0] == seq:
+            self.delays_s.append(max(0.0, now_s - entry[1]))
+
+    def note(self, fused: dict[str, int], now_s: float) -> None:
+        """The graph's newest frame per source (``fused``) at ``now_s``: every wait it covers, run out or not,
+        gives its delay."""
+        for rid, (seq, _, _) in list(self._since.items()):
+            if fused.get(rid, -1) >= seq:
+                self._covered(rid, seq, now_s)
 
     def ready(self, rid: str, st: RobotState, fused_seq: int, now_s: float) -> tuple[bool, str | None]:
         """Whether robot ``rid`` may be planned now (``fused_seq``: its newest frame in the graph, -1 for none),
@@ -59,17 +91,18 @@ class FusionWait:
         if st.status != "arrived" or st.last_frame_seq is None or self.wait_s <= 0:
             return True, None
         if fused_seq >= st.last_frame_seq:
-            self._since.pop(rid, None)
+            self._covered(rid, st.last_frame_seq, now_s)
             return True, None
-        seq, since = self._since.get(rid, (None, now_s))
-        if seq != st.last_frame_seq:
-            self._since[rid] = (st.last_frame_seq, now_s)
+        entry = self._since.get(rid)
+        if entry is None or entry[0] != st.last_frame_seq:
+            self._since[rid] = (st.last_frame_seq, now_s, False)
             return False, "fusion_waits"
-        if now_s - since < self.wait_s:
-            return False, None
-        if since == -math.inf:  # this wait ran out before: planned, not counted again
+        seq, since, ran_out = entry
+        if ran_out:  # this wait ran out before: planned, not counted again
             return True, None
-        self._since[rid] = (seq, -math.inf)
+        if now_s - since < self.limit_s():
+            return False, None
+        self._since[rid] = (seq, since, True)  # kept: the delay is still measured when the frame is fused
         self.waited_s = now_s - since
         return True, "fusion_wait_timeouts"
 

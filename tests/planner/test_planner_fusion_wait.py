@@ -93,3 +93,22 @@ def test_the_mapper_says_a_robot_frame_was_processed_even_when_it_changed_nothin
     assert delta is not None and delta.frames == {"r1": 3} and not delta.upserted
     assert core.snapshot().frames == {"r1": 3}
     assert core.mark_processed(blank) is None
+
+
+def test_the_wait_follows_the_mappers_measured_pace() -> None:
+    node = _node(wait_s=5.0)
+    node.graph = GraphSnapshot(version=3, stamp_ns=0, frames={"r1": 8})
+    node.states["r1"] = _state("arrived", 10)
+    assert node.robots_to_plan(100.0) == {}
+    assert list(node.robots_to_plan(105.5)) == ["r1"]  # the first wait: 5 s, then planned anyway
+    node.graph = apply_delta(node.graph, GraphDelta(version=4, stamp_ns=2, frames={"r1": 10}))
+    node.states["r1"] = _state("moving", 10)
+    node.robots_to_plan(108.0)  # the loaded mapper fused frame 10 8 s after the arrival: measured though late
+    assert node.fusion_wait.delays_s[-1] == 8.0
+    assert node.counters.get("fusion_wait_limit_s") == 12.0  # 1.5 x 8 s
+    node.states["r1"] = _state("arrived", 12)
+    assert node.robots_to_plan(120.0) == {}
+    assert node.robots_to_plan(129.0) == {}  # 9 s: past the old 5 s, still waiting
+    node.graph = apply_delta(node.graph, GraphDelta(version=5, stamp_ns=3, frames={"r1": 12}))
+    assert list(node.robots_to_plan(130.0)) == ["r1"]  # planned on a graph with its arrival frame
+    assert node.counters.get("fusion_wait_timeouts") == 1

@@ -81,3 +81,16 @@ def test_fusion_wait_applies_to_arrivals_with_a_frame_only() -> None:
     assert FusionWait(5.0).ready("r1", state("failed", seq=10), -1, 0.0) == (True, None)
     assert FusionWait(5.0).ready("r1", state("arrived", seq=None), -1, 0.0) == (True, None)
     assert FusionWait(0.0).ready("r1", state("arrived", seq=10), -1, 0.0) == (True, None)
+
+
+def test_fusion_wait_limit_is_bounded_and_recovers() -> None:
+    w = FusionWait(2.0, max_wait_s=10.0, factor=1.5, keep=4)
+    assert w.limit_s() == 2.0  # nothing measured yet
+    for d in (20.0, 20.0):
+        w.delays_s.append(d)
+    assert w.limit_s() == 10.0  # never over max_wait_s
+    for _ in range(4):  # the mapper is quick again: the old delays leave the window
+        w.delays_s.append(0.5)
+    assert w.limit_s() == 2.0  # never under wait_s
+    assert FusionWait(2.0, max_wait_s=1.0).max_wait_s == 2.0
+    assert FusionWait(0.0, max_wait_s=30.0).ready("r1", state("arrived", seq=10), -1, 0.0) == (True, None)
