@@ -339,6 +339,7 @@ class FrameIntake:
                 stamp_ns=h.stamp_ns,
                 seq=h.seq,
                 oracle=od,
+                map_always=h.map_always,
                 **accuracy,  # type: ignore[arg-type]
             )
         except (ValueError, JpegError) as e:

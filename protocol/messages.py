@@ -208,6 +208,7 @@ class FrameHeader(Message):
     """Metadata of one camera frame; travels as the attachment of the JPEG sample."""
 
     KIND: ClassVar[str] = "frame_header"
+    SCHEMA: ClassVar[tuple[int, int]] = (1, 1)
     source_id: str = Field(min_length=1, max_length=128, description="camera or robot id")
     source_kind: SourceKind = Field(description="fixed infrastructure camera or robot camera")
     seq: int = Field(ge=0, description="per-source sequence number, +1 per frame sent")
@@ -225,6 +226,12 @@ class FrameHeader(Message):
     pose_trusted: bool = Field(
         default=False,
         description="true when T_world_cam is a surveyed calibration, false when it is an odometry prior",
+    )
+    map_always: bool = Field(
+        default=False,
+        description="the sender needs this frame mapped (a robot's arrival view, on which its next goal is planned): "
+        "an overloaded mapper never sheds its keyframe as stale or superseded, as it does video-rate frames "
+        "(schema 1.1)",
     )
 
 

@@ -133,8 +133,9 @@ class RobotControl:
             self._publish_goal_status(self._acks.popleft())
 
     # --- state ------------------------------------------------------------------------------
-    def frame_header(self, cap: Capture, stamp_ns: int) -> FrameHeader:
-        """The header of a frame captured now (``seq``: the next one), posed by odometry (never trusted)."""
+    def frame_header(self, cap: Capture, stamp_ns: int, map_always: bool = False) -> FrameHeader:
+        """The header of a frame captured now (``seq``: the next one), posed by odometry (never trusted);
+        ``map_always``: an arrival or stop frame, which the next goal is planned on."""
         h, w = cap.rgb.shape[:2]
         cov = self.body.pose_covariance()
         intr = self.body.intrinsics
@@ -149,6 +150,7 @@ class RobotControl:
             T_world_cam=rows(self.body.T_world_cam_odom()),
             pose_covariance=None if cov is None else rows(cov),
             pose_trusted=False,
+            map_always=map_always,
         )
 
     def _refresh_travel_cost(self) -> None:

@@ -98,7 +98,7 @@ class RobotAgent(RobotControl, Process):
             t1 = time.perf_counter()
             jpeg = encode_jpeg(cap.rgb, self.config.frames.jpeg_quality)
             t2 = time.perf_counter()
-            header = self.frame_header(cap, time.time_ns())
+            header = self.frame_header(cap, time.time_ns(), map_always=reliable)
             if cap.oracle is not None and self._oracle_pub is not None:
                 self._oracle_pub.put(encode(cap.oracle.message(self.config.id, self.seq, header.stamp_ns)))
             put_frame(self._arrival_pub if reliable else self._frame_pub, header, jpeg)

@@ -72,6 +72,7 @@ class View:
     prior_rel_rot_deg: float | None = None
     prior_rel_trans_m: float | None = None
     pose_covariance: F64 | None = None
+    map_always: bool = False  # the sender needs it mapped: never shed under load (FrameHeader.map_always)
 
     def __post_init__(self) -> None:
         img = np.asarray(self.image)

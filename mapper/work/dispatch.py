@@ -21,8 +21,15 @@ the workers keep up with, latency stays bounded and the sources' fresher frames 
 ``max_jobs`` jobs in all (a new one beyond that: dropped as ``full``). A job already started once (re-issued
 after its worker went away or failed) is never dropped for staleness: the graph must have no gap.
 
-Order: when a worker has room, re-issued jobs go first (oldest first), then the source served least recently
-(its last job sent longest ago; never served: first) with its freshest pending job, ties by older frame first.
+Kept jobs: a frame whose sender needs it mapped (``FrameHeader.map_always``: a robot's arrival view, which its
+next goal is planned on) is never stale nor superseded, and when the table is full, the least informative job that
+may be shed (never started, of the source served most recently) makes room for it (``shed``). Under overload the
+arrival views are mapped and video-rate frames give way; the status says how many (``jobs_dropped_shed``,
+``keyframes_dropped.shed.<source>``).
+
+Order: when a worker has room, re-issued jobs go first (oldest first), then kept ones, then the source served
+least recently (its last job sent longest ago; never served: first) with its freshest pending job, ties by older
+frame first.
 Fair: a source whose keyframes come often cannot keep the others waiting, and each source is served with the
 newest keyframe it has. Every outcome is counted in :attr:`Dispatcher.counters`.
 """
@@ -60,6 +67,7 @@ class Job:
     submitted: float = 0.0  # re-issued jobs go before newer ones
     fresh: bool = True  # a source's newest keyframe (False: an older keyframe retried, never superseded)
     captured: float = 0.0  # when its frame was taken in, on the caller's clock (``now`` less its age at submit)
+    keep: bool = False  # its sender needs it mapped (FrameHeader.map_always): never stale, superseded or shed
 
 
 @dataclass
@@ -123,28 +131,41 @@ class Dispatcher:
         return sorted(k for k, w in self.workers.items() if not w.quarantined)
 
     # -- jobs ---------------------------------------------------------------------------------------
-    def submit(self, job_id: str, source_id: str, now: float, fresh: bool = True, age_s: float = 0.0) -> bool:
+    def submit(self, job_id: str, source_id: str, now: float, fresh: bool = True, age_s: float = 0.0,
+               keep: bool = False) -> bool:
         """Add a job (False: a duplicate of a known or recently done job, ignored; or dropped). ``age_s``: how
         old its frame is now (a job already older than ``max_frame_age_s`` is dropped as ``stale``). A ``fresh``
         job (the source's newest keyframe) drops the source's older fresh job still pending (``superseded``); an
         older keyframe retried (``fresh`` False: deferred until it had stereo partners) is not superseded. With
-        ``max_jobs`` jobs already, the new one is dropped (``full``)."""
+        ``max_jobs`` jobs already, the new one is dropped (``full``).
+
+        A ``keep`` job (its sender needs it mapped: a robot's arrival view) is never stale nor superseded, goes
+        before other new jobs, and a full table makes room for it by shedding the least informative pending job
+        (``shed``): one never started of the source served most recently (what it adds is the least new), its
+        newest frame; only a table full of kept or started jobs refuses it (``full``)."""
         if job_id in self.jobs or job_id in self._done:
             self.counters["jobs_duplicate_submit"] += 1
             return False
-        if self._too_old(max(age_s, 0.0)):
+        if not keep and self._too_old(max(age_s, 0.0)):
             self.dropped.append((job_id, "stale"))
             self.counters["jobs_dropped_stale"] += 1
             return False
         for j in list(self.jobs.values()):
-            if fresh and j.fresh and j.source_id == source_id and j.state is State.PENDING:
+            if fresh and j.fresh and not j.keep and j.source_id == source_id and j.state is State.PENDING:
                 self._drop(j.job_id, "superseded")
+        if len(self.jobs) >= self.config.max_jobs and keep:
+            sheddable = [j for j in self.jobs.values() if j.state is State.PENDING and not j.keep and j.attempts == 0]
+            if sheddable:
+                least = max(sheddable, key=lambda j: (self._served.get(j.source_id, float("-inf")), j.captured))
+                self._drop(least.job_id, "shed")
         if len(self.jobs) >= self.config.max_jobs:
             self.dropped.append((job_id, "full"))
             self.counters["jobs_dropped_full"] += 1
             return False
         self.jobs[job_id] = Job(job_id, source_id, since=now, submitted=now, fresh=fresh,
-                                captured=now - max(age_s, 0.0))
+                                captured=now - max(age_s, 0.0), keep=keep)
+        if keep:
+            self.counters["jobs_kept"] += 1
         self.counters["jobs_submitted"] += 1
         return True
 
@@ -154,17 +175,19 @@ class Dispatcher:
     def drop_stale(self, now: float) -> list[str]:
         """Drop the pending jobs never started whose frame is older than ``max_frame_age_s`` (returned)."""
         out = [j.job_id for j in self.jobs.values()
-               if j.state is State.PENDING and j.attempts == 0 and self._too_old(now - j.captured)]
+               if j.state is State.PENDING and j.attempts == 0 and not j.keep and self._too_old(now - j.captured)]
         for job_id in out:
             self._drop(job_id, "stale")
         return out
 
     def _order(self, j: Job) -> tuple[float, float, float, float]:
-        """Sort key of a pending job: re-issued ones first (oldest first), then the least recently served
-        source, its fresh keyframe before a retried older one, then the older frame (not ``fair``: the job
-        submitted first)."""
+        """Sort key of a pending job: re-issued ones first (oldest first), then kept ones (``keep``), then the
+        least recently served source, its fresh keyframe before a retried older one, then the older frame (not
+        ``fair``: the job submitted first)."""
         if j.attempts > 0 or not self.config.fair:
             return (0.0 if j.attempts > 0 else 1.0, j.submitted, 0.0, 0.0)
+        if j.keep:  # a view its sender waits for (a robot's arrival): before the others, oldest first
+            return (0.5, j.submitted, 0.0, 0.0)
         return (1.0, self._served.get(j.source_id, float("-inf")), 0.0 if j.fresh else 1.0, j.captured)
 
     def assign(self, now: float) -> list[tuple[str, str, int]]:

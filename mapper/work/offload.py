@@ -191,7 +191,8 @@ class Offloader:
         with self._lock:
             fresh = view.seq >= self._newest.get(view.source_id, -1)  # else a deferred keyframe retried
             age_s = (now_ns - self._received.get(view.key, now_ns)) / 1e9
-            if self.dispatcher.submit(job.job_id, view.source_id, time.monotonic(), fresh, age_s):
+            if self.dispatcher.submit(job.job_id, view.source_id, time.monotonic(), fresh, age_s,
+                                      keep=view.map_always):
                 self._pending[job.job_id] = Pending(view, views, target, job, time.monotonic())
         self.stages.age("age_at_submit" if fresh else "age_at_submit_retry", view.stamp_ns, time.time_ns())
         return True

@@ -25,14 +25,15 @@ def _intake() -> FrameIntake:
     return FrameIntake(cfg, Keys(site=cfg.site), Counters(), RateLimitedLog(logging.getLogger("test")))
 
 
-def _through(intake: FrameIntake, seq: int, cov: np.ndarray | None, pose: bool = True, source: str = "cam1"):
+def _through(intake: FrameIntake, seq: int, cov: np.ndarray | None, pose: bool = True, source: str = "cam1",
+             map_always: bool = False):
     """One frame sample's bytes through the intake as the mapper's subscriber hands it on; returns the view."""
     rng = np.random.default_rng(seq)
     rgb = rng.integers(0, 255, (H, W, 3), dtype=np.uint8)
     hdr = FrameHeader(source_id=source, source_kind="fixed", seq=seq, stamp_ns=seq + 1, width=W, height=H,
                       intrinsics=Intrinsics.from_fov(W, H, 60.0),
                       T_world_cam=look_at([0.1 * seq, 0, 1], [0.1 * seq, 2, 1]).tolist() if pose else None,
-                      pose_covariance=None if cov is None else cov.tolist())
+                      pose_covariance=None if cov is None else cov.tolist(), map_always=map_always)
     intake.admit_frame(decode_frame_bytes(intake.keys.frame("fixed", source), encode(hdr), encode_jpeg(rgb, 90)))
     views = []
     for f, oracle in intake.ready(0.0):
@@ -127,3 +128,9 @@ def test_oracle_images_of_another_size_than_their_frame_are_refused_unread() -> 
     half = OracleFrame(source_id="cam1", seq=0, stamp_ns=1, T_world_cam_true=pose,
                        depth_png=depth_to_png(np.ones((H // 2, W // 2), np.float32)))
     assert intake.view(frame, rgb, half) is None and intake.counters.get("decode_errors") == 2
+
+
+def test_a_frame_its_sender_needs_mapped_says_so_in_its_view() -> None:
+    intake = _intake()
+    assert _through(intake, 0, None).map_always is False
+    assert _through(intake, 1, None, map_always=True).map_always is True  # a robot's arrival view (schema 1.1)

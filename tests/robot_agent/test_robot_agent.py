@@ -60,6 +60,7 @@ def test_goal_drives_moving_then_arrived_with_arrival_frame(tmp_path, router, pr
     assert last.header.stamp_ns < arrived.stamp_ns
     assert last.header.source_kind == "robot" and last.header.pose_trusted is False
     assert last.header.pose_covariance is not None
+    assert last.header.map_always  # the planner plans on it: an overloaded mapper must not shed it
     assert decode_jpeg(last.jpeg).shape == (120, 160, 3)
     assert last.header.seq >= 2  # start frame, frames while moving, arrival frame
 

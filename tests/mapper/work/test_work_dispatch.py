@@ -279,3 +279,26 @@ def test_without_fair_order_the_job_submitted_first_goes_first() -> None:
     d.submit("c#1", "c", 0.7)
     assert d.result("a#1", "w", 0.8) is Outcome.ACCEPTED
     assert d.assign(0.8) == [("a#2", "w", 1)]  # fair: c#1 (never served)
+
+
+def test_an_arrival_view_is_never_shed_under_load() -> None:
+    """A kept job (FrameHeader.map_always: a robot's arrival view) is never stale nor superseded, goes before the
+    other new jobs, and a full table sheds the least informative job for it: the one of the source served most
+    recently."""
+    d = make(max_frame_age_s=1.5, max_jobs=4, max_in_flight=1)
+    d.worker_up("w")
+    d.submit("cam#1", "cam", 0.0)
+    assert d.assign(0.0) == [("cam#1", "w", 1)]  # cam served at 0.0
+    assert d.ack("cam#1", "w", 1, 0.05)
+    assert d.submit("r1#5", "r1", 0.1, age_s=0.2, keep=True)  # the robot arrived
+    assert d.submit("r1#6", "r1", 0.2)  # a later frame of the robot does not supersede its arrival view
+    assert "r1#5" in d.jobs and d.take_dropped() == []
+    assert d.submit("cam#2", "cam", 0.3)
+    assert not d.submit("q#1", "q", 0.4)  # full, and q#1 is no kept job: refused
+    assert d.submit("r2#9", "r2", 0.5, keep=True)  # full: cam#2 gives way (cam was served most recently)
+    assert d.take_dropped() == [("q#1", "full"), ("cam#2", "shed")] and d.counters["jobs_dropped_shed"] == 1
+    assert d.expire(5.0) == [] and "r1#5" in d.jobs and "r2#9" in d.jobs  # never stale...
+    assert ("r1#6", "stale") in d.take_dropped()  # ...while the robot's video-rate frame is
+    assert d.result("cam#1", "w", 5.1) is Outcome.ACCEPTED
+    assert d.assign(5.1) == [("r1#5", "w", 1)]  # kept jobs first, oldest first
+    assert d.counters["jobs_kept"] == 2
