@@ -506,7 +506,7 @@ def worker_procs(endpoint: str, site: str, n_workers: int, torch_threads: int | 
     return procs
 
 
-DROP_REASONS = ("superseded", "stale", "full", "given_up")
+DROP_REASONS = ("superseded", "stale", "full", "shed", "given_up")
 """Why the mapper dropped keyframe jobs (``keyframes_dropped.<reason>.<source>`` in its status)."""
 
 
