@@ -49,6 +49,7 @@ class AbsenceParams:
     margin_m: float = 0.1  # depth margin, metres ...
     margin_rel: float = 0.05  # ... plus this fraction of the node's depth
     max_points: int = 600  # the node's points are thinned to at most this many (fixed stride)
+    window_px: int = 1  # a pixel's depth is the nearest confident depth within this many pixels (nearest_depth)
 
 
 @dataclass(frozen=True)
@@ -63,9 +64,25 @@ class Judgement:
     there: int = 0
 
 
+def nearest_depth(view: KeyframeView, window_px: int) -> KeyframeView:
+    """``view`` with each pixel's depth the nearest confident depth within ``window_px`` pixels (a min filter;
+    unknown pixels take their neighbours'). A thin object (a lamp's pole, a chair's leg) covers a pixel or two,
+    and estimated depth there is often the background's: seeing through it needs the whole neighbourhood
+    beyond, or every thin object in view would look absent."""
+    if window_px <= 0:
+        return view
+    import cv2
+
+    d = np.where(np.isfinite(view.depth_m) & (view.depth_m > 0), view.depth_m, np.inf).astype(np.float32)
+    k = 2 * window_px + 1
+    near = cv2.erode(d, np.ones((k, k), np.uint8), borderType=cv2.BORDER_REPLICATE)
+    return KeyframeView(view.K, view.T_world_cam, np.where(np.isfinite(near), near, 0.0).astype(np.float32))
+
+
 def judge(view: KeyframeView, points_world: np.ndarray, params: AbsenceParams) -> Judgement:
-    """What ``view`` (a keyframe's camera and confident depth, 0 where unknown) says about a node made of
-    ``points_world`` (N, 3): see the module docstring."""
+    """What ``view`` (a keyframe's camera and confident depth, 0 where unknown; :func:`nearest_depth` of it, as
+    ``ObjectMap.absence_verdicts`` passes it) says about a node made of ``points_world`` (N, 3): see the module
+    docstring."""
     pts = np.asarray(points_world, np.float64).reshape(-1, 3)
     if len(pts) == 0:
         return Judgement(Verdict.UNKNOWN)

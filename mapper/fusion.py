@@ -26,7 +26,7 @@ from typing import Any
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
-from mapper.absence import AbsenceParams, Verdict, judge
+from mapper.absence import AbsenceParams, Verdict, judge, nearest_depth
 from mapper.association import KeyframeView, containment
 from mapper.perception.base import Detection, unit
 from protocol.messages import GraphNode, LabelScore, OrientedBox
@@ -259,6 +259,12 @@ class FusionConfig(BaseModel):
         "absence_margin_rel of its depth, is clearly beyond (nearer)",
     )
     absence_margin_rel: float = Field(default=0.05, ge=0.0, description="... relative part of that margin")
+    absence_window_px: int = Field(
+        default=1, ge=0, le=8,
+        description="absence: a pixel's depth is the nearest confident depth within this many pixels (of the "
+        "keyframe's depth map): a thin object covering a pixel or two, whose estimated depth is often the "
+        "background's, does not look seen through",
+    )
     absence_confirm_s: float = Field(
         default=1.0, ge=0.0,
         description="a calibrated fixed camera whose keyframe saw a node's place empty makes its next frame at "
@@ -293,7 +299,7 @@ class FusionConfig(BaseModel):
             max_range_m=self.absence_max_range_m, min_pixels=self.absence_min_pixels,
             min_in_view=self.absence_min_in_view, min_known=self.absence_min_known,
             max_occluded=self.absence_max_occluded, min_free=self.absence_min_free,
-            margin_m=self.absence_margin_m, margin_rel=self.absence_margin_rel,
+            margin_m=self.absence_margin_m, margin_rel=self.absence_margin_rel, window_px=self.absence_window_px,
         )
 
 
@@ -979,6 +985,9 @@ class ObjectMap:
         """Per measured node that ``view`` judges (``mapper.absence``), FREE or THERE. Single-view (coarse) nodes
         are not judged: their depth is a guess (``check_coarse`` and ``forget_gone`` handle them)."""
         params = self.cfg.absence_params()
+        if not self.nodes:
+            return {}
+        view = nearest_depth(view, params.window_px)
         o = np.asarray(view.T_world_cam[:3, 3], np.float64)
         reach = params.max_range_m + 2.0  # a node whose box is that far cannot have its median point in range
         out: dict[str, Verdict] = {}

@@ -356,3 +356,24 @@ def test_retired_nodes_are_answered_to_include_retired_queries_json_and_msgpack(
     q = _Query(keys.graph_nodes, "label=chair")
     queries.on_query(q)
     assert decode(bytes(q.replies[0][1]), GraphSnapshot).retired == []  # type: ignore[arg-type]
+
+
+def test_a_thin_object_whose_depth_is_mostly_the_backgrounds_is_not_seen_through() -> None:
+    """A pole five pixels wide whose estimated depth is right on its middle column only, the wall's behind it on the
+    others (stereo is weakest on thin things): without the nearest depth around each pixel it looks seen
+    through, with it (absence_window_px = 1) it does not."""
+    from mapper.absence import nearest_depth
+
+    pole = box([1.5, 0.45, 0.0], [1.55, 0.7, 1.5])
+    T = look_at(EYE, list(TARGET))
+    true, idx = raycast(T, [FLOOR, WALL, pole])
+    wall_only, _ = raycast(T, [FLOOR, WALL])
+    cols = np.flatnonzero((idx == 2).any(axis=0))
+    assert len(cols) == 5
+    pts = depth_to_world(true, INTR.K(), T)[idx == 2]
+    wrong = np.where((idx == 2) & (np.arange(true.shape[1]) != cols[2]), wall_only, true)
+    kv = KeyframeView(INTR.K(), T, wrong)
+    params = AbsenceParams(min_pixels=10)
+    assert judge(kv, pts, params).verdict is Verdict.FREE
+    assert judge(nearest_depth(kv, 1), pts, params).verdict is not Verdict.FREE
+    assert nearest_depth(kv, 0) is kv
