@@ -53,7 +53,7 @@ def test_drops_per_reason_are_summed_over_sources_for_the_phase() -> None:
     s1 = {"keyframes_dropped.stale.a": 5.0, "keyframes_dropped.stale.b": 1.0, "keyframes_dropped.superseded.a": 1.0,
           "keyframes_dropped.full.c.d": 4.0, "keyframes_dropped": 11.0}
     assert drops_by_reason(s0, s1) == {"dropped.superseded": 0.0, "dropped.stale": 4.0, "dropped.full": 4.0,
-                                       "dropped.given_up": 0.0}
+                                       "dropped.shed": 0.0, "dropped.given_up": 0.0}
 
 
 @pytest.mark.slow
