@@ -191,9 +191,15 @@ class MapperCore:
         every = self.config.rooms.every_keyframes
         if self.rooms is not None and every and self.counters["keyframes"] - self._rooms_built_at_keyframe >= every:
             # Rooms follow the map as it grows (ids are carried over between builds, the closer the better);
-            # a query between builds rebuilds them itself.
+            # a query between builds rebuilds them itself. A changed layer goes out in the graph: in this
+            # keyframe's delta, or in a delta of its own.
             t = time.perf_counter()
             self.update_rooms()
+            with self._rooms_lock:
+                layer = self._room_message
+            if layer is not None:
+                with self.lock:
+                    delta = self.store.commit_rooms(layer, layer.stamp_ns, delta)
             self.stages.add("rooms", time.perf_counter() - t)
         return delta
 
@@ -509,7 +515,11 @@ class MapperCore:
                     view.image, [d.mask for d in all_dets], [d.descriptor for d in all_dets], intrinsics_of(view).K(),
                     T_world_cam, floor_masks, self.config.single_view.floor_z_m)
                 self._seen.put(view.source_id, seen)
-        res = self.objects.integrate(objs, view.source_id, view.stamp_ns or time.time_ns(), kv)
+        detected = None
+        if kv is not None:  # every detection counts as seen, lifted to 3D or not (fusion.absence_*)
+            hd, wd = kv.depth_m.shape
+            detected = [(resize_mask(d.mask, hd, wd), d.descriptor) for d in dets]
+        res = self.objects.integrate(objs, view.source_id, view.stamp_ns or time.time_ns(), kv, detected)
         if kv is not None and view.pose_trusted and res.seen_gone:
             self._confirm[view.source_id] = view.stamp_ns
         else:

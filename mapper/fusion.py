@@ -932,10 +932,14 @@ class ObjectMap:
         node.touch()
 
     def integrate(self, objects: Sequence[Object3D], source_id: str, stamp_ns: int,
-                  view: KeyframeView | None = None) -> UpdateResult:
+                  view: KeyframeView | None = None,
+                  detected: Sequence[tuple[np.ndarray, np.ndarray]] | None = None) -> UpdateResult:
         """Fuse one view's 3D detections; runs maintenance every ``merge_every_updates`` updates. With the
         keyframe's ``view`` (and ``mask_association``), detections are also matched in the image, and nodes
-        that one detection's mask holds are merged as fragments of its object."""
+        that one detection's mask holds are merged as fragments of its object; and the view judges the nodes
+        it should see (``absence_*``, ``move_*``). ``detected``: every 2D detection of the keyframe as (mask at
+        the depth's resolution, unit descriptor), those that could not be lifted to 3D included (default: the
+        masks of ``objects``): a node one of them holds was detected there, whatever the depth says."""
         self.updates += 1
         res = UpdateResult()
         # What this keyframe's depth says about the nodes it should see, judged before its detections move any.
@@ -969,11 +973,11 @@ class ObjectMap:
                 res.created += 1
             self._remember_sight(self.nodes[targets[-1]], obj, view)
         self._merge_fragments(objects, targets, inside, res)
-        # A node a similar detection's mask holds was detected here, whatever depth the detection came with.
-        in_masks = {k for obj, held in zip(objects, inside, strict=True) for k, v in held.items()
-                    if v >= self.cfg.min_containment and k in self.nodes
-                    and similarity(obj.descriptor, self.nodes[k].descriptor) >= self.cfg.merge_similarity}
-        self._weigh_absence(verdicts, set(targets) | in_masks, res)
+        if verdicts and view is not None:
+            if detected is None:
+                detected = [(o.mask, o.descriptor) for o in objects if o.mask is not None]
+            gone = sorted(k for k, v in verdicts.items() if v is Verdict.FREE and k in self.nodes and k not in targets)
+            self._weigh_absence(verdicts, set(targets) | self._held(view, gone, detected), res)
         if self.updates % self.cfg.merge_every_updates == 0:
             self.maintain(res)
         self._enforce_cap(res)
@@ -1042,6 +1046,26 @@ class ObjectMap:
         node.touch()
         start = res.moved[node.node_id][0] if node.node_id in res.moved else before
         res.moved[node.node_id] = (start, node.centre)
+
+    def _held(self, view: KeyframeView, ids: Sequence[str], detected: Sequence[tuple[np.ndarray, np.ndarray]]
+              ) -> set[str]:
+        """Of ``ids``, the nodes a similar detection's mask holds (``min_containment`` of their visible points):
+        detected there, whatever depth the detection came with (estimated depth beyond an object on its pixels
+        and its detection alike, or none to lift it with)."""
+        cfg = self.cfg
+        if not ids or not detected:
+            return set()
+        frac = containment(view, [self.nodes[k].points for k in ids], [m for m, _ in detected],
+                           min_points=cfg.containment_min_points, margin_m=cfg.occlusion_margin_m,
+                           margin_rel=cfg.occlusion_margin_rel)
+        out = set()
+        for r, k in enumerate(ids):
+            for j, (_, desc) in enumerate(detected):
+                if frac[r, j] >= cfg.min_containment and similarity(
+                        unit(desc), self.nodes[k].descriptor) >= cfg.merge_similarity:
+                    out.add(k)
+                    break
+        return out
 
     def _weigh_absence(self, verdicts: dict[str, Verdict], detected: set[str], res: UpdateResult) -> None:
         """Add this keyframe's verdicts to each node's count (a detection or a surface where it stands clears

@@ -163,6 +163,19 @@ class TestRetirement:
             assert chair in om.nodes and not res.moved and not res.retired
         assert om.nodes[chair].centre == before and om.nodes[chair].absent == 0
 
+    def test_a_detection_that_could_not_be_lifted_is_still_a_detection(self) -> None:
+        """The chair's pixels show the wall's depth and its detection had too little depth to be lifted (no 3D
+        object): its mask still says the chair was seen."""
+        om = mapped({"chair": CHAIR})
+        chair = node_of(om, "chair")
+        _, objs = keyframe({"chair": CHAIR})
+        empty, _ = keyframe({})
+        for t in range(3):
+            res = om.integrate([], "cam1", 10 + t, empty, detected=[(objs[0].mask, label_descriptor("chair"))])
+            assert not res.removed and om.nodes[chair].absent == 0
+        res = om.integrate([], "cam1", 20, empty, detected=[(objs[0].mask, label_descriptor("lamp"))])
+        assert om.nodes[chair].absent == 1  # a mask of something else is no detection of the chair
+
     def test_absence_check_can_be_switched_off(self) -> None:
         om = mapped({"chair": CHAIR}, FusionConfig(merge_every_updates=100, absence_check=False))
         for t in range(3):
