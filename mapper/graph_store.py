@@ -12,7 +12,7 @@ from typing import Any
 
 from protocol.codec import decode, encode
 from protocol.graph import edge_key
-from protocol.messages import GraphDelta, GraphEdge, GraphNode, GraphSnapshot, NodeMove, RetiredNode
+from protocol.messages import GraphDelta, GraphEdge, GraphNode, GraphSnapshot, NodeMove, RetiredNode, RoomLayer
 from protocol.query import GraphQuery
 
 
@@ -34,6 +34,7 @@ class GraphStore:
         self.edges: dict[tuple[str, str, str], GraphEdge] = {}
         self.changed_at: dict[str, int] = {}
         self.frames: dict[str, int] = {}  # per source, the newest frame seq processed
+        self.rooms: RoomLayer | None = None  # the room layer the deltas carried last (snapshots carry it)
 
     def commit(
         self,
@@ -122,6 +123,21 @@ class GraphStore:
         self.stamp_ns = stamp_ns
         return GraphDelta(epoch=self.epoch, version=self.version, stamp_ns=stamp_ns, frames=advanced)
 
+    def commit_rooms(self, layer: RoomLayer, stamp_ns: int, delta: GraphDelta | None = None) -> GraphDelta | None:
+        """Publish a rebuilt room layer when it differs from the one published (rooms, labels, edges; its version
+        and stamp aside): carried by ``delta`` (the change set just committed, whose version the layer was built
+        at) when one is given, else by a delta of its own (version + 1). Returns the delta that carries it
+        (``delta`` updated, or the new one), ``delta`` itself when the layer is unchanged."""
+        old = self.rooms
+        if old is not None and old.epoch == self.epoch and (old.rooms, old.edges) == (layer.rooms, layer.edges):
+            return delta
+        if delta is None:
+            self.version += 1
+            self.stamp_ns = stamp_ns
+            delta = GraphDelta(epoch=self.epoch, version=self.version, stamp_ns=stamp_ns)
+        self.rooms = layer.model_copy(update={"epoch": self.epoch, "version": delta.version})
+        return delta.model_copy(update={"rooms": self.rooms})
+
     def snapshot(self, with_retired: bool = False) -> GraphSnapshot:
         """The whole graph at the current version (nodes by id, edges by triple, the last move of every node
         that moved); ``with_retired``: the retired nodes too (newest first)."""
@@ -135,6 +151,7 @@ class GraphStore:
             frames=dict(self.frames),
             moves=self.moves_of(self.nodes),
             retired=retired,
+            rooms=self.rooms,
         )
 
     def moves_of(self, ids: Iterable[str]) -> list[NodeMove]:
@@ -177,6 +194,7 @@ class GraphStore:
         self.nodes = {n.node_id: n for n in snap.nodes}
         self.edges = {edge_key(e): e for e in snap.edges}
         self.frames = dict(snap.frames)
+        self.rooms = snap.rooms  # states written before schema 1.4 have none: the next build publishes one
         self.changed_at = {str(k): int(v) for k, v in state.get("changed_at", {}).items() if k in self.nodes}
 
     def restart_at(self, epoch: str, version: int) -> None:

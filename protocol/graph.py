@@ -24,7 +24,8 @@ def apply_delta(snapshot: GraphSnapshot, delta: GraphDelta) -> GraphSnapshot:
 
     Nodes are upserted by id and removed by id; edges are removed and added by their triple, and
     edges left dangling by a removed node are dropped; each node's last move is the delta's, else the
-    snapshot's (schema 1.3), and a removed node's is dropped. Nodes come out sorted by id and edges by
+    snapshot's (schema 1.3), and a removed node's is dropped; the room layer is the delta's when it carries one,
+    else the snapshot's (schema 1.4). Nodes come out sorted by id and edges by
     their triple, the order the mapper uses, so a snapshot rebuilt from deltas compares equal to
     the mapper's own snapshot of the same version.
     """
@@ -53,6 +54,7 @@ def apply_delta(snapshot: GraphSnapshot, delta: GraphDelta) -> GraphSnapshot:
         edges=kept,
         frames={**snapshot.frames, **delta.frames},
         moves=[moves[k] for k in sorted(moves) if k in nodes],
+        rooms=delta.rooms if delta.rooms is not None else snapshot.rooms,
     )
 
 

@@ -94,10 +94,10 @@ def test_apply_delta_refuses_another_epoch() -> None:
 
 
 def test_messages_without_an_epoch_still_decode() -> None:
-    """A schema 1.1 snapshot (no epoch field) decodes with epoch ''; ours say minor 3."""
+    """A schema 1.1 snapshot (no epoch field) decodes with epoch ''; ours say minor 4."""
     s = snap("E", 3, "n1")
     _, kind, major, minor, body = msgpack.unpackb(encode(s), raw=False)
-    assert (major, minor) == (1, 3) and body["epoch"] == "E"
+    assert (major, minor) == (1, 4) and body["epoch"] == "E"
     del body["epoch"]
     old = msgpack.packb([MAGIC, kind, 1, 1, body], use_bin_type=True)
     assert decode(old, GraphSnapshot).epoch == ""

@@ -329,7 +329,7 @@ def test_json_view_refuses_bad_selectors_and_never_answers_msgpack_wildcards(map
     mapper_node.queries.on_json_query(q)
     assert q.replies == [] and q.errors == []
     mapper_node.queries.on_query(q)
-    assert {r[2] for r in q.replies} == {"application/msgpack;argus/graph_snapshot/1.3",
+    assert {r[2] for r in q.replies} == {"application/msgpack;argus/graph_snapshot/1.4",
                                         "application/msgpack;argus/graph_node/1.0",
                                         "application/msgpack;argus/room_layer/1.0"}
     assert decode(q.replies[0][1], GraphSnapshot).version == 7
