@@ -144,19 +144,21 @@ class ComposedGeometry:
     intrinsics: list[Intrinsics]
 
 
-def compose(recon: FactoredReconstruction, T_world_first: F64) -> ComposedGeometry:
+def compose(recon: FactoredReconstruction, T_world_first: F64, views: Sequence[int] | None = None) -> ComposedGeometry:
     """Metric world points, z-depths and poses from a factored reconstruction.
 
     Scale multiplies both the depths and the relative translations; the first view's world pose fixes
-    the frame: ``T_world_cam_i = T_world_first @ scaled(T_first_cam_i)``.
+    the frame: ``T_world_cam_i = T_world_first @ scaled(T_first_cam_i)``. ``views``: only these views, in this
+    order (a keyframe job needs its target's points, not its sources'); default: all.
     """
     T_wf = as_pose(T_world_first)
     m = float(recon.metric_scale)
-    T_first_cam = np.array(recon.T_first_cam, dtype=np.float64, copy=True)
+    sel = list(range(len(recon.intrinsics))) if views is None else list(views)
+    T_first_cam = np.array(recon.T_first_cam, dtype=np.float64, copy=True)[sel]
     T_first_cam[:, :3, 3] *= m
     T_world_cam = T_wf @ T_first_cam
-    depth_ray = recon.depth_along_ray.astype(np.float64) * m
-    points_cam = recon.ray_dirs.astype(np.float64) * depth_ray[..., None]
+    depth_ray = recon.depth_along_ray[sel].astype(np.float64) * m
+    points_cam = recon.ray_dirs[sel].astype(np.float64) * depth_ray[..., None]
     R = T_world_cam[:, :3, :3]
     t = T_world_cam[:, :3, 3]
     n, h, w = depth_ray.shape
@@ -167,8 +169,8 @@ def compose(recon: FactoredReconstruction, T_world_first: F64) -> ComposedGeomet
         points_world=points_world.astype(np.float32),
         depth_m=points_cam[..., 2].astype(np.float32),
         T_world_cam=T_world_cam,
-        confidence=recon.confidence.astype(np.float32),
-        intrinsics=list(recon.intrinsics),
+        confidence=recon.confidence[sel].astype(np.float32),
+        intrinsics=[recon.intrinsics[i] for i in sel],
     )
 
 

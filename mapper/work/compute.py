@@ -63,12 +63,11 @@ def compute_keyframe(reconstructor: Reconstructor, segmenter: Segmenter, embedde
         T_world_first = anchor_pose(recon, views)
     except ValueError:
         return None
-    geo = compose(recon, T_world_first)
+    geo = compose(recon, T_world_first, views=[target])  # the sources' points are not this job's
     times = {"geometry": time.perf_counter() - t}
     cpu = stage_cpu(recon.info, c_recon - c)
     cpu["geometry.place"] = time.process_time() - c_recon
-    vg = ViewGeometry(points_world=geo.points_world[target], depth_m=geo.depth_m[target],
-                      confidence=geo.confidence[target])
+    vg = ViewGeometry(points_world=geo.points_world[0], depth_m=geo.depth_m[0], confidence=geo.confidence[0])
     dets = None
     if runs_perception(config) if perception is None else perception:
         fc = config.fusion
@@ -78,7 +77,7 @@ def compute_keyframe(reconstructor: Reconstructor, segmenter: Segmenter, embedde
             dets = embedder.embed(view, segmenter.segment(view, vg))
             times["perception"] = time.perf_counter() - t
             cpu["perception"] = time.process_time() - c
-    return KeyframeProducts(vg, geo.T_world_cam[target], geo.intrinsics[target].K(), dets, times, cpu)
+    return KeyframeProducts(vg, geo.T_world_cam[0], geo.intrinsics[0].K(), dets, times, cpu)
 
 
 def stage_cpu(info: dict[str, object], total_s: float) -> dict[str, float]:

@@ -46,6 +46,21 @@ class TestCompose:
         np.testing.assert_allclose(g.T_world_cam[1][:3, 3], [10.0, 2.0, 1.0], atol=1e-12)
         np.testing.assert_allclose(g.T_world_cam[0], T_world_first, atol=1e-12)
 
+    def test_some_views_only(self) -> None:
+        # A keyframe job composes its target alone: the same numbers as that view of the whole window.
+        intr = Intrinsics.from_fov(16, 12, 70.0)
+        rng = np.random.default_rng(3)
+        depth = [rng.uniform(0.5, 4, (12, 16)).astype(np.float32) for _ in range(3)]
+        poses = [look_at([x, 0.0, 1.0], [x + 1.0, 2.0, 0.8]) for x in (0.0, 0.5, 1.0)]
+        recon = factored_from_metric(depth, poses, [rng.uniform(0, 1, (12, 16))] * 3, [intr] * 3)
+        full, one = compose(recon, poses[0]), compose(recon, poses[0], views=[2, 0])
+        for k, i in enumerate((2, 0)):
+            np.testing.assert_array_equal(one.points_world[k], full.points_world[i])
+            np.testing.assert_array_equal(one.depth_m[k], full.depth_m[i])
+            np.testing.assert_array_equal(one.confidence[k], full.confidence[i])
+            np.testing.assert_array_equal(one.T_world_cam[k], full.T_world_cam[i])
+        assert one.intrinsics == [intr, intr] and len(one.points_world) == 2
+
     def test_scale_free_invariance(self) -> None:
         # Depth and translations up to scale: (d/s, t/s, m*s) composes to the same metric points.
         rng = np.random.default_rng(1)
