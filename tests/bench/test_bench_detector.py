@@ -41,6 +41,7 @@ def test_detector_nodes_on_the_desk(tmp_path: Path) -> None:
         assert total and hits / total >= 0.8, (n, hits, total)
 
 
+@pytest.mark.slow  # ~18 s: the whole core on real frames; the detector's own accuracy is checked above
 def test_mapper_with_rgb_only_geometry_and_the_detector_labels_the_desk() -> None:
     """The whole mapper core (mvs geometry from the images and recorded poses, detector perception) on the
     10 TUM frames: labelled nodes for the desk and the monitor, near where the recorded depth puts them."""
