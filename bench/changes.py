@@ -251,8 +251,9 @@ class ChangeScorer:
                           "known_before": tr.known_before, "time_to_right_s": ttr,
                           "robot_views_to_right": tr.robot_views_to_right, "robot_views": tr.robot_views,
                           "fixed_views": tr.fixed_views,
-                          "kept_id": (tr.node_before is not None and tr.node_before == tr.node_after)
-                          if e.kind == "move" and tr.t_right is not None else None})
+                          # only a move of an object the graph knew, once right, says whether its node kept its id
+                          "kept_id": tr.node_before == tr.node_after
+                          if e.kind == "move" and tr.t_right is not None and tr.node_before is not None else None})
         f1 = np.array([s["f1"] for s in self.samples], float)
         ts = np.array([s["t_s"] for s in self.samples], float)
         calm = np.ones(len(ts), bool)

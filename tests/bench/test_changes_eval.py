@@ -113,6 +113,12 @@ def test_a_moved_node_that_keeps_its_id(world: ChangingScene) -> None:
     sc.observe(2.5, [_node("n1", "storage box", (1.0, 2.4))])
     e = sc.result()["edits"][0]
     assert e["kind"] == "move" and e["time_to_right_s"] == 0.5 and e["kept_id"] is True
+    # an object the graph did not know before it moved: found at its new place, but no id to keep
+    sc = ChangeScorer(world, similarity=LabelSimilarity("exact"))
+    sc.observe(1.0, [])
+    sc.observe(2.5, [_node("n7", "storage box", (1.0, 2.4))])
+    e = sc.result()["edits"][0]
+    assert e["known_before"] is False and e["time_to_right_s"] == 0.5 and e["kept_id"] is None
 
 
 def test_retired_nodes_are_gone_and_places_are_seen() -> None:
