@@ -136,10 +136,11 @@ class KeyframeConfig(BaseModel):
         description="a static posed camera's thumbnail cell (32x24 grey, 0..1) that changed by this much changed ...",
     )
     change_fraction: float = Field(
-        default=0.01, gt=0.0, le=1.0,
+        default=0.002, gt=0.0, le=1.0,
         description="... and this fraction of changed cells makes its next frame after refresh_s a keyframe, "
-        "whatever the mean change: a chair taken away changes a few percent of the image, far below "
-        "novelty_threshold on average",
+        "whatever the mean change: a chair moved or taken away in a corner camera's view changes a few cells "
+        "(at 160x120 px, 5 to 10 of 768), far below novelty_threshold on average; at most one keyframe per "
+        "refresh_s",
     )
     max_keyframes: int = Field(default=32, ge=2, description="keyframes kept as source candidates (oldest dropped)")
     max_deferred: int = Field(default=8, ge=0, description="keyframes without usable sources kept for a retry")

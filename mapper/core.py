@@ -519,7 +519,8 @@ class MapperCore:
         if kv is not None:  # every detection counts as seen, lifted to 3D or not (fusion.absence_*)
             hd, wd = kv.depth_m.shape
             detected = [(resize_mask(d.mask, hd, wd), d.descriptor) for d in dets]
-        res = self.objects.integrate(objs, view.source_id, view.stamp_ns or time.time_ns(), kv, detected)
+        res = self.objects.integrate(objs, view.source_id, view.stamp_ns or time.time_ns(), kv, detected,
+                                     fixed=view.pose_trusted)
         if kv is not None and view.pose_trusted and res.seen_gone:
             self._confirm[view.source_id] = view.stamp_ns
         else:

@@ -26,7 +26,7 @@ from typing import Any
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
-from mapper.absence import AbsenceParams, Verdict, judge, nearest_depth
+from mapper.absence import AbsenceParams, Judgement, Verdict, judge, nearest_depth
 from mapper.association import KeyframeView, containment
 from mapper.perception.base import Detection, unit
 from protocol.messages import GraphNode, LabelScore, OrientedBox
@@ -252,6 +252,20 @@ class FusionConfig(BaseModel):
         default=0.7, ge=0.5, le=1.0,
         description="absence: this fraction of the node's unoccluded pixels with depth must show depth clearly "
         "beyond it (free); the same fraction at its depth says it is there",
+    )
+    absence_missed_to_retire: int = Field(
+        default=3, ge=0,
+        description="a calibrated fixed camera that detected a node before and now sees its place unoccluded "
+        "(absence_missed_max_occluded) with a surface at its depth but detects nothing there counts a miss: an "
+        "object flush against a wall or on a table leaves a surface within the depth margin where it stood, so "
+        "depth alone cannot see it gone. This many misses and see-throughs together, with no detection in "
+        "between, retire the node (the camera confirms every absence_confirm_s while a count is open); 0 "
+        "disables misses",
+    )
+    absence_missed_max_occluded: float = Field(
+        default=0.1, ge=0.0, le=1.0,
+        description="a miss needs at most this fraction of the node's pixels behind something nearer: a "
+        "passer-by that hides part of an object can shrink its detection away",
     )
     absence_margin_m: float = Field(
         default=0.1, ge=0.0,
@@ -574,8 +588,10 @@ class NodeState:
     seen_in: list[int] = field(default_factory=list)
     # The largest horizontal size (footprint diagonal, metres) one measured observation showed (growth_factor).
     view_size_m: float = 0.0
-    # Keyframes that saw the node's place empty since it was last detected there (mapper.absence).
+    # Keyframes that saw the node's place empty since it was last detected there (mapper.absence), and those of
+    # fixed cameras that detected it before and saw its place clear but did not detect it (absence_missed_*).
     absent: int = 0
+    missed: int = 0
     # Capture time of the keyframe that last moved the node (0: never moved), and how often it moved.
     last_moved_ns: int = 0
     moves: int = 0
@@ -933,17 +949,23 @@ class ObjectMap:
 
     def integrate(self, objects: Sequence[Object3D], source_id: str, stamp_ns: int,
                   view: KeyframeView | None = None,
-                  detected: Sequence[tuple[np.ndarray, np.ndarray]] | None = None) -> UpdateResult:
+                  detected: Sequence[tuple[np.ndarray, np.ndarray]] | None = None, fixed: bool = False) -> UpdateResult:
         """Fuse one view's 3D detections; runs maintenance every ``merge_every_updates`` updates. With the
         keyframe's ``view`` (and ``mask_association``), detections are also matched in the image, and nodes
         that one detection's mask holds are merged as fragments of its object; and the view judges the nodes
         it should see (``absence_*``, ``move_*``). ``detected``: every 2D detection of the keyframe as (mask at
         the depth's resolution, unit descriptor), those that could not be lifted to 3D included (default: the
-        masks of ``objects``): a node one of them holds was detected there, whatever the depth says."""
+        masks of ``objects``): a node one of them holds was detected there, whatever the depth says. ``fixed``:
+        the keyframe is a calibrated fixed camera's (its misses count: ``absence_missed_*``)."""
         self.updates += 1
         res = UpdateResult()
         # What this keyframe's depth says about the nodes it should see, judged before its detections move any.
-        verdicts = self.absence_verdicts(view) if view is not None and self.cfg.absence_check else {}
+        judged = self.absence_judgements(view) if view is not None and self.cfg.absence_check else {}
+        verdicts = {k: j.verdict for k, j in judged.items()}
+        # Nodes this fixed camera detected before and now sees clear: not detected here, they count a miss.
+        missable = {k for k, j in judged.items() if fixed and self.cfg.absence_missed_to_retire > 0
+                    and j.verdict is Verdict.THERE and j.occluded <= self.cfg.absence_missed_max_occluded * j.pixels
+                    and source_id in self.nodes[k].sources}
         inside = (self.containment(objects, view) if view is not None and self.cfg.mask_association
                   else [{} for _ in objects])
         # Match everything against the map as it was before this view: detections of one view are
@@ -956,14 +978,18 @@ class ObjectMap:
                        for obj, node in zip(objects, matches, strict=True)]
         targets: list[str] = []
         matched = {n.node_id for n in matches if n is not None}
+        # A node a similar detection's mask holds is that detection's, whatever its depth: never a move.
+        held_any = {k for obj, held in zip(objects, inside, strict=True) for k, v in held.items()
+                    if v >= self.cfg.min_containment and k in self.nodes
+                    and similarity(obj.descriptor, self.nodes[k].descriptor) >= self.cfg.merge_similarity}
         for obj, node, held in zip(objects, matches, inside, strict=True):
             if node is None and view is not None:
-                node = self._moving(obj, verdicts, matched | set(targets) | set(held))
+                node = self._moving(obj, verdicts, missable, matched | set(targets) | set(held) | held_any)
                 if node is not None:
                     self._move(node, obj, stamp_ns, res)
             if node is not None and node.node_id in self.nodes:
                 self._absorb(node, obj, source_id, stamp_ns)
-                node.absent = 0
+                node.absent = node.missed = 0
                 res.associated += 1
                 res.changed.add(node.node_id)
                 targets.append(node.node_id)
@@ -976,8 +1002,9 @@ class ObjectMap:
         if verdicts and view is not None:
             if detected is None:
                 detected = [(o.mask, o.descriptor) for o in objects if o.mask is not None]
-            gone = sorted(k for k, v in verdicts.items() if v is Verdict.FREE and k in self.nodes and k not in targets)
-            self._weigh_absence(verdicts, set(targets) | self._held(view, gone, detected), res)
+            gone = sorted(k for k, v in verdicts.items() if (v is Verdict.FREE or k in missable) and k in self.nodes
+                          and k not in targets)
+            self._weigh_absence(verdicts, missable, set(targets) | self._held(view, gone, detected), res)
         if self.updates % self.cfg.merge_every_updates == 0:
             self.maintain(res)
         self._enforce_cap(res)
@@ -988,13 +1015,17 @@ class ObjectMap:
     def absence_verdicts(self, view: KeyframeView) -> dict[str, Verdict]:
         """Per measured node that ``view`` judges (``mapper.absence``), FREE or THERE. Single-view (coarse) nodes
         are not judged: their depth is a guess (``check_coarse`` and ``forget_gone`` handle them)."""
+        return {k: j.verdict for k, j in self.absence_judgements(view).items()}
+
+    def absence_judgements(self, view: KeyframeView) -> dict[str, Judgement]:
+        """:meth:`absence_verdicts` with the pixel counts behind each verdict."""
         params = self.cfg.absence_params()
         if not self.nodes:
             return {}
         view = nearest_depth(view, params.window_px)
         o = np.asarray(view.T_world_cam[:3, 3], np.float64)
         reach = params.max_range_m + 2.0  # a node whose box is that far cannot have its median point in range
-        out: dict[str, Verdict] = {}
+        out: dict[str, Judgement] = {}
         for node_id in sorted(self.nodes):
             node = self.nodes[node_id]
             if node.rays or len(node.points) == 0:
@@ -1002,12 +1033,13 @@ class ObjectMap:
             lo, hi = node.aabb
             if float(np.linalg.norm(np.clip(o, lo, hi) - o)) > reach:
                 continue
-            v = judge(view, node.points, params).verdict
-            if v is not Verdict.UNKNOWN:
-                out[node_id] = v
+            j = judge(view, node.points, params)
+            if j.verdict is not Verdict.UNKNOWN:
+                out[node_id] = j
         return out
 
-    def _moving(self, obj: Object3D, verdicts: dict[str, Verdict], taken: set[str]) -> NodeState | None:
+    def _moving(self, obj: Object3D, verdicts: dict[str, Verdict], missable: set[str], taken: set[str]
+                ) -> NodeState | None:
         """The node that a detection matching no node shows moved (``move_*``): one with its label and a similar
         descriptor, at least ``move_min_m`` away, whose place this keyframe or an earlier one (since it was last
         detected) saw empty, and not ``taken`` (by another detection of this keyframe, or projecting inside this
@@ -1020,9 +1052,10 @@ class ObjectMap:
         for node_id, node in self.nodes.items():
             if node_id in taken or node.rays:
                 continue
-            if not (verdicts.get(node_id) is Verdict.FREE or node.absent > 0):
+            if not (verdicts.get(node_id) is Verdict.FREE or node.absent > 0 or node.missed > 0
+                    or node_id in missable):
                 continue
-            if verdicts.get(node_id) is Verdict.THERE:
+            if verdicts.get(node_id) is Verdict.THERE and node_id not in missable:
                 continue
             ranking = node.label_ranking()
             if not ranking or ranking[0][0] != obj.label:
@@ -1067,18 +1100,30 @@ class ObjectMap:
                     break
         return out
 
-    def _weigh_absence(self, verdicts: dict[str, Verdict], detected: set[str], res: UpdateResult) -> None:
-        """Add this keyframe's verdicts to each node's count (a detection or a surface where it stands clears
-        it); retire the nodes that reach ``absence_to_retire``."""
+    def _weigh_absence(self, verdicts: dict[str, Verdict], missable: set[str], detected: set[str],
+                       res: UpdateResult) -> None:
+        """Add this keyframe's verdicts to each node's counts (a detection clears them; a surface where it stands
+        clears the see-throughs, unless it is a fixed camera's miss); retire the nodes that reach
+        ``absence_to_retire`` see-throughs, or ``absence_missed_to_retire`` see-throughs and misses."""
+        cfg = self.cfg
+        for node_id in detected:
+            if node_id in self.nodes:
+                self.nodes[node_id].absent = self.nodes[node_id].missed = 0
         for node_id, verdict in sorted(verdicts.items()):
             node = self.nodes.get(node_id)
             if node is None or node_id in detected or node_id in res.moved:
                 continue
-            if verdict is Verdict.THERE:
+            if verdict is Verdict.THERE and node_id not in missable:
                 node.absent = 0
                 continue
-            node.absent += 1
-            if node.absent < self.cfg.absence_to_retire:
+            if verdict is Verdict.THERE:
+                node.missed += 1
+            else:
+                node.absent += 1
+            due = node.absent >= cfg.absence_to_retire or (
+                cfg.absence_missed_to_retire > 0 and node.missed > 0
+                and node.absent + node.missed >= cfg.absence_missed_to_retire)
+            if not due:
                 res.seen_gone.add(node_id)
                 continue
             newcomer = self._moved_before(node, verdicts)
@@ -1089,7 +1134,7 @@ class ObjectMap:
             # newcomer, a copy of it under another id, folds into it.
             self._move(node, Object3D(newcomer.points, "", 0.0, newcomer.descriptor), newcomer.first_seen_ns, res)
             self.merge_nodes(node, newcomer)
-            node.absent = 0
+            node.absent = node.missed = 0
             res.removed.add(newcomer.node_id)
             res.changed.add(node_id)
             res.merged_duplicates += 1
@@ -1105,7 +1150,7 @@ class ObjectMap:
         c = np.asarray(node.centre, np.float64)
         best: tuple[float, str] | None = None
         for other_id, other in self.nodes.items():
-            if other is node or other.rays or other.first_seen_ns <= node.last_seen_ns or other.absent > 0:
+            if other is node or other.rays or other.first_seen_ns <= node.last_seen_ns or other.absent or other.missed:
                 continue
             if verdicts.get(other_id) is Verdict.FREE or seen_together(node, other):
                 continue
@@ -1198,6 +1243,7 @@ class ObjectMap:
         keep.seen_in = sorted(set(keep.seen_in) | set(gone.seen_in))[-self.cfg.max_keyframes_per_node:]
         keep.view_size_m = max(keep.view_size_m, gone.view_size_m)
         keep.absent = min(keep.absent, gone.absent)
+        keep.missed = min(keep.missed, gone.missed)
         keep.last_moved_ns = max(keep.last_moved_ns, gone.last_moved_ns)
         keep.moves += gone.moves
         keep.touch()
@@ -1488,6 +1534,7 @@ class ObjectMap:
                     "seen_in": list(n.seen_in),
                     "view_size_m": float(n.view_size_m),
                     "absent": int(n.absent),
+                    "missed": int(n.missed),
                     "last_moved_ns": int(n.last_moved_ns),
                     "moves": int(n.moves),
                 }
@@ -1520,6 +1567,7 @@ class ObjectMap:
                 centroid_trim=self.cfg.centroid_trim_fraction,
                 # states written before absence and moves: never seen gone, never moved
                 absent=int(d.get("absent", 0)),
+                missed=int(d.get("missed", 0)),
                 last_moved_ns=int(d.get("last_moved_ns", 0)),
                 moves=int(d.get("moves", 0)),
             )

@@ -390,3 +390,53 @@ def test_a_thin_object_whose_depth_is_mostly_the_backgrounds_is_not_seen_through
     assert judge(kv, pts, params).verdict is Verdict.FREE
     assert judge(nearest_depth(kv, 1), pts, params).verdict is not Verdict.FREE
     assert nearest_depth(kv, 0) is kv
+
+
+CABINET = box([3.8, 0.1, 0.0], [4.0, 0.6, 1.2])  # shallow, flush against the wall: gone, the wall is at its depth
+
+
+class TestMisses:
+    def test_depth_alone_cannot_see_a_flush_object_gone(self) -> None:
+        _, objs = keyframe({"cabinet": CABINET})
+        kv, _ = keyframe({})
+        assert judge(kv, objs[0].points, AbsenceParams()).verdict is Verdict.THERE
+
+    def test_a_fixed_camera_that_no_longer_detects_it_retires_it_after_its_misses(self) -> None:
+        om = mapped({"cabinet": CABINET, "lamp": LAMP})
+        cab = node_of(om, "cabinet")
+        kv, objs = keyframe({"lamp": LAMP})
+        for t in range(2):
+            res = om.integrate(objs, "cam1", 10 + t, kv, fixed=True)
+            assert not res.removed and res.seen_gone == {cab} and om.nodes[cab].missed == t + 1
+        res = om.integrate(objs, "cam1", 12, kv, fixed=True)
+        assert res.removed == {cab} and set(res.retired) == {cab}
+
+    def test_a_detection_clears_the_misses(self) -> None:
+        om = mapped({"cabinet": CABINET})
+        cab = node_of(om, "cabinet")
+        kv, _ = keyframe({})
+        om.integrate([], "cam1", 10, kv, fixed=True)
+        om.integrate([], "cam1", 11, kv, fixed=True)
+        kv2, objs = keyframe({"cabinet": CABINET})
+        om.integrate(objs, "cam1", 12, kv2, fixed=True)
+        assert om.nodes[cab].missed == 0
+        res = om.integrate([], "cam1", 13, kv, fixed=True)
+        assert not res.removed and om.nodes[cab].missed == 1
+
+    def test_robots_and_other_cameras_do_not_count_misses(self) -> None:
+        om = mapped({"cabinet": CABINET})
+        cab = node_of(om, "cabinet")
+        kv, _ = keyframe({})
+        for t in range(4):
+            assert not om.integrate([], "robot1", 10 + t, kv).removed  # not fixed
+            assert not om.integrate([], "cam2", 20 + t, kv, fixed=True).removed  # never detected it
+        assert om.nodes[cab].missed == 0
+
+    def test_a_passer_by_in_front_of_part_of_it_is_no_miss(self) -> None:
+        om = mapped({"cabinet": CABINET})
+        cab = node_of(om, "cabinet")
+        part = box([2.0, 0.1, 0.0], [2.3, 0.3, 1.8])  # hides part of the cabinet
+        kv, _ = keyframe({"cabinet": CABINET}, occluders=(part,))
+        for t in range(4):
+            assert not om.integrate([], "cam1", 10 + t, kv, fixed=True).removed
+        assert om.nodes[cab].missed == 0
