@@ -201,8 +201,24 @@ def _fmt(x: float, nd: int = 3) -> str:
     return "-" if x is None or not np.isfinite(x) else f"{x:.{nd}f}"
 
 
+def cpu_headline(report: dict[str, Any]) -> str | None:
+    """The report's first figure: CPU-seconds per keyframe of the reconstruction (median over the scenarios'
+    medians, with their range) and the cameras one core carries at one keyframe per second each; None without
+    a timed scenario."""
+    cpu = [s["median_cpu_s_per_keyframe"] for block in ("sim", "real", "video") if report.get(block)
+           for s in report[block]["depth"] if np.isfinite(s.get("median_cpu_s_per_keyframe", np.nan))]
+    if not cpu:
+        return None
+    mid = float(np.median(cpu))
+    return (f"**{mid:.2f} CPU-seconds per keyframe** (median over {len(cpu)} scenarios, {min(cpu):.2f}-"
+            f"{max(cpu):.2f}; the reconstruction alone: perception, fusion and transfers come on top, "
+            f"`argus bench system` counts them): one core carries {1.0 / mid:.1f} cameras at one keyframe per "
+            "second each.")
+
+
 def markdown(report: dict[str, Any]) -> str:
-    lines = [f"# Geometry benchmark (`{report['backend']}`)", "",
+    head = cpu_headline(report)
+    lines = [f"# Geometry benchmark (`{report['backend']}`)", "", *([head, ""] if head else []),
              f"{report['machine']}, {report['cpus']} CPUs, load average {report['load_avg']} at start "
              "(the machine is shared: wall times include contention; CPU s is process time).",
              f"Each keyframe: window of the last {WINDOW} keyframes, newest as target, like the mapper. "

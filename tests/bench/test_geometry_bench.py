@@ -69,3 +69,15 @@ def test_help_exits_cleanly(capsys: pytest.CaptureFixture[str]) -> None:
         main(["--help"])
     assert e.value.code == 0
     assert "argus bench geometry" in capsys.readouterr().out
+
+
+def test_the_report_opens_with_cpu_seconds_per_keyframe() -> None:
+    from bench.geometry import cpu_headline
+
+    row = {"median_cpu_s_per_keyframe": 0.5}
+    report = {"sim": {"depth": [row, {"median_cpu_s_per_keyframe": 1.0}]}, "real": None,
+              "video": {"depth": [{"median_cpu_s_per_keyframe": 0.25}, {"median_cpu_s_per_keyframe": float("nan")}]}}
+    line = cpu_headline(report)
+    assert line is not None and line.startswith("**0.50 CPU-seconds per keyframe** (median over 3 scenarios, 0.25-1.00")
+    assert "one core carries 2.0 cameras at one keyframe per second each" in line
+    assert cpu_headline({"sim": None, "real": None, "video": None}) is None
