@@ -122,25 +122,34 @@ def projection_matrix(K: F64, T_world_cam: F64) -> F64:
 
 
 def triangulate(Ps: list[F64], uvs: F64) -> F64:
-    """Linear (DLT) triangulation of one point from L >= 2 views: Ps 3x4 matrices, uvs (L, 2)."""
-    A = []
-    for P, (u, v) in zip(Ps, uvs, strict=True):
-        A.append(u * P[2] - P[0])
-        A.append(v * P[2] - P[1])
-    _, _, vt = np.linalg.svd(np.asarray(A))
-    X = vt[-1]
-    return X[:3] / X[3] if abs(X[3]) > 1e-12 else np.full(3, np.nan)
+    """Linear (DLT) triangulation of one point from L >= 2 views: Ps 3x4 matrices, uvs (L, 2) (see
+    :func:`triangulate_many`)."""
+    return triangulate_many(np.stack(Ps)[None], np.asarray(uvs, np.float64)[None])[0]
 
 
 def triangulate_many(Ps: F64, uvs: F64) -> F64:
     """Linear (DLT) triangulation of T points each seen in the same number L of views: Ps (T, L, 3, 4),
-    uvs (T, L, 2) -> (T, 3); NaN where the solution is at infinity. Same answer as ``triangulate`` per point."""
-    A = np.concatenate([uvs[..., 0:1] * Ps[:, :, 2] - Ps[:, :, 0], uvs[..., 1:2] * Ps[:, :, 2] - Ps[:, :, 1]], axis=1)
+    uvs (T, L, 2) -> (T, 3); NaN where the solution is at infinity.
+
+    Each point is solved about the mean centre of its cameras, then moved back: the DLT's algebraic error is not
+    invariant to where the world's origin lies, so solving in world coordinates gave other points (and, through
+    the checks on them, other tracks and depth) for the same cameras in a shifted world frame, and lost precision
+    for cameras far from the origin."""
+    Ps = np.asarray(Ps, np.float64)
+    M, p4 = Ps[..., :3], Ps[..., 3]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        centres = -np.linalg.solve(M, p4[..., None])[..., 0]  # (T, L, 3): C with M C + p4 = 0
+    c = centres.mean(axis=1)  # (T, 3)
+    c = np.where(np.isfinite(c), c, 0.0)
+    local = Ps.copy()
+    local[..., 3] += np.einsum("tlij,tj->tli", M, c)  # P [I c; 0 1]: the same projection of X_local = X - c
+    A = np.concatenate([uvs[..., 0:1] * local[:, :, 2] - local[:, :, 0],
+                        uvs[..., 1:2] * local[:, :, 2] - local[:, :, 1]], axis=1)
     _, _, vt = np.linalg.svd(A)
     X = vt[:, -1]
     w = X[:, 3:4]
     with np.errstate(divide="ignore", invalid="ignore"):
-        out = X[:, :3] / w
+        out = X[:, :3] / w + c
     out[np.abs(w[:, 0]) <= 1e-12] = np.nan
     return np.asarray(out, np.float64)
 

@@ -291,13 +291,20 @@ class TestTracksAndTriangulation:
         assert np.isnan(bundle.triangulate(Ps, np.array([[320.0, 240.0], [320.0, 240.0]]))).all()
 
 
-def test_triangulate_many_matches_triangulate_per_point() -> None:
+def test_triangulation_does_not_depend_on_where_the_world_origin_lies() -> None:
+    """Noisy tracks seen by the same cameras in a world moved 1 km away (and turned): the same points, moved.
+    The DLT solved in world coordinates gave points centimetres apart in such a world, which changed the tracks
+    kept and the depth of a recording replayed in a z-up frame (issue 36)."""
     rng = np.random.default_rng(3)
     K = np.array([[300.0, 0, 160], [0, 300.0, 120], [0, 0, 1]])
     Ts = [look_at([0.1 * i, 0.0, 0.0], [0.0, 3.0, 0.0]) for i in range(3)]
-    Ps = [bundle.projection_matrix(K, T) for T in Ts]
     X = rng.uniform([-1, 2, -1], [1, 4, 1], (7, 3))
     uv = np.stack([bundle.reproject(K, T, X)[0] for T in Ts], axis=1) + rng.normal(0, 0.5, (7, 3, 2))
-    many = bundle.triangulate_many(np.broadcast_to(np.stack(Ps), (7, 3, 3, 4)), uv)
-    one = np.stack([bundle.triangulate(Ps, uv[i]) for i in range(7)])
-    np.testing.assert_allclose(many, one, atol=1e-9)
+    W = _pose(Rotation.from_euler("zx", [40.0, 90.0], degrees=True).as_matrix(), np.array([1000.0, -500.0, 2.0]))
+    got = []
+    for M in (np.eye(4), W):
+        Ps = np.stack([bundle.projection_matrix(K, M @ T) for T in Ts])
+        got.append(bundle.triangulate_many(np.broadcast_to(Ps, (7, 3, 3, 4)), uv))
+        one = np.stack([bundle.triangulate(list(Ps), uv[i]) for i in range(7)])
+        np.testing.assert_allclose(got[-1], one, atol=1e-9)
+    np.testing.assert_allclose(got[1], got[0] @ W[:3, :3].T + W[:3, 3], atol=1e-6)
