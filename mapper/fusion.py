@@ -884,7 +884,8 @@ class ObjectMap:
         that reach ``min(min_containment, merge_containment)``)."""
         cfg = self.cfg
         with_mask = [i for i, o in enumerate(objects) if o.mask is not None]
-        masks = [m for o in objects if (m := o.mask) is not None]
+        # at the view's depth resolution: a coarse placement's mask comes at the image's (layout depth)
+        masks = [resize_mask(m, *view.depth_m.shape) for o in objects if (m := o.mask) is not None]
         out: list[dict[str, float]] = [{} for _ in objects]
         ids = sorted(self.nodes)
         if not with_mask or not ids:

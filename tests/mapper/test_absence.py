@@ -440,3 +440,15 @@ class TestMisses:
         for t in range(4):
             assert not om.integrate([], "cam1", 10 + t, kv, fixed=True).removed
         assert om.nodes[cab].missed == 0
+
+
+def test_masks_at_another_resolution_than_the_depth_are_resized() -> None:
+    """A coarse placement's mask comes at the image's resolution, the keyframe's depth at the reconstructor's:
+    mask association used to index one with the other's pixels (IndexError: the keyframe was lost)."""
+    om = mapped({"chair": CHAIR})
+    kv, objs = keyframe({"chair": CHAIR})
+    big = np.repeat(np.repeat(objs[0].mask, 2, axis=0), 2, axis=1)  # the same mask at twice the size
+    small = Object3D(objs[0].points, "chair", 0.9, label_descriptor("chair"), mask=big[::4, ::4])
+    for o in (Object3D(objs[0].points, "chair", 0.9, label_descriptor("chair"), mask=big), small):
+        res = om.integrate([o], "cam1", 10, kv)
+        assert res.associated == 1 and res.created == 0
