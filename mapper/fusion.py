@@ -1042,9 +1042,10 @@ class ObjectMap:
     def _moving(self, obj: Object3D, verdicts: dict[str, Verdict], missable: set[str], taken: set[str]
                 ) -> NodeState | None:
         """The node that a detection matching no node shows moved (``move_*``): one with its label and a similar
-        descriptor, at least ``move_min_m`` away, whose place this keyframe or an earlier one (since it was last
-        detected) saw empty, and not ``taken`` (by another detection of this keyframe, or projecting inside this
-        detection's mask: then the detection is that node at a wrong estimated depth, not moved); the nearest."""
+        descriptor, at least ``move_min_m`` away, whose place was seen empty often enough to retire it, this
+        keyframe included (:meth:`_retires`: one wrong estimated depth must not move a node onto its twin), and
+        not ``taken`` (by another detection of this keyframe, or projecting inside this detection's mask: then
+        the detection is that node at a wrong estimated depth, not moved); the nearest."""
         cfg = self.cfg
         if obj.ray_origin is not None or len(obj.points) == 0:
             return None
@@ -1053,10 +1054,10 @@ class ObjectMap:
         for node_id, node in self.nodes.items():
             if node_id in taken or node.rays:
                 continue
-            if not (verdicts.get(node_id) is Verdict.FREE or node.absent > 0 or node.missed > 0
-                    or node_id in missable):
+            free, miss = verdicts.get(node_id) is Verdict.FREE, node_id in missable
+            if verdicts.get(node_id) is Verdict.THERE and not miss:
                 continue
-            if verdicts.get(node_id) is Verdict.THERE and node_id not in missable:
+            if not self._retires(node.absent + free, node.missed + miss):
                 continue
             ranking = node.label_ranking()
             if not ranking or ranking[0][0] != obj.label:
@@ -1101,12 +1102,17 @@ class ObjectMap:
                     break
         return out
 
+    def _retires(self, absent: int, missed: int) -> bool:
+        """Whether ``absent`` see-throughs and ``missed`` misses (``absence_*``) retire a node."""
+        cfg = self.cfg
+        return absent >= cfg.absence_to_retire or (
+            cfg.absence_missed_to_retire > 0 and missed > 0 and absent + missed >= cfg.absence_missed_to_retire)
+
     def _weigh_absence(self, verdicts: dict[str, Verdict], missable: set[str], detected: set[str],
                        res: UpdateResult) -> None:
         """Add this keyframe's verdicts to each node's counts (a detection clears them; a surface where it stands
         clears the see-throughs, unless it is a fixed camera's miss); retire the nodes that reach
         ``absence_to_retire`` see-throughs, or ``absence_missed_to_retire`` see-throughs and misses."""
-        cfg = self.cfg
         for node_id in detected:
             if node_id in self.nodes:
                 self.nodes[node_id].absent = self.nodes[node_id].missed = 0
@@ -1121,10 +1127,7 @@ class ObjectMap:
                 node.missed += 1
             else:
                 node.absent += 1
-            due = node.absent >= cfg.absence_to_retire or (
-                cfg.absence_missed_to_retire > 0 and node.missed > 0
-                and node.absent + node.missed >= cfg.absence_missed_to_retire)
-            if not due:
+            if not self._retires(node.absent, node.missed):
                 res.seen_gone.add(node_id)
                 continue
             newcomer = self._moved_before(node, verdicts)
