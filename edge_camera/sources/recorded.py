@@ -261,7 +261,7 @@ class RecordedSequence(SourceBase):
         if self.world_from_recording is None and tilt > UP_WARN_DEG:
             log.warning("%s: the cameras look %.0f deg off level on average: this recording's world frame does not "
                         "look z-up. Argus's world has z up and the floor at z = 0; state world_from_recording in "
-                        "meta.json or the source config (docs/deploy.md, 'Recordings')", folder, tilt)
+                        "meta.json or the source config (docs/deploy.md, 'Record one')", folder, tilt)
         self._index = 0  # kept across close/open, so a reopen resumes instead of replaying
         self._open = False
         self._ended = False
