@@ -131,6 +131,18 @@ class KeyframeConfig(BaseModel):
         description="a static camera is reconsidered after this long (if its image changed): a fixed camera sees an "
         "object moved or taken away at its next keyframe (30 s before the graph followed changes)",
     )
+    static_max_m: float = Field(
+        default=0.01, ge=0.0,
+        description="a posed camera that moved less than this (and turned less than static_max_deg) since its last "
+        "keyframe is static: refresh_s and the changed-cells rule apply to it",
+    )
+    static_max_deg: float = Field(default=0.5, ge=0.0, description="... and turned less than this")
+    moving_refresh_s: float = Field(
+        default=30.0, ge=0.0,
+        description="a moving camera whose motion stays under the parallax and rotation thresholds is reconsidered "
+        "(novelty) after this long: every refresh_s would give a slowly moving camera's windows no parallax (a "
+        "recording replayed at 0.5 Hz made each frame a keyframe)",
+    )
     change_threshold: float = Field(
         default=0.1, gt=0.0, le=1.0,
         description="a static posed camera's thumbnail cell (32x24 grey, 0..1) that changed by this much changed ...",

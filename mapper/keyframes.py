@@ -90,10 +90,12 @@ class KeyframeSelector:
         elif view.T_world_cam is not None and last.T_world_cam is not None:
             moved = float(np.linalg.norm(view.T_world_cam[:3, 3] - last.T_world_cam[:3, 3]))
             turned = rotation_angle_deg(view.T_world_cam, last.T_world_cam)
-            stale = cfg.refresh_s > 0 and (view.stamp_ns - last.stamp_ns) >= cfg.refresh_s * 1e9
+            static = moved <= cfg.static_max_m and turned <= cfg.static_max_deg
+            refresh_s = cfg.refresh_s if static else cfg.moving_refresh_s
+            stale = refresh_s > 0 and (view.stamp_ns - last.stamp_ns) >= refresh_s * 1e9
             enough_parallax = moved >= cfg.min_baseline_ratio * self.scene_depth(view.source_id)
             new = enough_parallax or moved >= cfg.min_translation_m or turned >= cfg.min_rotation_deg or (
-                stale and (novelty >= cfg.novelty_threshold or changed >= cfg.change_fraction)
+                stale and (novelty >= cfg.novelty_threshold or (static and changed >= cfg.change_fraction))
             )
         else:
             new = novelty >= cfg.novelty_threshold

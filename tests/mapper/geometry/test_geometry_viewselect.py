@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -76,6 +78,25 @@ def test_video_rate_frames_become_keyframes_by_parallax_not_arrival() -> None:
     sel.observe_depth("robot", 2.0)
     kf2 = [k for k in range(21, 61) if sel.consider(_view(cam(0.0101 * k), k))]
     assert kf2 == [30, 40, 50, 60]
+
+
+def test_a_slowly_moving_camera_keyframes_by_parallax_and_a_still_one_by_change() -> None:
+    """Frames 2 s apart (a recording replayed at 0.5 Hz), each image new: a camera moving 1 cm per frame keyframes
+    by parallax only (refresh_s is for static cameras; every frame a keyframe gave its windows no parallax), while
+    a camera that does not move keyframes at every frame its image changed."""
+    cfg = KeyframeConfig(min_baseline_ratio=0.05, assumed_depth_m=1.0, min_translation_m=10.0)
+    sel = KeyframeSelector(cfg)
+    two_s = 2_000_000_000
+
+    def at(T: np.ndarray, k: int, source: str) -> View:  # each image a new grey: changed everywhere
+        grey = np.full((240, 320, 3), 30 + 40 * (k % 5), np.uint8)
+        return dataclasses.replace(_view(T, k, source), image=grey, stamp_ns=k * two_s)
+
+    assert [k for k in range(11) if sel.consider(at(cam(0.0101 * k), k, "moving"))] == [0, 5, 10]
+    assert [k for k in range(4) if sel.consider(at(cam(0.0), k, "still"))] == [0, 1, 2, 3]
+    moving_after = KeyframeSelector(cfg.model_copy(update={"moving_refresh_s": 30.0}))
+    kf = [k for k in range(0, 40, 16) if moving_after.consider(at(cam(0.001 * k), k, "slow"))]
+    assert kf == [0, 16, 32]  # still reconsidered after moving_refresh_s (32 s apart), as before
 
 
 def test_store_neighbours_come_from_all_sources_by_parallax() -> None:
