@@ -235,6 +235,24 @@ def test_a_keyframe_whose_frame_came_in_too_long_ago_is_dropped_as_stale_per_sou
     assert o.extra_counters()["work_jobs_dropped_stale"] == 1
 
 
+def test_a_deferred_keyframe_ages_from_when_its_partner_came_in() -> None:
+    """A keyframe deferred until a partner arrived (a camera at 0.5 Hz: 2 s later) is mapped, not dropped as
+    stale: it could not be mapped before its partner came in, and its window's newest frame is fresh."""
+    o, sent, counters = offloader(max_frame_age_s=1.5)
+    o.dispatcher.worker_up("a")
+    jpegs = frames()[0]
+    first, partner = window_of(3)[0], window_of(5)[0]
+    now = time.time_ns()
+    o.remember(first.key, jpegs[first.seq], received_ns=now - 2_000_000_000)
+    o.remember(partner.key, jpegs[partner.seq], received_ns=now)
+    assert o.offload(partner, [partner, first], 0)  # the partner's own keyframe
+    assert o.offload(first, [first, partner], 0)  # the first, retried now that it has a partner
+    assert o.step() == []
+    o.send()
+    assert counters.get("keyframes_dropped") == 0 and o.dispatcher.counters["jobs_dropped_stale"] == 0
+    assert set(o.dispatcher.jobs) == {"r1#3", "r1#5"}  # both are jobs: sent, or waiting for the worker's room
+
+
 def test_duplicate_results_are_ignored_and_a_lost_job_reissued() -> None:
     o, sent, counters = offloader()
     o.dispatcher.worker_up("a")
