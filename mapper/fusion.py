@@ -19,7 +19,7 @@ Points are world metres (z up). Node ids are stable strings ``n000001``... that 
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -1046,25 +1046,34 @@ class ObjectMap:
         keyframe included (:meth:`_retires`: one wrong estimated depth must not move a node onto its twin), and
         not ``taken`` (by another detection of this keyframe, or projecting inside this detection's mask: then
         the detection is that node at a wrong estimated depth, not moved); the nearest."""
-        cfg = self.cfg
         if obj.ray_origin is not None or len(obj.points) == 0:
             return None
-        c = obj.points.mean(0).astype(np.float64)
-        best: tuple[float, str] | None = None
-        for node_id, node in self.nodes.items():
+
+        def seen_gone(node_id: str, node: NodeState) -> bool:
             if node_id in taken or node.rays:
-                continue
-            free, miss = verdicts.get(node_id) is Verdict.FREE, node_id in missable
+                return False
+            miss = node_id in missable
             if verdicts.get(node_id) is Verdict.THERE and not miss:
-                continue
-            if not self._retires(node.absent + free, node.missed + miss):
-                continue
+                return False
+            return self._retires(node.absent + (verdicts.get(node_id) is Verdict.FREE), node.missed + miss)
+
+        candidates = [(k, n) for k, n in self.nodes.items() if seen_gone(k, n)]
+        return self._nearest_twin(obj.label, obj.descriptor, obj.points.mean(0).astype(np.float64), candidates)
+
+    def _nearest_twin(self, label: str, descriptor: np.ndarray, centre: np.ndarray,
+                      candidates: Iterable[tuple[str, NodeState]]) -> NodeState | None:
+        """Of ``candidates`` (id, node), the nearest to ``centre`` whose top label is ``label``, whose descriptor
+        is at least ``move_min_similarity`` like ``descriptor`` and which lies at least ``move_min_m`` away (ties
+        by id): the object itself, moved, for :meth:`_moving` and :meth:`_moved_before`."""
+        cfg = self.cfg
+        best: tuple[float, str] | None = None
+        for node_id, node in candidates:
             ranking = node.label_ranking()
-            if not ranking or ranking[0][0] != obj.label:
+            if not ranking or ranking[0][0] != label:
                 continue
-            if similarity(obj.descriptor, node.descriptor) < cfg.move_min_similarity:
+            if similarity(descriptor, node.descriptor) < cfg.move_min_similarity:
                 continue
-            d = float(np.linalg.norm(np.asarray(node.centre, np.float64) - c))
+            d = float(np.linalg.norm(np.asarray(node.centre, np.float64) - centre))
             if d >= cfg.move_min_m and (best is None or (d, node_id) < best):
                 best = (d, node_id)
         return None if best is None else self.nodes[best[1]]
@@ -1147,26 +1156,13 @@ class ObjectMap:
         """A node that is ``node`` seen at a new place before its old place was seen empty: first detected after
         ``node`` was last detected, never in one keyframe with it, its label and a similar descriptor
         (``move_min_similarity``), at least ``move_min_m`` away and not itself seen gone; the nearest such one."""
-        cfg = self.cfg
         ranking = node.label_ranking()
         if node.rays or not ranking:
             return None
-        c = np.asarray(node.centre, np.float64)
-        best: tuple[float, str] | None = None
-        for other_id, other in self.nodes.items():
-            if other is node or other.rays or other.first_seen_ns <= node.last_seen_ns or other.absent or other.missed:
-                continue
-            if verdicts.get(other_id) is Verdict.FREE or seen_together(node, other):
-                continue
-            top = other.label_ranking()
-            if not top or top[0][0] != ranking[0][0]:
-                continue
-            if similarity(node.descriptor, other.descriptor) < cfg.move_min_similarity:
-                continue
-            d = float(np.linalg.norm(np.asarray(other.centre, np.float64) - c))
-            if d >= cfg.move_min_m and (best is None or (d, other_id) < best):
-                best = (d, other_id)
-        return None if best is None else self.nodes[best[1]]
+        candidates = [(k, o) for k, o in self.nodes.items()
+                      if not (o is node or o.rays or o.first_seen_ns <= node.last_seen_ns or o.absent or o.missed
+                              or verdicts.get(k) is Verdict.FREE or seen_together(node, o))]
+        return self._nearest_twin(ranking[0][0], node.descriptor, np.asarray(node.centre, np.float64), candidates)
 
     def retire(self, node_id: str, res: UpdateResult) -> None:
         """Remove ``node_id`` because its place was seen empty: ``res`` records it as removed and retired."""
