@@ -515,10 +515,8 @@ class MapperCore:
                     view.image, [d.mask for d in all_dets], [d.descriptor for d in all_dets], intrinsics_of(view).K(),
                     T_world_cam, floor_masks, self.config.single_view.floor_z_m)
                 self._seen.put(view.source_id, seen)
-        detected = None
-        if kv is not None:  # every detection counts as seen, lifted to 3D or not (fusion.absence_*)
-            hd, wd = kv.depth_m.shape
-            detected = [(resize_mask(d.mask, hd, wd), d.descriptor) for d in dets]
+        # every detection counts as seen, lifted to 3D or not (fusion.absence_*)
+        detected = [(d.mask, d.descriptor) for d in dets] if kv is not None else None
         res = self.objects.integrate(objs, view.source_id, view.stamp_ns or time.time_ns(), kv, detected,
                                      fixed=view.pose_trusted)
         if kv is not None and view.pose_trusted and res.seen_gone:

@@ -954,8 +954,8 @@ class ObjectMap:
         """Fuse one view's 3D detections; runs maintenance every ``merge_every_updates`` updates. With the
         keyframe's ``view`` (and ``mask_association``), detections are also matched in the image, and nodes
         that one detection's mask holds are merged as fragments of its object; and the view judges the nodes
-        it should see (``absence_*``, ``move_*``). ``detected``: every 2D detection of the keyframe as (mask at
-        the depth's resolution, unit descriptor), those that could not be lifted to 3D included (default: the
+        it should see (``absence_*``, ``move_*``). ``detected``: every 2D detection of the keyframe as (mask,
+        unit descriptor), those that could not be lifted to 3D included (default: the
         masks of ``objects``): a node one of them holds was detected there, whatever the depth says. ``fixed``:
         the keyframe is a calibrated fixed camera's (its misses count: ``absence_missed_*``)."""
         self.updates += 1
@@ -1099,7 +1099,8 @@ class ObjectMap:
         cfg = self.cfg
         if not ids or not detected:
             return set()
-        frac = containment(view, [self.nodes[k].points for k in ids], [m for m, _ in detected],
+        h, w = view.depth_m.shape
+        frac = containment(view, [self.nodes[k].points for k in ids], [resize_mask(m, h, w) for m, _ in detected],
                            min_points=cfg.containment_min_points, margin_m=cfg.occlusion_margin_m,
                            margin_rel=cfg.occlusion_margin_rel)
         out = set()
