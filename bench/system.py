@@ -398,7 +398,8 @@ def job_profile(before: dict[str, dict[str, float]], after: dict[str, dict[str, 
         jobs += c1.get("jobs_done", 0.0) - c0.get("jobs_done", 0.0)
         for k, v in c1.items():
             if k.startswith("cpu_s."):
-                spent[k[len("cpu_s."):]] = spent.get(k[len("cpu_s."):], 0.0) + v - c0.get(k, 0.0)
+                stage = k.removeprefix("cpu_s.")
+                spent[stage] = spent.get(stage, 0.0) + v - c0.get(k, 0.0)
     if jobs <= 0:
         return {}
     out = {k: v / jobs for k, v in sorted(spent.items(), key=lambda kv: -kv[1])}
