@@ -4,6 +4,7 @@ Examples::
 
     argus query nodes --label chair --near 1,2,0 --radius 2
     argus query nodes --room room2 --label cup
+    argus query nodes --label chair --include-retired   # and the chairs seen gone
     argus query rooms
     argus query snapshot --json > graph.json
     argus query watch                      # live deltas; Ctrl-C exits
@@ -32,7 +33,7 @@ from typing import Any, TypeVar
 from protocol import exits
 from protocol.codec import DecodeError, decode, peek_kind
 from protocol.keys import Keys
-from protocol.messages import GraphDelta, GraphEdge, GraphNode, GraphSnapshot
+from protocol.messages import GraphDelta, GraphEdge, GraphNode, GraphSnapshot, RetiredNode
 from protocol.query import GraphQuery
 from protocol.rooms import RoomLayer
 from protocol.session import ZenohConfigError, ZenohUnavailable, open_session
@@ -84,6 +85,13 @@ def get_nodes(session: Any, keys: Keys, query: GraphQuery, timeout_s: float = 5.
     The mapper may answer with one ``GraphSnapshot`` (the selection) or one ``GraphNode`` per reply;
     both are accepted. Raises :class:`QueryError` when nobody answered or the mapper refused.
     """
+    return get_selection(session, keys, query, timeout_s)[0]
+
+
+def get_selection(session: Any, keys: Keys, query: GraphQuery,
+                  timeout_s: float = 5.0) -> tuple[list[GraphNode], list[RetiredNode]]:
+    """:func:`get_nodes`, with the retired nodes the answer carries (newest first; only when
+    ``query.include_retired``). A missing ``--id`` is not found only when neither list has it."""
     import zenoh
 
     params = query.to_parameters()
@@ -93,6 +101,7 @@ def get_nodes(session: Any, keys: Keys, query: GraphQuery, timeout_s: float = 5.
     payloads, errors = _reply_payloads(
         session.get(selector, timeout=timeout_s, consolidation=zenoh.ConsolidationMode.NONE))
     nodes: dict[str, GraphNode] = {}
+    retired: dict[str, RetiredNode] = {}
     bad = 0
     for data in payloads:
         try:
@@ -101,8 +110,11 @@ def get_nodes(session: Any, keys: Keys, query: GraphQuery, timeout_s: float = 5.
                 n = decode(data, GraphNode)
                 nodes[n.node_id] = n
             elif kind == GraphSnapshot.KIND:
-                for n in decode(data, GraphSnapshot).nodes:
+                snap = decode(data, GraphSnapshot)
+                for n in snap.nodes:
                     nodes[n.node_id] = n
+                for r in snap.retired:
+                    retired[r.node.node_id] = r
             else:
                 bad += 1
         except DecodeError:
@@ -114,9 +126,10 @@ def get_nodes(session: Any, keys: Keys, query: GraphQuery, timeout_s: float = 5.
     if bad == len(payloads):
         raise QueryError(f"{bad} undecodable replies on {keys.graph_nodes}", exits.FAILED)
     found = sorted(nodes.values(), key=lambda n: n.node_id)
-    if query.id is not None and not found:
+    gone = sorted(retired.values(), key=lambda r: (-r.retired_ns, r.node.node_id))
+    if query.id is not None and not found and not gone:
         raise NodeNotFound(f"node {query.id!r} is not in the graph")
-    return found
+    return found, gone
 
 
 def get_node(session: Any, keys: Keys, node_id: str, timeout_s: float = 5.0) -> GraphNode:
@@ -197,6 +210,18 @@ def format_nodes(nodes: list[GraphNode], near: tuple[float, float, float] | None
     return "\n".join(lines)
 
 
+def format_retired(retired: list[RetiredNode]) -> str:
+    """A fixed-width table of retired nodes (seen gone), newest first: where each was last seen and when."""
+    lines = [f"{'id':<12} {'label':<22} {'last seen at (m)':<24} {'retired (UTC)':<20} {'reason':<8} sources"]
+    for r in retired:
+        n = r.node
+        when = time.strftime("%Y-%m-%d %H:%M:%S", time.gmtime(r.retired_ns / 1e9))
+        lines.append(f"{n.node_id:<12} {n.label[:22]:<22} {_fmt_xyz(n.centroid):<24} {when:<20} {r.reason:<8} "
+                     f"{','.join(n.sources)}")
+    lines.append(f"{len(retired)} retired node(s)")
+    return "\n".join(lines)
+
+
 def format_edges(edges: list[GraphEdge], nodes: list[GraphNode]) -> str:
     label = {n.node_id: n.label for n in nodes}
     return "\n".join(
@@ -230,11 +255,18 @@ def format_delta(d: GraphDelta) -> str:
 
 # --- commands -------------------------------------------------------------------------------------
 def run_nodes(session: Any, keys: Keys, query: GraphQuery, as_json: bool, timeout_s: float) -> int:
-    nodes = get_nodes(session, keys, query, timeout_s)
+    nodes, retired = get_selection(session, keys, query, timeout_s)
     if as_json:
-        print(json.dumps([n.model_dump(mode="json", exclude={"embedding"}) for n in nodes], indent=1))
+        listed = [n.model_dump(mode="json", exclude={"embedding"}) for n in nodes]
+        if query.include_retired:
+            gone = [r.model_dump(mode="json", exclude={"node": {"embedding"}}) for r in retired]
+            print(json.dumps({"nodes": listed, "retired": gone}, indent=1))
+        else:
+            print(json.dumps(listed, indent=1))
     else:
         print(format_nodes(nodes, query.near))
+        if query.include_retired:
+            print(format_retired(retired))
     return 0
 
 
@@ -340,6 +372,7 @@ EPILOG = """examples:
   argus query nodes --label chair --near 1,2,0 --radius 2
   argus query nodes --id n12 --json
   argus query nodes --room room2 --label cup
+  argus query nodes --label chair --include-retired
   argus query rooms
   argus query snapshot --json > graph.json
   argus query watch --count 5
@@ -364,7 +397,10 @@ def parser() -> argparse.ArgumentParser:
     pn.add_argument("--id", default=None, help="one node id (exit status 3 when the graph has no such node)")
     pn.add_argument("--since-version", type=int, default=None, help="only nodes changed after this version")
     pn.add_argument("--room", default=None, help="only nodes in this room (a room id: argus query rooms)")
-    pn.add_argument("--json", action="store_true", help="JSON list of nodes")
+    pn.add_argument("--include-retired", action="store_true",
+                    help="also the nodes retired because their place was seen empty (kept a while; newest first)")
+    pn.add_argument("--json", action="store_true",
+                    help="JSON list of nodes ({\"nodes\": [...], \"retired\": [...]} with --include-retired)")
     pr = sub.add_parser("rooms", help="the rooms: label, area, how much was seen, objects, doorways")
     pr.add_argument("--json", action="store_true", help="the RoomLayer as JSON")
     ps = sub.add_parser("snapshot", help="the whole latest graph")
@@ -395,7 +431,8 @@ def main(argv: list[str] | None = None) -> int:
         if a.what == "nodes":
             near = _parse_near(a.near) if a.near is not None else None
             query = GraphQuery(label=a.label, near=near, radius=a.radius, id=a.id,
-                               since_version=a.since_version, room=a.room)
+                               since_version=a.since_version, room=a.room,
+                               include_retired=True if a.include_retired else None)
     except ValueError as e:  # pydantic's ValidationError included: one line per field, no URL
         print(f"argus query: {exits.one_line(e)}", file=sys.stderr)
         return exits.USAGE

@@ -10,10 +10,10 @@ from typing import Any
 
 import pytest
 
-from deploy.query import QueryError, format_delta, format_nodes, get_nodes, get_snapshot
+from deploy.query import QueryError, format_delta, format_nodes, format_retired, get_nodes, get_selection, get_snapshot
 from protocol.codec import encode
 from protocol.keys import Keys
-from protocol.messages import GraphDelta, GraphEdge, GraphNode, GraphSnapshot, OrientedBox
+from protocol.messages import GraphDelta, GraphEdge, GraphNode, GraphSnapshot, OrientedBox, RetiredNode
 from protocol.query import GraphQuery
 from protocol.rooms import RoomLayer
 from protocol.session import ZenohSettings, open_session
@@ -38,6 +38,11 @@ SNAP = GraphSnapshot(
 )
 
 
+# Seen gone: answered only to include_retired queries (newest first, as the mapper keeps them).
+RETIRED = [RetiredNode(node=_node("n4", "box", (3.0, 1.0, 0.2)), retired_ns=2_000_000_000_000_000_000, version=6),
+           RetiredNode(node=_node("n0", "chair", (0.5, 0.5, 0.4)), retired_ns=1_000_000_000_000_000_000, version=5)]
+
+
 class FakeGraphHolder:
     """Answers graph queries the way the mapper's queryable does (selection by GraphQuery)."""
 
@@ -56,7 +61,9 @@ class FakeGraphHolder:
         elif key == self.keys.graph_nodes:
             sel = GraphQuery.from_parameters(str(query.parameters))
             picked = [n for n in SNAP.nodes if sel.matches(n)]
-            query.reply(self.keys.graph_nodes, encode(SNAP.model_copy(update={"nodes": picked, "edges": []})))
+            gone = [r for r in RETIRED if sel.matches(r.node)] if sel.include_retired else []
+            query.reply(self.keys.graph_nodes,
+                        encode(SNAP.model_copy(update={"nodes": picked, "edges": [], "retired": gone})))
 
     def close(self) -> None:
         self.qbl.undeclare()
@@ -79,6 +86,11 @@ def test_get_nodes_selects_like_the_holder(router: str, holder: FakeGraphHolder)
         assert {n.node_id for n in get_nodes(s, keys, GraphQuery(label="CHAIR"))} == {"n1", "n2"}
         snap = get_snapshot(s, keys)
         assert snap == SNAP
+        # retired nodes only when asked for, selected like the live ones
+        assert get_selection(s, keys, GraphQuery(label="chair"))[1] == []
+        nodes, gone = get_selection(s, keys, GraphQuery(label="chair", include_retired=True))
+        assert [n.node_id for n in nodes] == ["n1", "n2"] and [r.node.node_id for r in gone] == ["n0"]
+        assert [r.node.node_id for r in get_selection(s, keys, GraphQuery(include_retired=True))[1]] == ["n4", "n0"]
 
 
 def _answers(session: Any, keys: Keys) -> bool:
@@ -209,6 +221,13 @@ def test_cli_missing_node_is_not_found_with_its_own_status(router: str, holder: 
     p = Proc(["query", "--connect", router, "--site", SITE, "nodes", "--id", "n1"])
     procs.append(p)
     assert p.wait(30) == 0 and "1 node(s)" in p.output, p.output
+    # a retired node is found when retired nodes are asked for, and listed as retired
+    p = Proc(["query", "--connect", router, "--site", SITE, "nodes", "--id", "n4", "--include-retired", "--json"])
+    procs.append(p)
+    assert p.wait(30) == 0, p.output
+    got = json.loads(p.output[p.output.index("{"):])
+    assert got["nodes"] == [] and [r["node"]["node_id"] for r in got["retired"]] == ["n4"]
+    assert "embedding" not in got["retired"][0]["node"]
 
 
 @pytest.mark.integration
@@ -254,6 +273,8 @@ def test_formatting() -> None:
     assert "3 node(s)" in table and "office chair" in table and "0.00" in table
     line = format_delta(GraphDelta(version=3, stamp_ns=0, upserted=SNAP.nodes, removed=["x"]))
     assert line.startswith("v3: 3 upserted, 1 removed")
+    table = format_retired(RETIRED)
+    assert table.splitlines()[1].startswith("n4") and "2033-05-18 03:33:20" in table and "2 retired node(s)" in table
 
 
 def test_cli_returns_what_a_real_mapper_holds(router: str, procs: list[Proc], tmp_path: Path) -> None:
