@@ -12,8 +12,11 @@ the depth map's resolution, against the nearest of its own points there (its fro
 
 A view is evidence of absence (``FREE``) only when the node covers enough pixels to be detected at all, most of
 its pixels have confident depth, few are occluded and most of the unoccluded ones are free. It says the node
-is ``THERE`` when most of its unoccluded pixels show a surface at its depth. Anything else is ``UNKNOWN``. The
-margin grows with depth (estimated depth errs by a fraction of it). See ``mapper.fusion.FusionConfig.absence_*``
+is ``THERE`` when most of its unoccluded pixels show a surface at its depth, and ``MIXED`` when the view could
+judge (enough pixels, known, unoccluded) but neither kind is most of them: a low box taken off the floor of a
+camera looking down leaves floor within the margin of its lower half, and a neighbour moved into its place
+leaves a surface there. Anything else is ``UNKNOWN``. The margin grows with depth (estimated depth errs by a
+fraction of it). See ``mapper.fusion.FusionConfig.absence_*``
 for the thresholds and ``ObjectMap.integrate`` for how verdicts add up to a retirement.
 """
 
@@ -34,6 +37,7 @@ class Verdict(Enum):
     UNKNOWN = 0  # out of view, too small, too far, occluded or without confident depth: no evidence
     FREE = 1  # the keyframe sees through where the node stands: evidence that it is gone
     THERE = 2  # the keyframe sees a surface where the node stands: it is (still) there
+    MIXED = 3  # it could judge, but saw through part and a surface at the rest: no evidence from depth alone
 
 
 @dataclass(frozen=True)
@@ -119,4 +123,6 @@ def judge(view: KeyframeView, points_world: np.ndarray, params: AbsenceParams) -
             verdict = Verdict.FREE
         elif t >= params.min_free * (f + t):
             verdict = Verdict.THERE
+        else:
+            verdict = Verdict.MIXED
     return Judgement(verdict, pixels=n, known=k, occluded=o, free=f, there=t)

@@ -508,6 +508,7 @@ class MapperCore:
             self._count("detections_placed_single_view", len(coarse))
             objs += coarse
         seen: SeenView | None = None
+        seen_before = cast(SeenView | None, self._seen.get(view.source_id))
         if floor_masks is not None:  # a single-view keyframe
             objs = [dataclasses.replace(o, ray_origin=T_world_cam[:3, 3].copy()) for o in objs]
             if all_dets:  # people too: where one stands the camera did not see the floor
@@ -519,10 +520,6 @@ class MapperCore:
         detected = [(d.mask, d.descriptor) for d in dets] if kv is not None else None
         res = self.objects.integrate(objs, view.source_id, view.stamp_ns or time.time_ns(), kv, detected,
                                      fixed=view.pose_trusted)
-        if kv is not None and view.pose_trusted and res.seen_gone:
-            self._confirm[view.source_id] = view.stamp_ns
-        else:
-            self._confirm.pop(view.source_id, None)
         if self.loops is not None:
             self._note_fused(view.key, res)
         if single_view:
@@ -534,7 +531,14 @@ class MapperCore:
                 self._count("single_view_moved", self.objects.check_coarse(self._seen.values(), res))
                 if seen is not None:  # what this camera placed before and now sees floor in place of: gone
                     self._count("single_view_gone", self.objects.forget_gone(seen, res))
+            if seen is not None and view.pose_trusted:  # what it saw before and detects no more: a miss
+                self._count("single_view_misses", len(self.objects.count_misses(
+                    seen, seen_before, view.source_id, res)))
             self.objects.maintain(res)
+        if view.pose_trusted and res.seen_gone:
+            self._confirm[view.source_id] = view.stamp_ns
+        else:
+            self._confirm.pop(view.source_id, None)
         self._count("nodes_created", res.created)
         self._count("nodes_merged", res.merged_duplicates)
         self._count("nodes_pruned", res.pruned)

@@ -256,11 +256,13 @@ class FusionConfig(BaseModel):
     absence_missed_to_retire: int = Field(
         default=3, ge=0,
         description="a calibrated fixed camera that detected a node before and now sees its place unoccluded "
-        "(absence_missed_max_occluded) with a surface at its depth but detects nothing there counts a miss: an "
-        "object flush against a wall or on a table leaves a surface within the depth margin where it stood, so "
-        "depth alone cannot see it gone. This many misses and see-throughs together, with no detection in "
-        "between, retire the node (the camera confirms every absence_confirm_s while a count is open); 0 "
-        "disables misses",
+        "(absence_missed_max_occluded) with a surface at its depth, or partly one and partly seen through "
+        "(mapper.absence's MIXED), but detects nothing there counts a miss: an object flush against a wall or "
+        "on a table leaves a surface within the depth margin where it stood, so depth alone cannot see it gone. "
+        "Without depth (a single-view keyframe) the camera counts a miss where its previous single-view keyframe "
+        "saw the node on a similar detection and this one sees it on none (ObjectMap.count_misses). This many "
+        "misses and see-throughs together, with no detection in between, retire the node (the camera confirms "
+        "every absence_confirm_s while a count is open); 0 disables misses",
     )
     absence_missed_max_occluded: float = Field(
         default=0.1, ge=0.0, le=1.0,
@@ -965,7 +967,8 @@ class ObjectMap:
         verdicts = {k: j.verdict for k, j in judged.items()}
         # Nodes this fixed camera detected before and now sees clear: not detected here, they count a miss.
         missable = {k for k, j in judged.items() if fixed and self.cfg.absence_missed_to_retire > 0
-                    and j.verdict is Verdict.THERE and j.occluded <= self.cfg.absence_missed_max_occluded * j.pixels
+                    and j.verdict in (Verdict.THERE, Verdict.MIXED)
+                    and j.occluded <= self.cfg.absence_missed_max_occluded * j.pixels
                     and source_id in self.nodes[k].sources}
         inside = (self.containment(objects, view) if view is not None and self.cfg.mask_association
                   else [{} for _ in objects])
@@ -1014,8 +1017,8 @@ class ObjectMap:
 
     # -- absence and moves -------------------------------------------------------------------------
     def absence_verdicts(self, view: KeyframeView) -> dict[str, Verdict]:
-        """Per measured node that ``view`` judges (``mapper.absence``), FREE or THERE. Single-view (coarse) nodes
-        are not judged: their depth is a guess (``check_coarse`` and ``forget_gone`` handle them)."""
+        """Per measured node that ``view`` judges (``mapper.absence``), FREE, THERE or MIXED. Single-view (coarse)
+        nodes are not judged: their depth is a guess (``check_coarse`` and ``forget_gone`` handle them)."""
         return {k: j.verdict for k, j in self.absence_judgements(view).items()}
 
     def absence_judgements(self, view: KeyframeView) -> dict[str, Judgement]:
@@ -1130,13 +1133,14 @@ class ObjectMap:
             node = self.nodes.get(node_id)
             if node is None or node_id in detected or node_id in res.moved:
                 continue
-            if verdict is Verdict.THERE and node_id not in missable:
-                node.absent = 0
+            if verdict is not Verdict.FREE and node_id not in missable:
+                if verdict is Verdict.THERE:
+                    node.absent = 0
                 continue
-            if verdict is Verdict.THERE:
-                node.missed += 1
-            else:
+            if verdict is Verdict.FREE:
                 node.absent += 1
+            else:
+                node.missed += 1
             if not self._retires(node.absent, node.missed):
                 res.seen_gone.add(node_id)
                 continue
@@ -1450,6 +1454,41 @@ class ObjectMap:
                 self.retire(node_id, res)
                 gone += 1
         return gone
+
+    def count_misses(self, seen: Any, before: Any, source_id: str, res: UpdateResult, min_points: int = 15,
+                     min_pixels: int = 4, min_seen: float = 0.3, max_same: float = 0.1) -> set[str]:
+        """A calibrated fixed camera's single-view keyframe (``seen``, a ``SeenView``; ``before``, its previous
+        one or None) as evidence of absence without depth: a node this camera detected (``source_id`` among its
+        sources), within ``absence_max_range_m``, whose points (at least ``absence_min_in_view`` of them and
+        ``min_points``, on ``min_pixels`` pixels) land in view on almost no similar detection (``max_same``) and
+        mostly on no other one (``absence_max_occluded``: a passer-by in front is no evidence) counts a miss,
+        as in measured keyframes (``absence_missed_*``). The first miss also needs ``before`` to have seen the
+        node on a similar detection (``min_seen`` of its points): the camera saw it there from this very pose,
+        so a node its estimated geometry puts elsewhere in this view never starts a count. Nodes this keyframe
+        updated are skipped. Returns the nodes that counted; retires (or moves, :meth:`_moved_before`) those
+        that reach the count."""
+        cfg = self.cfg
+        if not cfg.absence_check or cfg.absence_missed_to_retire <= 0:
+            return set()
+        params = cfg.absence_params()
+        misses = set()
+        for node_id in sorted(self.nodes):
+            node = self.nodes[node_id]
+            if node_id in res.changed or source_id not in node.sources or len(node.points) < min_points:
+                continue
+            pts = node.points[:: max(1, -(-len(node.points) // params.max_points))]
+            c = seen.coverage(pts, node.descriptor, cfg.merge_similarity)
+            if (c.points < max(min_points, params.min_in_view * len(pts)) or c.pixels < min_pixels
+                    or c.depth_m > params.max_range_m or c.same > max_same * c.points
+                    or c.other > params.max_occluded * c.points):
+                continue
+            if node.missed == 0 and node.absent == 0:
+                b = None if before is None else before.coverage(pts, node.descriptor, cfg.merge_similarity)
+                if b is None or b.points == 0 or b.same < min_seen * b.points:
+                    continue
+            misses.add(node_id)
+        self._weigh_absence(dict.fromkeys(misses, Verdict.MIXED), misses, set(), res)
+        return misses
 
     def check_coarse(self, views: Sequence[Any], res: UpdateResult | None = None, min_points: int = 15,
                      max_free: float = 0.6, remove_refuted: bool = False) -> int:

@@ -36,6 +36,7 @@ and says so: its confidence is ``confidence``, below stereo depth, so other view
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from dataclasses import dataclass
 
@@ -694,11 +695,8 @@ class SeenView:
                 else np.zeros((0, 1), np.float32))
         return cls(Ks, T_world_cam.copy(), small, floor, desc, floor_z_m)
 
-    def votes(self, points: F64, descriptor: np.ndarray, min_similarity: float, margin_m: float = 0.1,
-              ) -> tuple[int, int, int]:
-        """For world points of one object: how many project into this view (in front of it), how many land
-        where this camera saw the floor behind them (free space: the object cannot be there) and how many land
-        on a detection with a similar descriptor (it saw the object there)."""
+    def _pixels(self, points: F64) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """The pixels (u, v: int) and depths (z) of the world ``points`` that project into this view, in front."""
         R, t = self.T_world_cam[:3, :3], self.T_world_cam[:3, 3]
         pc = (np.asarray(points, np.float64) - t) @ R
         h, w = self.owner.shape
@@ -707,19 +705,55 @@ class SeenView:
             u = np.round(pc[:, 0] / z * self.K[0, 0] + self.K[0, 2])
             v = np.round(pc[:, 1] / z * self.K[1, 1] + self.K[1, 2])
         ok = (z > 0.1) & (u >= 0) & (u < w) & (v >= 0) & (v < h)
-        if not ok.any():
-            return 0, 0, 0
-        u, v, z = u[ok].astype(int), v[ok].astype(int), z[ok]
-        own = self.owner[v, u]
-        d = pixel_rays(self.K, u.astype(float), v.astype(float)) @ R.T
-        with np.errstate(divide="ignore", invalid="ignore"):
-            floor = (self.floor_z_m - t[2]) / d[:, 2]
-        free = self.floor[v, u] & (floor > 0) & (z < floor - margin_m)
+        return u[ok].astype(int), v[ok].astype(int), z[ok]
+
+    def _similar(self, own: np.ndarray, descriptor: np.ndarray, min_similarity: float) -> np.ndarray:
+        """Whether each owner index ``own`` (-1: none) is a detection with a descriptor like ``descriptor``."""
         same = np.zeros(len(own), bool)
         if len(self.descriptors) and (own >= 0).any():
             sims = self.descriptors @ np.asarray(descriptor, np.float32)
             same[own >= 0] = sims[own[own >= 0]] >= min_similarity
-        return int(ok.sum()), int(free.sum()), int(same.sum())
+        return same
+
+    def votes(self, points: F64, descriptor: np.ndarray, min_similarity: float, margin_m: float = 0.1,
+              ) -> tuple[int, int, int]:
+        """For world points of one object: how many project into this view (in front of it), how many land
+        where this camera saw the floor behind them (free space: the object cannot be there) and how many land
+        on a detection with a similar descriptor (it saw the object there)."""
+        u, v, z = self._pixels(points)
+        if len(u) == 0:
+            return 0, 0, 0
+        R, t = self.T_world_cam[:3, :3], self.T_world_cam[:3, 3]
+        d = pixel_rays(self.K, u.astype(float), v.astype(float)) @ R.T
+        with np.errstate(divide="ignore", invalid="ignore"):
+            floor = (self.floor_z_m - t[2]) / d[:, 2]
+        free = self.floor[v, u] & (floor > 0) & (z < floor - margin_m)
+        same = self._similar(self.owner[v, u], descriptor, min_similarity)
+        return len(u), int(free.sum()), int(same.sum())
+
+    def coverage(self, points: F64, descriptor: np.ndarray, min_similarity: float) -> Coverage:
+        """Where the world ``points`` of one object land in this view (:class:`Coverage`)."""
+        u, v, z = self._pixels(points)
+        if len(u) == 0:
+            return Coverage(0, 0, 0, 0, math.inf)
+        own = self.owner[v, u]
+        same = self._similar(own, descriptor, min_similarity)
+        return Coverage(len(u), len(np.unique(v * self.owner.shape[1] + u)), int(same.sum()),
+                        int(((own >= 0) & ~same).sum()), float(np.median(z)))
+
+
+@dataclass(frozen=True)
+class Coverage:
+    """How an object's points land in a :class:`SeenView`: how many project into it (in front), on how many
+    distinct pixels (at the view's width), how many on a detection with a similar descriptor (seen there), how
+    many on another detection (something else in front, or under: no evidence either way), and their median
+    depth (metres)."""
+
+    points: int
+    pixels: int
+    same: int
+    other: int
+    depth_m: float
 
 
 def relocate_along_ray(points: F64, origin: F64, descriptor: np.ndarray, views: Sequence[SeenView],

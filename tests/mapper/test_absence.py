@@ -8,9 +8,9 @@ import numpy as np
 from mapper.absence import AbsenceParams, Verdict, judge
 from mapper.association import KeyframeView
 from mapper.core import MapperCore
-from mapper.fusion import FusionConfig, Object3D, ObjectMap, voxel_downsample
+from mapper.fusion import FusionConfig, Object3D, ObjectMap, UpdateResult, voxel_downsample
 from mapper.geometry.contract import OracleData, View
-from mapper.geometry.singleview import depth_to_world
+from mapper.geometry.singleview import SeenView, depth_to_world
 from mapper.perception.base import label_descriptor
 from protocol.poses import look_at
 from protocol.query import GraphQuery
@@ -466,3 +466,75 @@ def test_masks_at_another_resolution_than_the_depth_are_resized() -> None:
     for o in (Object3D(objs[0].points, "chair", 0.9, label_descriptor("chair"), mask=big), small):
         res = om.integrate([o], "cam1", 10, kv)
         assert res.associated == 1 and res.created == 0
+
+
+BAG = box([1.3, 0.35, 0.0], [1.75, 0.9, 0.9])  # stands where half the chair stood
+
+
+class TestMixed:
+    def test_a_neighbour_in_half_its_place_is_mixed(self) -> None:
+        _, objs = keyframe({"chair": CHAIR})
+        kv, _ = keyframe({"bag": BAG})
+        j = judge(kv, objs[0].points, AbsenceParams())
+        assert j.verdict is Verdict.MIXED and j.free > 0.3 * j.known and j.there > 0.3 * j.known
+
+    def test_a_fixed_camera_counts_mixed_views_without_a_detection_as_misses(self) -> None:
+        om = mapped({"chair": CHAIR})
+        chair = node_of(om, "chair")
+        kv, objs = keyframe({"bag": BAG})
+        for t in range(2):
+            res = om.integrate(objs, "cam1", 10 + t, kv, fixed=True)
+            assert not res.removed and res.seen_gone == {chair} and om.nodes[chair].missed == t + 1
+        assert om.integrate(objs, "cam1", 12, kv, fixed=True).removed == {chair}
+
+    def test_mixed_views_from_a_robot_are_no_evidence(self) -> None:
+        om = mapped({"chair": CHAIR})
+        chair = node_of(om, "chair")
+        kv, objs = keyframe({"bag": BAG})
+        for t in range(4):
+            assert not om.integrate(objs, "robot1", 10 + t, kv).removed
+        assert om.nodes[chair].absent == om.nodes[chair].missed == 0
+
+
+def seen_view(objects: dict[str, Box], occluders: dict[str, Box] | None = None) -> SeenView:
+    """What a calibrated camera at EYE sees without depth (a single-view keyframe): each of ``objects`` and
+    ``occluders`` (label -> box) detected with its label's descriptor."""
+    T = look_at(EYE, list(TARGET))
+    named = {**objects, **(occluders or {})}
+    _, idx = raycast(T, [FLOOR, WALL, *named.values()])
+    owner = np.where(idx >= 2, idx - 2, -1).astype(np.int16)
+    desc = np.stack([label_descriptor(k) for k in named]) if named else np.zeros((0, 1), np.float32)
+    return SeenView(INTR.K(), T, owner, idx == 0, desc.astype(np.float32))
+
+
+class TestSingleViewMisses:
+    """A fixed camera's keyframe without depth (no stereo partner): it counts a miss where its previous one saw
+    the node on a similar detection and this one sees it on none."""
+
+    def test_a_node_the_camera_saw_and_no_longer_detects_is_retired_after_its_misses(self) -> None:
+        om = mapped({"chair": CHAIR, "lamp": LAMP})
+        chair = node_of(om, "chair")
+        before, now = seen_view({"chair": CHAIR, "lamp": LAMP}), seen_view({"lamp": LAMP})
+        for t in range(2):
+            res = UpdateResult()
+            assert om.count_misses(now, before if t == 0 else now, "cam1", res) == {chair}
+            assert not res.removed and res.seen_gone == {chair} and om.nodes[chair].missed == t + 1
+        res = UpdateResult()
+        om.count_misses(now, now, "cam1", res)
+        assert res.removed == {chair} and set(res.retired) == {chair}
+
+    def test_no_count_starts_unless_the_previous_view_saw_it_there(self) -> None:
+        om = mapped({"chair": CHAIR})
+        now = seen_view({})
+        assert om.count_misses(now, None, "cam1", UpdateResult()) == set()
+        assert om.count_misses(now, now, "cam1", UpdateResult()) == set()  # its geometry is elsewhere
+
+    def test_a_passer_by_in_front_or_another_camera_is_no_miss(self) -> None:
+        om = mapped({"chair": CHAIR})
+        chair = node_of(om, "chair")
+        before = seen_view({"chair": CHAIR})
+        hidden = seen_view({}, occluders={"person": PERSON})
+        assert om.count_misses(hidden, before, "cam1", UpdateResult()) == set()
+        assert om.count_misses(seen_view({}), before, "cam2", UpdateResult()) == set()  # cam2 never detected it
+        assert om.count_misses(before, before, "cam1", UpdateResult()) == set()  # still detected
+        assert om.nodes[chair].missed == 0
