@@ -810,6 +810,7 @@ class MvsReconstructor:
                     with clock("sweep"):
                         d, _ = self._sweep(s, prep, poses, pts, grays, *shapes[s])
                     neigh_depth[s] = (d, prep[s].intr.scaled(*shapes[s]).K())
+                    self._depth.put(prep[s].view.key, neigh_depth[s])
                     have += 1
         info["t_dense_s"] = time.perf_counter() - t_dense
         out_depth, out_conf, out_intr = [], [], []
