@@ -142,6 +142,28 @@ def census_best(planes: F32, ref_bits: NDArray[np.bool_], offsets: list[tuple[in
                  np.float32(outside_cost), best1, best2, n_seen)
 
 
+@_jit
+def _column_argmax(m: Any, best: Any, arg: Any) -> None:  # pragma: no cover - compiled
+    best[:] = m[0]
+    arg[:] = 0
+    for i in range(1, m.shape[0]):
+        row = m[i]
+        for j in range(m.shape[1]):
+            if row[j] > best[j]:  # strictly greater: the first of equal maxima stays
+                best[j] = row[j]
+                arg[j] = i
+
+
+def column_argmax(m: F32) -> NDArray[np.int64]:
+    """Index of the first maximum of each column of ``m`` (R, C) float32, R >= 1 (``argmax(axis=0)``): one pass down
+    the rows, where a reduction across rows per column strides through memory (~5x slower for 2000 x 2000)."""
+    m = np.ascontiguousarray(m, np.float32)
+    best = np.empty(m.shape[1], np.float32)
+    arg = np.empty(m.shape[1], np.int64)
+    _column_argmax(m, best, arg)
+    return arg
+
+
 def sgm4(cost_dhw: F32, p1: float, p2x: F32, p2y: F32) -> F32:
     """Sum of the 4 scan-line SGM aggregations of a (D, H, W) cost (same recursion as ``planesweep``'s torch
     version). p2x / p2y (H, W): the large-jump penalty for entering a pixel along x / y. The result is a (D, H, W)

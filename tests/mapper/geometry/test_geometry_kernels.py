@@ -61,3 +61,11 @@ def test_compiled_sweep_cost_equals_opencv_torch_cost(monkeypatch: pytest.Monkey
     assert torch.equal(compiled, reference)
     _, inside = planesweep.warp_planes(srcs[-1], K, K, poses[-1], depths, h, w)
     assert not inside.all()  # some pixels fall outside the last source
+
+
+@pytest.mark.skipif(not kernels.AVAILABLE, reason="numba not installed")
+def test_column_argmax_is_the_first_maximum_of_each_column() -> None:
+    g = torch.Generator().manual_seed(3)
+    for rows, cols in ((1, 1), (1, 5), (7, 1), (9, 13), (40, 3)):
+        m = torch.randint(0, 4, (rows, cols), generator=g).float()  # many ties: the first row must win
+        np.testing.assert_array_equal(kernels.column_argmax(m.numpy()), m.T.contiguous().argmax(dim=1).numpy())
