@@ -408,8 +408,13 @@ class MvsReconstructor:
         if not tracks:
             return np.zeros((0, 3)), []
         tracks = sorted(tracks, key=len, reverse=True)[: self.config.max_tracks]
-        Ps = [bundle.projection_matrix(p.K, T) if T is not None else None for p, T in zip(prep, poses, strict=True)]
-        posed_tracks = [tr[[Ps[int(v)] is not None for v in tr[:, 0]]] for tr in tracks]
+        posed = np.array([T is not None for T in poses])
+        # Every view's projection (zeros where unposed: no posed track reads them) and keypoints, indexed at once.
+        P_all = np.stack([bundle.projection_matrix(p.K, T) if T is not None else np.zeros((3, 4))
+                          for p, T in zip(prep, poses, strict=True)])
+        uv_all = np.concatenate([p.feats.uv.reshape(-1, 2) for p in prep])
+        uv_start = np.concatenate([[0], np.cumsum([len(p.feats) for p in prep])[:-1]]).astype(np.int64)
+        posed_tracks = [tr[posed[tr[:, 0]]] for tr in tracks]
         posed_tracks = [tr for tr in posed_tracks if len(tr) >= 2]
         # Batched DLT: tracks of the same length share one stacked SVD.
         cand, cand_obs = [], []
@@ -417,8 +422,9 @@ class MvsReconstructor:
         for tr in posed_tracks:
             by_len.setdefault(len(tr), []).append(tr)
         for group in by_len.values():
-            Pg = np.stack([np.stack([cast(F64, Ps[int(v)]) for v in tr[:, 0]]) for tr in group])  # (T, L, 3, 4)
-            uv = np.stack([np.stack([prep[int(v)].feats.uv[int(k)] for v, k in tr]) for tr in group])  # (T, L, 2)
+            obs_g = np.stack(group)  # (T, L, 2): view, keypoint
+            Pg = P_all[obs_g[..., 0]]  # (T, L, 3, 4)
+            uv = uv_all[uv_start[obs_g[..., 0]] + obs_g[..., 1]]  # (T, L, 2)
             Xg = bundle.triangulate_many(Pg, uv)
             for X, tr in zip(Xg, group, strict=True):
                 if np.all(np.isfinite(X)):
