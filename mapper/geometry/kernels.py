@@ -164,6 +164,59 @@ def column_argmax(m: F32) -> NDArray[np.int64]:
     return arg
 
 
+@_jit
+def _bilateral_upsample(depth: Any, conf: Any, guide_lo: Any, guide_hi: Any, two_sigma2: Any, ys: Any, xs: Any,
+                        yi: Any, xi: Any, depth_hi: Any, conf_hi: Any) -> None:  # pragma: no cover - compiled
+    h, w = depth.shape
+    H, W = depth_hi.shape
+    for Y in range(H):
+        for X in range(W):
+            num = np.float32(0.0)
+            den = np.float32(0.0)
+            best_w = np.float32(-1.0)
+            best_c = np.float32(0.0)
+            for dy in range(-1, 2):
+                yy = min(max(yi[Y] + dy, 0), h - 1)
+                for dx in range(-1, 2):
+                    xx = min(max(xi[X] + dx, 0), w - 1)
+                    e = np.float32(0.0)
+                    for ch in range(3):
+                        diff = guide_lo[ch, yy, xx] - guide_hi[ch, Y, X]
+                        e += diff * diff
+                    dist2 = (ys[Y] - np.float32(yy)) ** 2 + (xs[X] - np.float32(xx)) ** 2
+                    wc = np.float32(np.exp(-e / two_sigma2)) * np.float32(np.exp(-dist2 * np.float32(0.5)))
+                    d = depth[yy, xx]
+                    if d > 0:
+                        cc = conf[yy, xx]
+                        wd = wc * (np.float32(0.05) + cc)
+                        num += wd * d
+                        den += wd
+                    else:
+                        cc = np.float32(0.0)
+                    if wc > best_w:
+                        best_w = wc
+                        best_c = cc
+            dh = num / den if den > np.float32(1e-6) else np.float32(0.0)
+            depth_hi[Y, X] = dh
+            conf_hi[Y, X] = best_c if dh > 0 else np.float32(0.0)
+
+
+def bilateral_upsample(depth: F32, conf: F32, guide_lo: F32, guide_hi: F32, sigma_color: float, ys: F32, xs: F32,
+                       yi: NDArray[np.int64], xi: NDArray[np.int64]) -> tuple[F32, F32]:
+    """``planesweep.joint_bilateral_upsample`` in one pass over the output pixels (its arithmetic, float32; the
+    exponentials may differ from torch's in the last bit). ys / xs (H,) / (W,): each output row / column's
+    position on the input grid; yi / xi: the nearest input row / column."""
+    H, W = guide_hi.shape[1:]
+    depth_hi = np.empty((H, W), np.float32)
+    conf_hi = np.empty((H, W), np.float32)
+    _bilateral_upsample(np.ascontiguousarray(depth, np.float32), np.ascontiguousarray(conf, np.float32),
+                        np.ascontiguousarray(guide_lo, np.float32), np.ascontiguousarray(guide_hi, np.float32),
+                        np.float32(2 * sigma_color**2), np.ascontiguousarray(ys, np.float32),
+                        np.ascontiguousarray(xs, np.float32), np.ascontiguousarray(yi, np.int64),
+                        np.ascontiguousarray(xi, np.int64), depth_hi, conf_hi)
+    return depth_hi, conf_hi
+
+
 def sgm4(cost_dhw: F32, p1: float, p2x: F32, p2y: F32) -> F32:
     """Sum of the 4 scan-line SGM aggregations of a (D, H, W) cost (same recursion as ``planesweep``'s torch
     version). p2x / p2y (H, W): the large-jump penalty for entering a pixel along x / y. The result is a (D, H, W)

@@ -354,6 +354,10 @@ def joint_bilateral_upsample(
     xs = (torch.arange(W, dtype=torch.float32) + 0.5) * w / W - 0.5
     yi = ys.round().long().clamp(0, h - 1)
     xi = xs.round().long().clamp(0, w - 1)
+    if kernels.AVAILABLE:
+        out = kernels.bilateral_upsample(depth.numpy(), conf.numpy(), guide_lo.numpy(), guide_hi.numpy(), sigma_color,
+                                         ys.numpy(), xs.numpy(), yi.numpy(), xi.numpy())
+        return torch.from_numpy(out[0]), torch.from_numpy(out[1])
     num_d = torch.zeros(H, W)
     den = torch.zeros(H, W)
     best_w = torch.full((H, W), -1.0)

@@ -69,3 +69,19 @@ def test_column_argmax_is_the_first_maximum_of_each_column() -> None:
     for rows, cols in ((1, 1), (1, 5), (7, 1), (9, 13), (40, 3)):
         m = torch.randint(0, 4, (rows, cols), generator=g).float()  # many ties: the first row must win
         np.testing.assert_array_equal(kernels.column_argmax(m.numpy()), m.T.contiguous().argmax(dim=1).numpy())
+
+
+@pytest.mark.skipif(not kernels.AVAILABLE, reason="numba not installed")
+def test_compiled_upsample_equals_torch_upsample(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Same weights, same order of sums: confidence bit for bit, depth to float32 rounding of the exponentials."""
+    g = torch.Generator().manual_seed(4)
+    depth = torch.rand(9, 12, generator=g) * 3
+    depth[2:4, 5:9] = 0.0  # no depth there: weightless neighbours
+    conf = torch.rand(9, 12, generator=g)
+    guide_lo, guide_hi = torch.rand(3, 9, 12, generator=g), torch.rand(3, 14, 19, generator=g)
+    d_c, c_c = planesweep.joint_bilateral_upsample(depth, conf, guide_lo, guide_hi)
+    monkeypatch.setattr(kernels, "AVAILABLE", False)
+    d_t, c_t = planesweep.joint_bilateral_upsample(depth, conf, guide_lo, guide_hi)
+    assert d_c.shape == (14, 19)
+    np.testing.assert_allclose(d_c.numpy(), d_t.numpy(), rtol=1e-6, atol=0)
+    assert torch.equal(c_c, c_t)
