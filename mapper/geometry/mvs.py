@@ -217,28 +217,38 @@ def local_std(gray: torch.Tensor, radius: int) -> torch.Tensor:
 
 
 @contextmanager
-def compute_threads(n: int) -> Iterator[None]:
+def compute_threads(n: int, blas: Any = None) -> Iterator[None]:
     """Limit torch, OpenCV and BLAS to ``n`` threads for the duration, then restore the caller's settings.
 
     The work here is many small operations; on a busy 2-core machine worker threads of each library spin
-    waiting for each other and measured 3-10x slower than one thread.
+    waiting for each other and measured 3-10x slower than one thread. ``blas``: a ``threadpoolctl``
+    ``ThreadpoolController`` to reuse (finding the loaded libraries costs ~10 ms in a worker: not per call);
+    default: a fresh look when threadpoolctl is installed.
     """
     torch_before, cv_before = torch.get_num_threads(), cv2.getNumThreads()
     torch.set_num_threads(n)
     cv2.setNumThreads(n)
+    if blas is None:
+        blas = blas_controller()
     try:
-        from threadpoolctl import threadpool_limits
-    except ImportError:  # optional: without it BLAS keeps its own thread count
-        threadpool_limits = None
-    try:
-        if threadpool_limits is not None:
-            with threadpool_limits(limits=n):
+        if blas is not None:
+            with blas.limit(limits=n):
                 yield
         else:
             yield
     finally:
         torch.set_num_threads(torch_before)
         cv2.setNumThreads(cv_before)
+
+
+def blas_controller() -> Any:
+    """A ``threadpoolctl.ThreadpoolController`` of the thread pools loaded now, None without threadpoolctl (optional:
+    BLAS then keeps its own thread count)."""
+    try:
+        from threadpoolctl import ThreadpoolController
+    except ImportError:
+        return None
+    return ThreadpoolController()
 
 
 class StageClock:
@@ -276,13 +286,20 @@ class MvsReconstructor:
         self._pair_rot = features.LruCache(self.config.cache_size * 16)  # (key a, key b) -> R_b_a, both orders
         self._depth = features.LruCache(self.config.cache_size)  # key -> (depth at sweep res, K sweep)
         self._reg_feats = features.LruCache(self.config.cache_size)  # registration features of map keyframes
+        self._blas: Any = None  # threadpoolctl controller, found at the first call (the libraries are loaded then)
+
+    def _threads(self) -> Any:
+        """:func:`compute_threads` with this reconstructor's thread count and its BLAS controller."""
+        if self._blas is None:
+            self._blas = blas_controller()
+        return compute_threads(self.config.threads, self._blas)
 
     def register(self, view: View, map_keyframes: Sequence[Any], config: Any = None) -> Any:
         """Pose of a view without extrinsics against mapped keyframes (``register.register_view``), reusing
         this reconstructor's feature cache across calls. Returns a ``PoseEstimate`` (check ``ok``)."""
         from mapper.geometry.register import register_view
 
-        with compute_threads(self.config.threads):
+        with self._threads():
             return register_view(view, map_keyframes, config, cache=self._reg_feats)
 
     # ---- features -------------------------------------------------------------------------------------
@@ -752,7 +769,7 @@ class MvsReconstructor:
     def reconstruct(self, views: Sequence[View], targets: Sequence[int] | None = None) -> FactoredReconstruction:
         if not views:
             raise ValueError("reconstruct needs at least one view")
-        with compute_threads(self.config.threads):
+        with self._threads():
             return self._reconstruct(views, targets)
 
     def _reconstruct(self, views: Sequence[View], targets: Sequence[int] | None) -> FactoredReconstruction:
