@@ -64,11 +64,17 @@ def test_compiled_sweep_cost_equals_opencv_torch_cost(monkeypatch: pytest.Monkey
 
 
 @pytest.mark.skipif(not kernels.AVAILABLE, reason="numba not installed")
-def test_column_argmax_is_the_first_maximum_of_each_column() -> None:
+def test_nearest_both_ways_matches_topk_and_argmax() -> None:
     g = torch.Generator().manual_seed(3)
-    for rows, cols in ((1, 1), (1, 5), (7, 1), (9, 13), (40, 3)):
-        m = torch.randint(0, 4, (rows, cols), generator=g).float()  # many ties: the first row must win
-        np.testing.assert_array_equal(kernels.column_argmax(m.numpy()), m.T.contiguous().argmax(dim=1).numpy())
+    for rows, cols in ((1, 2), (1, 5), (7, 2), (9, 13), (40, 3)):
+        m = torch.randint(0, 4, (rows, cols), generator=g).float()  # many ties: the first row must win a column
+        row_arg, top2, col_arg = kernels.nearest_both_ways(m.numpy())
+        np.testing.assert_array_equal(col_arg, m.T.contiguous().argmax(dim=1).numpy())
+        two = torch.topk(m, 2, dim=1)
+        np.testing.assert_array_equal(top2, two.values.numpy())
+        unique_max = two.values[:, 0] > two.values[:, 1]  # where topk's index is defined
+        np.testing.assert_array_equal(row_arg[unique_max.numpy()], two.indices[unique_max, 0].numpy())
+        np.testing.assert_array_equal(m.numpy()[np.arange(rows), row_arg], top2[:, 0])
 
 
 @pytest.mark.skipif(not kernels.AVAILABLE, reason="numba not installed")
