@@ -81,27 +81,6 @@ class TestPlaneSweep:
         assert sum(v for k, v in st.items() if k != "total") == pytest.approx(st["total"], rel=1e-6)
         assert st["total"] == pytest.approx(r.info["cpu_total_s"], rel=0.05, abs=0.02)
 
-    def test_neighbour_swept_for_a_check_is_not_swept_again(self, monkeypatch: pytest.MonkeyPatch) -> None:
-        """A source swept only to cross-check a target keeps its depth map: the next job that needs it for the
-        same check finds it in the cache."""
-        from mapper.geometry import planesweep
-
-        views = _plane_views(_texture(1200, 4))
-        swept: list[int] = []
-        sweep = planesweep.plane_sweep_depth
-
-        def counted(*args: object, **kwargs: object) -> object:
-            swept.append(1)
-            return sweep(*args, **kwargs)  # type: ignore[arg-type]
-
-        monkeypatch.setattr(planesweep, "plane_sweep_depth", counted)
-        rec = make_reconstructor("mvs", output_width=80, n_sources=2, consistency_views=2)
-        rec.reconstruct(views[:3], targets=[0])  # the target and both its sources (no depth maps yet)
-        assert len(swept) == 3
-        swept.clear()
-        rec.reconstruct([views[3], *views[:3]], targets=[0])  # whichever two sources: all have depth maps now
-        assert len(swept) == 1
-
     def test_unposed_view_is_registered_inside_reconstruct(self) -> None:
         views = _plane_views(_texture(1200, 2))
         truth = views[3].T_world_cam
