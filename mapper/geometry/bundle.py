@@ -80,7 +80,9 @@ def build_tracks(n_kp: list[int], pair_matches: dict[tuple[int, int], I64]) -> l
     (tracks that hit a view twice are inconsistent and dropped).
     """
     offsets = np.concatenate([[0], np.cumsum(n_kp)]).astype(np.int64)
-    parent = np.arange(offsets[-1], dtype=np.int64)
+    # Plain Python ints and lists: the union-find touches single elements, where numpy scalars cost ~10x.
+    parent = list(range(int(offsets[-1])))
+    pairs = [(int(offsets[i]), int(offsets[j]), m.tolist()) for (i, j), m in pair_matches.items()]
 
     def find(x: int) -> int:
         root = x
@@ -90,29 +92,32 @@ def build_tracks(n_kp: list[int], pair_matches: dict[tuple[int, int], I64]) -> l
             parent[x], x = root, parent[x]
         return root
 
-    for (i, j), m in pair_matches.items():
+    for oi, oj, m in pairs:
         for a, b in m:
-            ra, rb = find(offsets[i] + int(a)), find(offsets[j] + int(b))
+            ra, rb = find(oi + a), find(oj + b)
             if ra != rb:
                 parent[max(ra, rb)] = min(ra, rb)
     groups: dict[int, list[int]] = {}
     used = set()
-    for (i, j), m in pair_matches.items():
+    for oi, oj, m in pairs:
         for a, b in m:
-            used.add(offsets[i] + int(a))
-            used.add(offsets[j] + int(b))
+            used.add(oi + a)
+            used.add(oj + b)
     for node in used:
         groups.setdefault(find(node), []).append(node)
-    tracks = []
-    for nodes in groups.values():
-        if len(nodes) < 2:
-            continue
-        nodes_a = np.array(sorted(nodes), dtype=np.int64)
-        views = np.searchsorted(offsets, nodes_a, side="right") - 1
-        if len(np.unique(views)) != len(views):
-            continue
-        tracks.append(np.stack([views, nodes_a - offsets[views]], axis=1))
-    return tracks
+    multi = [sorted(nodes) for nodes in groups.values() if len(nodes) >= 2]
+    if not multi:
+        return []
+    # All tracks at once: (view, keypoint) rows, then cut into one (L, 2) array per track.
+    nodes_a = np.fromiter((n for nodes in multi for n in nodes), np.int64)
+    views = np.searchsorted(offsets, nodes_a, side="right") - 1
+    rows = np.stack([views, nodes_a - offsets[views]], axis=1)
+    ends = np.cumsum([len(nodes) for nodes in multi])
+    # Nodes are sorted within a track, so a view seen twice shows up as two equal neighbours.
+    same_view = np.flatnonzero(views[1:] == views[:-1])
+    twice = np.zeros(len(multi), bool)
+    twice[np.searchsorted(ends, same_view + 1, side="right")[np.isin(same_view + 1, ends, invert=True)]] = True
+    return [t.copy() for t, bad in zip(np.split(rows, ends[:-1]), twice, strict=True) if not bad]
 
 
 def projection_matrix(K: F64, T_world_cam: F64) -> F64:

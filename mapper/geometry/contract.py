@@ -206,7 +206,13 @@ def factored_from_metric(
     if not depth_m:
         raise ValueError("need at least one view")
     T_first_world = np.linalg.inv(as_pose(T_world_cam[0]))
-    rays = [pixel_rays(k) for k in intrinsics]
+    by_camera: dict[tuple[float, ...], F32] = {}  # views with the same intrinsics share their rays: computed once
+    rays = []
+    for k in intrinsics:
+        key = (k.width, k.height, k.fx, k.fy, k.cx, k.cy)
+        if key not in by_camera:
+            by_camera[key] = pixel_rays(k)
+        rays.append(by_camera[key])
     return FactoredReconstruction(
         ray_dirs=np.stack(rays).astype(np.float32),
         depth_along_ray=np.stack([z_to_ray_depth(d, r) for d, r in zip(depth_m, rays, strict=True)]),

@@ -56,13 +56,20 @@ def match_features(a: Features, b: Features, ratio: float = 0.8) -> NDArray[np.i
         return np.zeros((0, 2), np.int64)
     import torch
 
+    from mapper.geometry import kernels
+
     da = torch.from_numpy(np.ascontiguousarray(a.desc, dtype=np.float32))
     db = torch.from_numpy(np.ascontiguousarray(b.desc, dtype=np.float32))
     sim = da @ db.T
-    two = torch.topk(sim, 2, dim=1)
-    nn_ab = two.indices[:, 0]
-    nn_ba = sim.T.contiguous().argmax(dim=1)  # a row-wise reduction on the transposed copy is the fast one
-    d2 = (2.0 - 2.0 * two.values).clamp_(min=0.0)
+    if kernels.AVAILABLE:
+        # A row whose maximum repeats fails the ratio test below whichever of its columns is named.
+        nn_ab_np, top2, nn_ba_np = kernels.nearest_both_ways(sim.numpy())
+        nn_ab, values, nn_ba = torch.from_numpy(nn_ab_np), torch.from_numpy(top2), torch.from_numpy(nn_ba_np)
+    else:
+        two = torch.topk(sim, 2, dim=1)
+        nn_ab, values = two.indices[:, 0], two.values
+        nn_ba = sim.T.contiguous().argmax(dim=1)  # a row-wise reduction on the transposed copy is the fast one
+    d2 = (2.0 - 2.0 * values).clamp_(min=0.0)
     # Lowe's test on distances (not squared): d1 < ratio * d2  <=>  d1^2 < ratio^2 * d2^2.
     ok = d2[:, 0] < (ratio * ratio) * d2[:, 1]
     # Mutual check: repetitive indoor textures make one-way matches much dirtier (measured on sim scenes).

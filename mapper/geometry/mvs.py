@@ -217,28 +217,38 @@ def local_std(gray: torch.Tensor, radius: int) -> torch.Tensor:
 
 
 @contextmanager
-def compute_threads(n: int) -> Iterator[None]:
+def compute_threads(n: int, blas: Any = None) -> Iterator[None]:
     """Limit torch, OpenCV and BLAS to ``n`` threads for the duration, then restore the caller's settings.
 
     The work here is many small operations; on a busy 2-core machine worker threads of each library spin
-    waiting for each other and measured 3-10x slower than one thread.
+    waiting for each other and measured 3-10x slower than one thread. ``blas``: a ``threadpoolctl``
+    ``ThreadpoolController`` to reuse (finding the loaded libraries costs ~10 ms in a worker: not per call);
+    default: a fresh look when threadpoolctl is installed.
     """
     torch_before, cv_before = torch.get_num_threads(), cv2.getNumThreads()
     torch.set_num_threads(n)
     cv2.setNumThreads(n)
+    if blas is None:
+        blas = blas_controller()
     try:
-        from threadpoolctl import threadpool_limits
-    except ImportError:  # optional: without it BLAS keeps its own thread count
-        threadpool_limits = None
-    try:
-        if threadpool_limits is not None:
-            with threadpool_limits(limits=n):
+        if blas is not None:
+            with blas.limit(limits=n):
                 yield
         else:
             yield
     finally:
         torch.set_num_threads(torch_before)
         cv2.setNumThreads(cv_before)
+
+
+def blas_controller() -> Any:
+    """A ``threadpoolctl.ThreadpoolController`` of the thread pools loaded now, None without threadpoolctl (optional:
+    BLAS then keeps its own thread count)."""
+    try:
+        from threadpoolctl import ThreadpoolController
+    except ImportError:
+        return None
+    return ThreadpoolController()
 
 
 class StageClock:
@@ -276,13 +286,20 @@ class MvsReconstructor:
         self._pair_rot = features.LruCache(self.config.cache_size * 16)  # (key a, key b) -> R_b_a, both orders
         self._depth = features.LruCache(self.config.cache_size)  # key -> (depth at sweep res, K sweep)
         self._reg_feats = features.LruCache(self.config.cache_size)  # registration features of map keyframes
+        self._blas: Any = None  # threadpoolctl controller, found at the first call (the libraries are loaded then)
+
+    def _threads(self) -> Any:
+        """:func:`compute_threads` with this reconstructor's thread count and its BLAS controller."""
+        if self._blas is None:
+            self._blas = blas_controller()
+        return compute_threads(self.config.threads, self._blas)
 
     def register(self, view: View, map_keyframes: Sequence[Any], config: Any = None) -> Any:
         """Pose of a view without extrinsics against mapped keyframes (``register.register_view``), reusing
         this reconstructor's feature cache across calls. Returns a ``PoseEstimate`` (check ``ok``)."""
         from mapper.geometry.register import register_view
 
-        with compute_threads(self.config.threads):
+        with self._threads():
             return register_view(view, map_keyframes, config, cache=self._reg_feats)
 
     # ---- features -------------------------------------------------------------------------------------
@@ -408,8 +425,13 @@ class MvsReconstructor:
         if not tracks:
             return np.zeros((0, 3)), []
         tracks = sorted(tracks, key=len, reverse=True)[: self.config.max_tracks]
-        Ps = [bundle.projection_matrix(p.K, T) if T is not None else None for p, T in zip(prep, poses, strict=True)]
-        posed_tracks = [tr[[Ps[int(v)] is not None for v in tr[:, 0]]] for tr in tracks]
+        posed = np.array([T is not None for T in poses])
+        # Every view's projection (zeros where unposed: no posed track reads them) and keypoints, indexed at once.
+        P_all = np.stack([bundle.projection_matrix(p.K, T) if T is not None else np.zeros((3, 4))
+                          for p, T in zip(prep, poses, strict=True)])
+        uv_all = np.concatenate([p.feats.uv.reshape(-1, 2) for p in prep])
+        uv_start = np.concatenate([[0], np.cumsum([len(p.feats) for p in prep])[:-1]]).astype(np.int64)
+        posed_tracks = [tr[posed[tr[:, 0]]] for tr in tracks]
         posed_tracks = [tr for tr in posed_tracks if len(tr) >= 2]
         # Batched DLT: tracks of the same length share one stacked SVD.
         cand, cand_obs = [], []
@@ -417,8 +439,9 @@ class MvsReconstructor:
         for tr in posed_tracks:
             by_len.setdefault(len(tr), []).append(tr)
         for group in by_len.values():
-            Pg = np.stack([np.stack([cast(F64, Ps[int(v)]) for v in tr[:, 0]]) for tr in group])  # (T, L, 3, 4)
-            uv = np.stack([np.stack([prep[int(v)].feats.uv[int(k)] for v, k in tr]) for tr in group])  # (T, L, 2)
+            obs_g = np.stack(group)  # (T, L, 2): view, keypoint
+            Pg = P_all[obs_g[..., 0]]  # (T, L, 3, 4)
+            uv = uv_all[uv_start[obs_g[..., 0]] + obs_g[..., 1]]  # (T, L, 2)
             Xg = bundle.triangulate_many(Pg, uv)
             for X, tr in zip(Xg, group, strict=True):
                 if np.all(np.isfinite(X)):
@@ -746,7 +769,7 @@ class MvsReconstructor:
     def reconstruct(self, views: Sequence[View], targets: Sequence[int] | None = None) -> FactoredReconstruction:
         if not views:
             raise ValueError("reconstruct needs at least one view")
-        with compute_threads(self.config.threads):
+        with self._threads():
             return self._reconstruct(views, targets)
 
     def _reconstruct(self, views: Sequence[View], targets: Sequence[int] | None) -> FactoredReconstruction:
@@ -809,6 +832,9 @@ class MvsReconstructor:
                         continue
                     with clock("sweep"):
                         d, _ = self._sweep(s, prep, poses, pts, grays, *shapes[s])
+                    # Not cached for later jobs: swept again there with their own poses and sparse points, it
+                    # agrees with their target better (cached, the sim's early keyframes lost up to 0.64 of
+                    # their confident pixels: a map swept in a two-view window with refined odometry priors).
                     neigh_depth[s] = (d, prep[s].intr.scaled(*shapes[s]).K())
                     have += 1
         info["t_dense_s"] = time.perf_counter() - t_dense

@@ -9,6 +9,7 @@ with a parabola fit between planes. Confidence comes later from multi-view geome
 
 from __future__ import annotations
 
+from collections.abc import Iterable
 from dataclasses import dataclass
 
 import cv2
@@ -77,15 +78,27 @@ def _census_cost(warped: torch.Tensor, ref_bits: torch.Tensor, radius: int, stri
     return torch.from_numpy(out)
 
 
-def warp_grid(K_ref: F64, K_src: F64, T_src_ref: F64, depths: torch.Tensor, h: int, w: int) -> torch.Tensor:
-    """Source-image pixel coordinates (D, H, W, 2) of every reference pixel on every depth plane."""
+OUTSIDE_COST = 0.6
+"""Census cost where a plane's pixel falls outside the source image: no evidence, a pessimistic cost lets the other
+sources decide."""
+
+
+def rotated_rays(K_ref: F64, T_src_ref: F64, h: int, w: int) -> torch.Tensor:
+    """Reference pixel rays (z = 1) rotated into the source camera's axes: (H, W, 3) float32."""
     u = torch.arange(w, dtype=torch.float32)
     v = torch.arange(h, dtype=torch.float32)
     vv, uu = torch.meshgrid(v, u, indexing="ij")
     rays = torch.stack([(uu - K_ref[0, 2]) / K_ref[0, 0], (vv - K_ref[1, 2]) / K_ref[1, 1], torch.ones_like(uu)], -1)
     R = torch.as_tensor(T_src_ref[:3, :3], dtype=torch.float32)
+    return rays @ R.T
+
+
+def warp_grid(K_ref: F64, K_src: F64, T_src_ref: F64, depths: torch.Tensor, h: int, w: int,
+              rays_src: torch.Tensor | None = None) -> torch.Tensor:
+    """Source-image pixel coordinates (D, H, W, 2) of every reference pixel on every depth plane. ``rays_src``:
+    :func:`rotated_rays` of the same arguments when the caller already has them (they do not depend on depth)."""
+    Rr = rotated_rays(K_ref, T_src_ref, h, w) if rays_src is None else rays_src  # (H, W, 3)
     t = torch.as_tensor(T_src_ref[:3, 3], dtype=torch.float32)
-    Rr = rays @ R.T  # (H, W, 3)
     p = depths.view(-1, 1, 1, 1) * Rr.unsqueeze(0) + t  # (D, H, W, 3)
     z = p[..., 2].clamp(min=1e-4)
     us = p[..., 0] / z * float(K_src[0, 0]) + float(K_src[0, 2])
@@ -107,7 +120,8 @@ def warp_planes(
     """
     src_np = np.ascontiguousarray(src.numpy(), dtype=np.float32)
     hs, ws = src_np.shape
-    ones = np.ones_like(src_np)
+    ones = np.ones(src_np.shape, np.uint8)  # nearest-neighbour warps copy, so the type does not change the mask
+    rays_src: torch.Tensor | None = None  # for planes partly behind the source, computed once
     R, t = T_src_ref[:3, :3], T_src_ref[:3, 3]
     K_ref_inv = np.linalg.inv(K_ref)
     n = np.array([0.0, 0.0, 1.0])
@@ -121,10 +135,13 @@ def warp_planes(
         warped[i] = cv2.warpPerspective(src_np, H, (w, h), flags=flags, borderMode=cv2.BORDER_REPLICATE)
         z_corners = (R @ (rays * d))[2] + t[2]
         if np.all(z_corners > 1e-4):  # z is affine in the pixel on a plane: corners in front => all in front
-            inside[i] = cv2.warpPerspective(ones, H, (w, h), flags=cv2.INTER_NEAREST | cv2.WARP_INVERSE_MAP,
-                                            borderMode=cv2.BORDER_CONSTANT, borderValue=0.0) > 0.5
+            cv2.warpPerspective(ones, H, (w, h), dst=inside[i].view(np.uint8),
+                                flags=cv2.INTER_NEAREST | cv2.WARP_INVERSE_MAP, borderMode=cv2.BORDER_CONSTANT,
+                                borderValue=0)
         else:  # part of the plane is behind the source camera: test every pixel
-            g = warp_grid(K_ref, K_src, T_src_ref, depths[i: i + 1], h, w)[0].numpy()
+            if rays_src is None:
+                rays_src = rotated_rays(K_ref, T_src_ref, h, w)
+            g = warp_grid(K_ref, K_src, T_src_ref, depths[i: i + 1], h, w, rays_src)[0].numpy()
             inside[i] = (g[..., 0] >= 0) & (g[..., 0] <= ws - 1) & (g[..., 1] >= 0) & (g[..., 1] <= hs - 1)
     return torch.from_numpy(warped), torch.from_numpy(inside)
 
@@ -139,17 +156,26 @@ def sweep_cost(
     params: SweepParams,
 ) -> torch.Tensor:
     """Matching cost volume (D, H, W) in [0, 1]: mean census cost of the best sources per pixel and plane."""
+    assert src_grays, "sweep_cost needs at least one source"
     h, w = ref_gray.shape
     ref_bits = census_bits(ref_gray, params.census_radius, params.census_stride)
-    # Streaming k-best (k <= 2) over sources: no (S, D, H, W) stack is ever built.
-    k_best = min(params.best_k_sources, len(src_grays), 2)
+    warps = (warp_planes(src, K_ref, K_s, T, depths, h, w)
+             for src, K_s, T in zip(src_grays, K_srcs, T_src_ref, strict=True))
+    best_two = _best_two_compiled if kernels.AVAILABLE else _best_two_torch
+    best1, best2 = best_two(warps, ref_bits, params.census_radius, params.census_stride)
+    if min(params.best_k_sources, 2) == 1 or best2 is None:
+        return best1
+    return 0.5 * (best1 + best2)
+
+
+def _best_two_torch(warps: Iterable[tuple[torch.Tensor, torch.Tensor]], ref_bits: torch.Tensor, radius: int,
+                    stride: int) -> tuple[torch.Tensor, torch.Tensor | None]:
+    """The cheapest and second cheapest census cost (D, H, W) per pixel and plane over the sources' warped planes
+    and masks (None: a single source), streamed: no (S, D, H, W) stack is ever built."""
     best1: torch.Tensor | None = None
     best2: torch.Tensor | None = None
-    for src, K_s, T in zip(src_grays, K_srcs, T_src_ref, strict=True):
-        warped, inside = warp_planes(src, K_ref, K_s, T, depths, h, w)
-        c = _census_cost(warped, ref_bits, params.census_radius, params.census_stride)
-        # Outside the source image there is no evidence: a pessimistic cost lets other sources decide.
-        c.masked_fill_(~inside, 0.6)
+    for warped, inside in warps:
+        c = _census_cost(warped, ref_bits, radius, stride).masked_fill_(~inside, OUTSIDE_COST)
         if best1 is None:
             best1 = c
         elif best2 is None:
@@ -157,10 +183,24 @@ def sweep_cost(
         else:
             best2 = torch.minimum(best2, torch.maximum(best1, c))
             best1 = torch.minimum(best1, c)
-    assert best1 is not None, "sweep_cost needs at least one source"
-    if k_best == 1 or best2 is None:
-        return best1
-    return 0.5 * (best1 + best2)
+    assert best1 is not None
+    return best1, best2
+
+
+def _best_two_compiled(warps: Iterable[tuple[torch.Tensor, torch.Tensor]], ref_bits: torch.Tensor, radius: int,
+                       stride: int) -> tuple[torch.Tensor, torch.Tensor | None]:
+    """:func:`_best_two_torch` with the census cost and the running minima fused in one compiled pass per source
+    (``kernels.census_best``): the same numbers."""
+    offsets = census_offsets(radius, stride)
+    bits = ref_bits.numpy()
+    best1 = best2 = np.empty(0, np.float32)
+    n = 0
+    for warped, inside in warps:
+        if n == 0:
+            best1, best2 = np.empty(warped.shape, np.float32), np.empty(warped.shape, np.float32)
+        kernels.census_best(warped.numpy(), bits, offsets, radius, inside.numpy(), OUTSIDE_COST, best1, best2, n)
+        n += 1
+    return torch.from_numpy(best1), torch.from_numpy(best2) if n > 1 else None
 
 
 def _aggregate_path(cost: torch.Tensor, dim: int, reverse: bool, p1: torch.Tensor, p2: torch.Tensor) -> torch.Tensor:
@@ -212,11 +252,12 @@ def _sgm_aggregate_torch(cost: torch.Tensor, p1: float, p2x: torch.Tensor, p2y: 
 def winner_depth(agg: torch.Tensor, inv_depths: torch.Tensor) -> torch.Tensor:
     """Winner-take-all plane with a parabola fit between planes: depth (H, W), 0 where the winner is a range end."""
     d_n = agg.shape[0]
-    idx = agg.argmin(dim=0)
-    i0 = idx.clamp(1, d_n - 2).unsqueeze(0)
-    c0 = agg.gather(0, i0 - 1)[0]
-    c1 = agg.gather(0, i0)[0]
-    c2 = agg.gather(0, i0 + 1)[0]
+    # Each pixel's planes side by side ((H, W, D), as SGM leaves them: no copy then) make the search one pass.
+    hwd = np.ascontiguousarray(agg.permute(1, 2, 0).numpy())
+    idx_np = hwd.argmin(axis=2)  # the first of equal minima, as torch's argmin
+    i0_np = np.clip(idx_np, 1, d_n - 2)
+    c0, c1, c2 = (torch.from_numpy(np.take_along_axis(hwd, (i0_np + k)[..., None], axis=2)[..., 0]) for k in (-1, 0, 1))
+    idx, i0 = torch.from_numpy(idx_np), torch.from_numpy(i0_np).unsqueeze(0)
     denom = c0 - 2 * c1 + c2
     offset = torch.where(denom > 1e-6, 0.5 * (c0 - c2) / denom.clamp(min=1e-6), torch.zeros_like(c1))
     offset = offset.clamp(-0.5, 0.5)
@@ -313,6 +354,10 @@ def joint_bilateral_upsample(
     xs = (torch.arange(W, dtype=torch.float32) + 0.5) * w / W - 0.5
     yi = ys.round().long().clamp(0, h - 1)
     xi = xs.round().long().clamp(0, w - 1)
+    if kernels.AVAILABLE:
+        out = kernels.bilateral_upsample(depth.numpy(), conf.numpy(), guide_lo.numpy(), guide_hi.numpy(), sigma_color,
+                                         ys.numpy(), xs.numpy(), yi.numpy(), xi.numpy())
+        return torch.from_numpy(out[0]), torch.from_numpy(out[1])
     num_d = torch.zeros(H, W)
     den = torch.zeros(H, W)
     best_w = torch.full((H, W), -1.0)

@@ -120,13 +120,16 @@ class ClassicalSegmenter:
         for k in range(1, n_cc):
             if stats[k, cv2.CC_STAT_AREA] < 20:
                 continue
-            sel = cc == k
-            p = points[sel]
+            # Within the region's bounding box only: the same pixels in the same order as over the whole image.
+            x0, y0 = stats[k, cv2.CC_STAT_LEFT], stats[k, cv2.CC_STAT_TOP]
+            box = np.s_[y0: y0 + stats[k, cv2.CC_STAT_HEIGHT], x0: x0 + stats[k, cv2.CC_STAT_WIDTH]]
+            sel = cc[box] == k
+            p = points[box][sel]
             zr = np.percentile(p[:, 2], [2, 98])
             xy = p[:, :2]
             width = float(np.linalg.norm(np.percentile(xy, 98, axis=0) - np.percentile(xy, 2, axis=0)))
             if zr[1] - zr[0] >= cfg.wall_min_height_m and width >= cfg.wall_min_width_m:
-                walls |= sel
+                walls[box] |= sel
         return floor | ceiling | walls
 
 

@@ -34,3 +34,60 @@ def test_census_cost_equals_the_plain_definition() -> None:
     # Definition: for each plane, census bits of the warped image (edge-replicated) vs the reference's bits.
     want = np.stack([(planesweep.census_bits(p, radius, stride) != bits).float().mean(0).numpy() for p in warped])
     np.testing.assert_allclose(got, want, atol=1e-6)
+
+
+@pytest.mark.skipif(not kernels.AVAILABLE, reason="numba not installed")
+@pytest.mark.parametrize("n_sources,best_k", [(1, 2), (2, 2), (3, 2), (3, 1)])
+def test_compiled_sweep_cost_equals_opencv_torch_cost(monkeypatch: pytest.MonkeyPatch, n_sources: int,
+                                                      best_k: int) -> None:
+    """The fused census + best-k kernel gives the OpenCV / torch path's cost volume bit for bit, planes partly
+    outside the sources and partly behind them included."""
+    g = torch.Generator().manual_seed(2)
+    h, w = 12, 16
+    K = np.array([[14.0, 0, 7.5], [0, 14.0, 5.5], [0, 0, 1]])
+    ref = torch.rand(h, w, generator=g)
+    srcs = [torch.rand(h, w, generator=g) for _ in range(n_sources)]
+    poses = []
+    for i in range(n_sources):
+        T = np.eye(4)
+        T[:3, 3] = [0.1 * (i + 1), -0.05 * i, -0.4 * i]  # the third source sits 0.8 m ahead: near planes behind it
+        poses.append(T)
+    depths = 1.0 / torch.linspace(1 / 4.0, 1 / 0.3, 10)
+    params = planesweep.SweepParams(n_planes=10, census_radius=2, census_stride=1, best_k_sources=best_k)
+    compiled = planesweep.sweep_cost(ref, srcs, K, [K] * n_sources, poses, depths, params)
+    monkeypatch.setattr(kernels, "AVAILABLE", False)
+    reference = planesweep.sweep_cost(ref, srcs, K, [K] * n_sources, poses, depths, params)
+    assert compiled.shape == (10, h, w)
+    assert torch.equal(compiled, reference)
+    _, inside = planesweep.warp_planes(srcs[-1], K, K, poses[-1], depths, h, w)
+    assert not inside.all()  # some pixels fall outside the last source
+
+
+@pytest.mark.skipif(not kernels.AVAILABLE, reason="numba not installed")
+def test_nearest_both_ways_matches_topk_and_argmax() -> None:
+    g = torch.Generator().manual_seed(3)
+    for rows, cols in ((1, 2), (1, 5), (7, 2), (9, 13), (40, 3)):
+        m = torch.randint(0, 4, (rows, cols), generator=g).float()  # many ties: the first row must win a column
+        row_arg, top2, col_arg = kernels.nearest_both_ways(m.numpy())
+        np.testing.assert_array_equal(col_arg, m.T.contiguous().argmax(dim=1).numpy())
+        two = torch.topk(m, 2, dim=1)
+        np.testing.assert_array_equal(top2, two.values.numpy())
+        unique_max = two.values[:, 0] > two.values[:, 1]  # where topk's index is defined
+        np.testing.assert_array_equal(row_arg[unique_max.numpy()], two.indices[unique_max, 0].numpy())
+        np.testing.assert_array_equal(m.numpy()[np.arange(rows), row_arg], top2[:, 0])
+
+
+@pytest.mark.skipif(not kernels.AVAILABLE, reason="numba not installed")
+def test_compiled_upsample_equals_torch_upsample(monkeypatch: pytest.MonkeyPatch) -> None:
+    """Same weights, same order of sums: confidence bit for bit, depth to float32 rounding of the exponentials."""
+    g = torch.Generator().manual_seed(4)
+    depth = torch.rand(9, 12, generator=g) * 3
+    depth[2:4, 5:9] = 0.0  # no depth there: weightless neighbours
+    conf = torch.rand(9, 12, generator=g)
+    guide_lo, guide_hi = torch.rand(3, 9, 12, generator=g), torch.rand(3, 14, 19, generator=g)
+    d_c, c_c = planesweep.joint_bilateral_upsample(depth, conf, guide_lo, guide_hi)
+    monkeypatch.setattr(kernels, "AVAILABLE", False)
+    d_t, c_t = planesweep.joint_bilateral_upsample(depth, conf, guide_lo, guide_hi)
+    assert d_c.shape == (14, 19)
+    np.testing.assert_allclose(d_c.numpy(), d_t.numpy(), rtol=1e-6, atol=0)
+    assert torch.equal(c_c, c_t)
