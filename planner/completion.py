@@ -194,14 +194,18 @@ def rooms_from_viewpoints(
 
 
 def assign_room(points_xy: np.ndarray, rooms: Sequence[RoomInfo]) -> list[str | None]:
-    """Room of each point: the room of the nearest viewpoint, if within its extent (else nearest anyway)."""
+    """Room of each point: the room of the nearest viewpoint, if within its extent (else nearest anyway). A room
+    with no viewpoint inside (a mapper room the navigation graph does not reach) is as near as its extent."""
     P = np.asarray(points_xy, dtype=np.float64).reshape(-1, 2)
     if not rooms or P.shape[0] == 0:
         return [None] * P.shape[0]
     best = np.full(P.shape[0], np.inf)
     out: list[str | None] = [None] * P.shape[0]
     for r in rooms:
-        d = np.min(np.linalg.norm(P[:, None, :] - r.vp_xy[None, :, :], axis=2), axis=1)
+        if len(r.vp_xy):
+            d = np.min(np.linalg.norm(P[:, None, :] - r.vp_xy[None, :, :], axis=2), axis=1)
+        else:
+            d = np.linalg.norm(P - np.clip(P, r.xy_min, r.xy_max), axis=1)
         inside = np.all((P >= r.xy_min) & (P <= r.xy_max), axis=1)
         score = d - 10.0 * inside  # prefer rooms whose extent contains the point
         for i in np.flatnonzero(score < best):

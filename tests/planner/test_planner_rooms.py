@@ -7,7 +7,7 @@ import math
 import numpy as np
 
 from planner import synthetic as S
-from planner.completion import UNEXPLORED, room_of_points, rooms_from_layer
+from planner.completion import UNEXPLORED, assign_room, room_of_points, rooms_from_layer
 from planner.config import AspConfig, PlannerConfig
 from planner.core import Planner
 from protocol.messages import Viewpoint
@@ -34,6 +34,14 @@ def test_rooms_from_the_layer_and_the_unexplored_rest() -> None:
     assert rooms["room1"].kind == "kitchen" and rooms["room2"].kind is None  # unknown: inferred from objects
     assert len(rooms["room1"].vp_xy) == 1 and len(rooms["room2"].vp_xy) == 2 and len(rooms[UNEXPLORED].vp_xy) == 1
     assert room_of_points(np.array([[-0.5, 0.0], [9.0, 9.0]]), LAYER) == ["room1", None]
+
+
+def test_a_map_room_without_a_viewpoint_still_takes_its_objects() -> None:
+    """The demo's planner failed every decision once the mapper's layer had a room no viewpoint lies in (an empty
+    minimum): such a room is as near as its outline."""
+    rooms = rooms_from_layer(LAYER, np.array([[-1.0, 0.0], [7.0, 0.0]]))
+    assert len(next(r for r in rooms if r.name == "room2").vp_xy) == 0
+    assert assign_room(np.array([[1.5, 0.5], [-1.0, 0.2], [6.5, 0.0]]), rooms) == ["room2", "room1", UNEXPLORED]
 
 
 def test_frontier_and_goal_know_their_room() -> None:
