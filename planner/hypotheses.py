@@ -94,7 +94,9 @@ def _room_props(
     hi = np.maximum(np.asarray(hi, dtype=np.float64), lo + 1e-3)
     if placement in ("floor", "ceiling"):
         pad = np.minimum(np.array([w, w]) / 2, (hi - lo) / 2)
-        xy = rng.uniform(lo + pad, hi - pad, size=(n, 2))
+        # A room narrower than the object: its middle, where lo + pad may round past hi - pad
+        low = lo + pad
+        xy = rng.uniform(low, np.maximum(hi - pad, low), size=(n, 2))
         z = np.full(n, CEILING_Z_M if placement == "ceiling" else h / 2)
         return np.column_stack([xy, z]), placement == "floor"
     # floor_wall, wall_mounted, on (no parent): along one of the four sides of the room

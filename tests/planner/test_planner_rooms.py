@@ -85,3 +85,13 @@ def test_a_focus_room_keeps_the_goals_inside_it() -> None:
     planner = Planner(PlannerConfig(strategy="see", focus_room="bathroom"))  # no such room: no focus
     planner.rooms = LAYER
     assert planner.plan(S.snapshot([]), pm, {"r1": (state, vset)})
+
+
+def test_hypotheses_in_a_room_narrower_than_the_object() -> None:
+    """A map room 0.9 m wide (outline on the 0.1 m grid) and a 2 m object: the proposals go down its middle; the
+    lower bound used to round past the upper one ('high - low < 0') and every decision of the demo failed."""
+    from planner.hypotheses import _room_props
+
+    lo, hi = np.array([-1.1, -1.1]), np.array([-0.2, -0.2])
+    xy, on_floor = _room_props(lo, hi, "floor", 2.0, 0.5, 0.5, 8, np.random.default_rng(0))
+    assert on_floor and np.allclose(xy[:, :2], -0.65)
