@@ -80,6 +80,7 @@ class PlanInfo:
     room_source: str = ""  # where asp's rooms came from: map or viewpoints
     frontier_by_room: dict[str, int] = field(default_factory=dict)  # see's frontier points per mapper room
     hypotheses_by_room: dict[str, int] = field(default_factory=dict)  # asp's hypotheses per room
+    hypotheses_error: str = ""  # asp's completions failed this decision (the error): it planned by frontiers
 
 
 @dataclass
@@ -322,7 +323,13 @@ class Planner:
         self.info = PlanInfo(sampler=getattr(self.sampler, "name", ""))
         cands = self._begin(robots)
         ctx = self._context(point_map, cands)
-        hyps = self._hypotheses(snapshot, robots, ctx) if self.config.strategy == "asp" else None
+        hyps = None
+        if self.config.strategy == "asp":
+            try:
+                hyps = self._hypotheses(snapshot, robots, ctx)
+            except Exception as e:  # noqa: BLE001 - a completion bug must not leave the robots without goals
+                log.exception("asp's completions failed: this decision plans by frontiers (see)")
+                self.info.hypotheses_error = f"{type(e).__name__}: {e}"
         goals: list[NbvGoal] = []
         for rid in sorted(robots):
             state, vps = robots[rid]

@@ -93,6 +93,9 @@ class PlannerNode(PlannerInbox, Process):
         finally:
             self._release_heap()
         info = self.planner.info
+        if info.hypotheses_error:
+            self.counters.add("plan_hypotheses_errors")
+            self._reporter_error(f"asp's completions failed, planned by frontiers: {info.hypotheses_error}")
         self.counters.add("decisions")
         self.counters.set("decision_ms_last", info.decision_s * 1e3)
         self.counters.set("decision_cpu_ms_last", info.decision_cpu_s * 1e3)

@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import pytest
 
 from planner import synthetic as S
 from planner.completion import UNEXPLORED, assign_room, room_of_points, rooms_from_layer
@@ -95,3 +96,16 @@ def test_hypotheses_in_a_room_narrower_than_the_object() -> None:
     lo, hi = np.array([-1.1, -1.1]), np.array([-0.2, -0.2])
     xy, on_floor = _room_props(lo, hi, "floor", 2.0, 0.5, 0.5, 8, np.random.default_rng(0))
     assert on_floor and np.allclose(xy[:, :2], -0.65)
+
+
+def test_asp_plans_by_frontiers_when_its_completions_fail(monkeypatch: pytest.MonkeyPatch) -> None:
+    """A bug in the completion step costs one decision its semantic gain, not the robot its goal."""
+    planner = Planner(PlannerConfig(strategy="asp", asp=AspConfig(n_completions=2, n_jitter=1)))
+
+    def broken(*_: object) -> None:
+        raise ValueError("high - low < 0")
+
+    monkeypatch.setattr(planner, "_hypotheses", broken)
+    pm = S.point_map(closed_room(True), VOXEL, counts=5.0)
+    goals = planner.plan(S.snapshot([]), pm, {"r1": (S.robot_state("r1", 0.5, 0.5, math.pi / 2), two_view_set())})
+    assert len(goals) == 1 and planner.info.hypotheses_error == "ValueError: high - low < 0"
