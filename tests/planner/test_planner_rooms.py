@@ -56,7 +56,7 @@ def test_frontier_and_goal_know_their_room() -> None:
 
 
 def test_asp_uses_the_map_rooms_when_it_has_them() -> None:
-    cfg = PlannerConfig(strategy="asp", asp=AspConfig(n_completions=2, n_jitter=1))
+    cfg = PlannerConfig(strategy="asp", asp=AspConfig(n_completions=2, n_jitter=1), rooms="auto")
     planner = Planner(cfg)
     pm = S.point_map(closed_room(True), VOXEL, counts=5.0)
     robots = {"r1": (S.robot_state("r1", 0.5, 0.5, math.pi / 2), two_view_set())}
