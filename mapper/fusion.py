@@ -269,6 +269,17 @@ class FusionConfig(BaseModel):
         description="a miss needs at most this fraction of the node's pixels behind something nearer: a "
         "passer-by that hides part of an object can shrink its detection away",
     )
+    absence_mixed_sight_deg: float = Field(
+        default=45.0, ge=0.0, le=180.0,
+        description="a moving camera (a robot) that sees a node's place partly seen through and partly a surface "
+        "(mapper.absence's MIXED: a low table gone from beside a sofa leaves the sofa within the depth margin) and "
+        "detects nothing there counts a miss, as a fixed camera does, when a detection of the node was seen "
+        "along a line within this many degrees of its view of the node, from no more than "
+        "absence_mixed_max_range_x as far (it saw the object from about there); 0 disables",
+    )
+    absence_mixed_max_range_x: float = Field(
+        default=1.5, gt=0.0, description="... the distance of the view at most this multiple of that sighting's"
+    )
     absence_margin_m: float = Field(
         default=0.1, ge=0.0,
         description="absence: depth beyond (or before) the node's surface by this much, metres, plus "
@@ -966,10 +977,11 @@ class ObjectMap:
         judged = self.absence_judgements(view) if view is not None and self.cfg.absence_check else {}
         verdicts = {k: j.verdict for k, j in judged.items()}
         # Nodes this fixed camera detected before and now sees clear: not detected here, they count a miss.
-        missable = {k for k, j in judged.items() if fixed and self.cfg.absence_missed_to_retire > 0
-                    and j.verdict in (Verdict.THERE, Verdict.MIXED)
+        # A moving camera's MIXED view counts a miss where the node was detected from about there before.
+        missable = {k for k, j in judged.items() if self.cfg.absence_missed_to_retire > 0
                     and j.occluded <= self.cfg.absence_missed_max_occluded * j.pixels
-                    and source_id in self.nodes[k].sources}
+                    and (j.verdict in (Verdict.THERE, Verdict.MIXED) and fixed and source_id in self.nodes[k].sources
+                         or j.verdict is Verdict.MIXED and not fixed and self._sighted_from(self.nodes[k], view))}
         inside = (self.containment(objects, view) if view is not None and self.cfg.mask_association
                   else [{} for _ in objects])
         # Match everything against the map as it was before this view: detections of one view are
@@ -1041,6 +1053,25 @@ class ObjectMap:
             if j.verdict is not Verdict.UNKNOWN:
                 out[node_id] = j
         return out
+
+    def _sighted_from(self, node: NodeState, view: KeyframeView | None) -> bool:
+        """Whether a detection of ``node`` was seen along a line within ``absence_mixed_sight_deg`` of ``view``'s
+        line to it, from at least 1 / ``absence_mixed_max_range_x`` of ``view``'s distance (``node.sight``):
+        a camera there would have detected it."""
+        cfg = self.cfg
+        if view is None or cfg.absence_mixed_sight_deg <= 0 or not node.sight:
+            return False
+        o = np.asarray(view.T_world_cam[:3, 3], np.float64)
+        c = np.asarray(node.centre, np.float64)
+        dist = float(np.linalg.norm(c - o))
+        if dist < 1e-9:
+            return False
+        cos_max = math.cos(math.radians(cfg.absence_mixed_sight_deg))
+        for so, sd in node.sight:
+            if float(np.dot(sd, (c - o) / dist)) >= cos_max \
+                    and dist <= cfg.absence_mixed_max_range_x * float(np.linalg.norm(c - so)):
+                return True
+        return False
 
     def _moving(self, obj: Object3D, verdicts: dict[str, Verdict], missable: set[str], taken: set[str]
                 ) -> NodeState | None:

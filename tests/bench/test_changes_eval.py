@@ -10,7 +10,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from bench.changes import ChangeScorer, live_nodes, place_visible
+from bench.changes import ChangeScorer, live_nodes, place_seen, place_visible
 from protocol.messages import GraphNode, Intrinsics, OrientedBox
 from protocol.poses import look_at
 from sim.changes import ChangingScene, add_edit, move_edit, remove_edit
@@ -72,7 +72,8 @@ def test_time_to_right_stale_nodes_and_false_retirements(world: ChangingScene) -
         6.0: [_node("n3", "storage box", box_new)],
         7.0: [_node("n3", "storage box", box_new), _node("n4", "backpack", bag)],
     }
-    samples = [sc.observe(t, nodes) for t, nodes in timeline.items()]
+    # the mapper says it retired n9 as seen gone (the mug's n2 went some other way)
+    samples = [sc.observe(t, nodes, retired={"n9"} if t >= 5.0 else ()) for t, nodes in timeline.items()]
     assert samples[0]["precision"] == 1.0 and samples[0]["nodes"] == 3 and samples[0]["person_nodes"] == 1
     assert [s["stale"] for s in samples] == [0, 0, 1, 1, 1, 0, 0, 0]
     res = sc.result()
@@ -82,10 +83,12 @@ def test_time_to_right_stale_nodes_and_false_retirements(world: ChangingScene) -
     assert by_kind["remove"]["time_to_right_s"] == 1.0 and by_kind["remove"]["known_before"] is True
     assert by_kind["add"]["time_to_right_s"] == 1.0 and by_kind["add"]["known_before"] is None
     fr = res["false_retirements"]
-    assert [(r["obj_id"], r["node_id"], r["t_s"], r["person"]) for r in fr] == [(9, "n9", 5.0, True)]
+    assert [(r["obj_id"], r["node_id"], r["t_s"], r["person"], r["seen_gone"]) for r in fr] == [
+        (9, "n9", 5.0, True, True)]
     s = res["summary"]
     assert s["right"] == 3 and s["all_p50_s"] == 1.0 and s["all_p90_s"] == 2.0
     assert s["false_retirements"] == 1 and s["false_retirements_people"] == 1 and s["person_nodes"] == 1
+    assert s["false_retirements_seen_gone"] == 1
     assert s["stale_max"] == 1 and s["moves_kept_id"] == "0/1"
 
 
@@ -132,6 +135,12 @@ def test_retired_nodes_are_gone_and_places_are_seen() -> None:
     assert place_visible((3.2, 0.0, 1.0), K, T, depth)  # just behind a surface: within the margin
     assert not place_visible((5.0, 0.0, 1.0), K, T, depth)  # hidden
     assert not place_visible((-2.0, 0.0, 1.0), K, T, depth)  # behind the camera
+    # a place is seen when most of it is: not its centre through a doorway in a wall
+    box = OrientedBox(center=(2.0, 0.0, 1.0), extent=(0.6, 0.6, 0.6))
+    assert place_seen(box, K, T, depth)
+    wall = np.full((100, 100), 1.0, np.float32)
+    wall[:, 47:54] = 3.0  # a doorway 7 pixels wide
+    assert place_visible(box.center, K, T, wall) and not place_seen(box, K, T, wall)
 
 
 @pytest.mark.slow

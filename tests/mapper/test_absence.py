@@ -487,13 +487,28 @@ class TestMixed:
             assert not res.removed and res.seen_gone == {chair} and om.nodes[chair].missed == t + 1
         assert om.integrate(objs, "cam1", 12, kv, fixed=True).removed == {chair}
 
-    def test_mixed_views_from_a_robot_are_no_evidence(self) -> None:
+    def test_a_robot_counts_mixed_views_where_it_saw_the_object_from(self) -> None:
+        """A low table gone from beside a sofa: the robot that saw it from about here now sees part floor, part
+        sofa within the margin (MIXED) and detects nothing: misses, as a fixed camera counts them."""
         om = mapped({"chair": CHAIR})
         chair = node_of(om, "chair")
         kv, objs = keyframe({"bag": BAG})
-        for t in range(4):
-            assert not om.integrate(objs, "robot1", 10 + t, kv).removed
-        assert om.nodes[chair].absent == om.nodes[chair].missed == 0
+        for t in range(2):
+            res = om.integrate(objs, "robot1", 10 + t, kv)
+            assert not res.removed and res.seen_gone == {chair} and om.nodes[chair].missed == t + 1
+        assert om.integrate(objs, "robot1", 12, kv).removed == {chair}
+
+    def test_mixed_views_from_a_robot_elsewhere_or_switched_off_are_no_evidence(self) -> None:
+        side = [1.5, -2.4, 1.6]  # 90 degrees round from where the chair was detected
+        for cfg, eye in ((FusionConfig(merge_every_updates=100), side),
+                         (FusionConfig(merge_every_updates=100, absence_mixed_sight_deg=0.0), EYE)):
+            om = mapped({"chair": CHAIR}, cfg)
+            chair = node_of(om, "chair")
+            kv, objs = keyframe({"bag": BAG}, eye=eye)
+            assert om.absence_verdicts(kv)[chair] is Verdict.MIXED
+            for t in range(4):
+                assert not om.integrate(objs, "robot1", 10 + t, kv).removed
+            assert om.nodes[chair].absent == om.nodes[chair].missed == 0
 
 
 def seen_view(objects: dict[str, Box], occluders: dict[str, Box] | None = None) -> SeenView:
