@@ -510,9 +510,9 @@ def changes_markdown(res: dict[str, Any]) -> str:
             f"{cfg['right_m']} m of the new place and none is left at the old one (never: not by the episode's end). "
             f"F1 min calm / static: the lowest F1 outside {cfg['settle_s']:g} s after an edit over the same episode's "
             f"F1 without edits and people. Mapper s per sim s: the mapper's compute per simulated second here "
-            f"(the figures are in simulated time). False retirements: nodes of unchanged objects lost; people: a person "
-            f"came within {cfg['person_near_m']} m; seen gone: the mapper retired it on evidence of absence (the "
-            f"rest were merged or pruned by fusion); static episode: as many lost without edits and people.\n\n"
+            f"(the figures are in simulated time). False retirements: nodes of unchanged objects lost; people: a "
+            f"person came within {cfg['person_near_m']} m; seen gone: the mapper retired it on evidence of absence "
+            f"(the rest were merged or pruned by fusion); static episode: as many lost without edits and people.\n\n"
             + markdown_table(rows) + "\n\n### Edits\n\n"
             + markdown_table(edit_rows) + "\n")
 
