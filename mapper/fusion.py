@@ -1183,6 +1183,7 @@ class ObjectMap:
             # newcomer, a copy of it under another id, folds into it.
             self._move(node, Object3D(newcomer.points, "", 0.0, newcomer.descriptor), newcomer.first_seen_ns, res)
             self.merge_nodes(node, newcomer)
+            node.rays = list(newcomer.rays)  # a single-view camera's placement stays coarse (its checks go on)
             node.absent = node.missed = 0
             res.removed.add(newcomer.node_id)
             res.changed.add(node_id)
@@ -1191,12 +1192,14 @@ class ObjectMap:
     def _moved_before(self, node: NodeState, verdicts: dict[str, Verdict]) -> NodeState | None:
         """A node that is ``node`` seen at a new place before its old place was seen empty: first detected after
         ``node`` was last detected, never in one keyframe with it, its label and a similar descriptor
-        (``move_min_similarity``), at least ``move_min_m`` away and not itself seen gone; the nearest such one."""
+        (``move_min_similarity``), at least ``move_min_m`` away and not itself seen gone; the nearest such one.
+        Single-view (coarse) placements take part: a fixed camera without depth sees an object go that another
+        camera placed anew in its room."""
         ranking = node.label_ranking()
-        if node.rays or not ranking:
+        if not ranking:
             return None
         candidates = [(k, o) for k, o in self.nodes.items()
-                      if not (o is node or o.rays or o.first_seen_ns <= node.last_seen_ns or o.absent or o.missed
+                      if not (o is node or o.first_seen_ns <= node.last_seen_ns or o.absent or o.missed
                               or verdicts.get(k) is Verdict.FREE or seen_together(node, o))]
         return self._nearest_twin(ranking[0][0], node.descriptor, np.asarray(node.centre, np.float64), candidates)
 

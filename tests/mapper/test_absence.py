@@ -544,6 +544,29 @@ class TestSingleViewMisses:
         assert om.count_misses(now, None, "cam1", UpdateResult()) == set()
         assert om.count_misses(now, now, "cam1", UpdateResult()) == set()  # its geometry is elsewhere
 
+    def test_a_coarse_node_another_camera_placed_anew_moves_there_and_keeps_its_id(self) -> None:
+        """Fixed cameras without depth: cam1 placed the chair by single-view geometry; it is carried into cam2's
+        view, which places it anew; cam1's misses then move the old node there (same id, still coarse)."""
+        om = ObjectMap(FusionConfig(merge_every_updates=100))
+        _, objs = keyframe({"chair": CHAIR})
+        om.integrate([Object3D(objs[0].points, "chair", 0.9, label_descriptor("chair"),
+                               ray_origin=np.asarray(EYE, float))], "cam1", 1)
+        (chair,) = om.nodes
+        eye2 = [-1.2, 2.4, 1.5]
+        _, objs = keyframe({"chair": MOVED}, eye=eye2)
+        om.integrate([Object3D(objs[0].points, "chair", 0.9, label_descriptor("chair"),
+                               ray_origin=np.asarray(eye2, float))], "cam2", 5)
+        (newcomer,) = set(om.nodes) - {chair}
+        there = np.asarray(om.nodes[newcomer].centre)
+        before, now = seen_view({"chair": CHAIR}), seen_view({})
+        res = UpdateResult()
+        for t in range(3):
+            res = UpdateResult()
+            om.count_misses(now, before if t == 0 else now, "cam1", res)
+        assert set(om.nodes) == {chair} and set(res.moved) == {chair} and res.removed == {newcomer}
+        assert not res.retired and om.nodes[chair].rays  # still a single-view placement
+        assert np.linalg.norm(np.asarray(om.nodes[chair].centre) - there) < 1e-6
+
     def test_a_passer_by_in_front_or_another_camera_is_no_miss(self) -> None:
         om = mapped({"chair": CHAIR})
         chair = node_of(om, "chair")
