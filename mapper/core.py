@@ -45,6 +45,7 @@ from mapper.graph_store import GraphStore
 from mapper.intake import view_problem
 from mapper.keyframes import KeyframeSelector, KeyframeStore, intrinsics_of
 from mapper.perception.base import Detection, Embedder, Mask2D, Segmenter, ViewGeometry
+from mapper.perception.occluded import join_split_by_people
 from mapper.pointmap import VoxelMap
 from mapper.posegraph import Key, LoopCloser, node_move
 from mapper.relations import EdgeCache, compute_edges, refine_with_points
@@ -497,6 +498,7 @@ class MapperCore:
             times["perception"] = time.perf_counter() - t
         t = time.perf_counter()
         all_dets, dets = dets, self._not_people(dets)
+        dets = self._join_split_by_people(all_dets, dets)
         focal = intrinsics_of(view).K()[0, 0] * vg.depth_m.shape[1] / view.image.shape[1]
         objs, lift = lift_detections(dets, vg.points_world, vg.confidence, vg.depth_m, self.config.fusion, focal)
         self._count("detections", len(dets))
@@ -559,6 +561,18 @@ class MapperCore:
         kept = [d for d in dets if d.label.lower() not in people]
         self._count("detections_people", len(dets) - len(kept))
         return kept
+
+    def _join_split_by_people(self, all_dets: list[Detection], dets: list[Detection]) -> list[Detection]:
+        """``dets`` (people left out) with the pieces of one object a person of ``all_dets`` cut in two joined
+        (``fusion.join_split_by_people``, ``mapper.perception.occluded``)."""
+        fc = self.config.fusion
+        if not fc.join_split_by_people or fc.fuse_people or len(dets) == len(all_dets):
+            return dets
+        people = {p.lower() for p in fc.people_labels}
+        joined, n = join_split_by_people(dets, [d for d in all_dets if d.label.lower() in people],
+                                         fc.merge_similarity)
+        self._count("detections_joined_across_people", n)
+        return joined
 
     def _note_fused(self, key: Key, res: UpdateResult, keep: int = 16) -> None:
         """Remember that keyframe ``key`` changed the nodes of ``res`` (its last ``keep`` keyframes per node; a

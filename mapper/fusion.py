@@ -93,6 +93,13 @@ class FusionConfig(BaseModel):
         default=0.5, ge=0.0, le=1.0, description="duplicates: overlap (either direction) needed to merge"
     )
     merge_similarity: float = Field(default=0.8, ge=-1.0, le=1.0, description="duplicates: descriptor cosine")
+    coarse_same_ray_deg: float = Field(
+        default=1.0, ge=0.0, le=10.0,
+        description="a single-view detection whose ray (its camera centre to its points) lies within this many "
+        "degrees of a ray of a coarse node from the same camera centre is that node, wherever other cameras moved "
+        "it along the ray (its guessed points no longer overlap it): without this, a fixed camera without depth "
+        "added a duplicate at every keyframe; 0 disables",
+    )
     coarse_max_gap_m: float = Field(
         default=0.25, ge=0.0,
         description="coarse (single-view) nodes of one object seen from different cameras are merged at the "
@@ -313,6 +320,12 @@ class FusionConfig(BaseModel):
         "depth still counts as occlusion, so a passer-by hides objects without making them absent",
     )
     fuse_people: bool = Field(default=False, description="fuse people_labels detections into nodes like objects")
+    join_split_by_people: bool = Field(
+        default=True,
+        description="join the pieces of one object that a person in front cut in two (same label, descriptors "
+        "merge_similarity alike, both masks touching that person's): otherwise each pass of a person in front of a "
+        "sofa leaves a duplicate node (mapper.perception.occluded)",
+    )
     max_label_alternatives: int = Field(default=3, ge=0, description="label alternatives kept per node")
     seed: int = Field(default=0, description="seed of point subsampling")
 
@@ -822,6 +835,8 @@ class ObjectMap:
         inside = {k: v for k, v in (contained or {}).items() if v >= cfg.min_containment and k in self.nodes}
         cands = {n.node_id: n for n in self._candidates(obj.points)}
         cands.update((k, self.nodes[k]) for k in inside)
+        same_ray = {k for k, n in self.nodes.items() if self._same_ray(n, obj)}
+        cands.update((k, self.nodes[k]) for k in same_ray)
         size = _view_size(obj)
         lo, hi = (obj.points.min(0), obj.points.max(0)) if size > 0 else (np.zeros(3), np.zeros(3))
         out: dict[str, float] = {}
@@ -833,7 +848,7 @@ class ObjectMap:
             # Two single-view guesses are one object when their rays say so (triangulate_coarse), not because
             # their guessed boxes touch: they are judged at the voxel, measured depth at its noise.
             radius = cfg.voxel_m if (node.rays and obj.ray_origin is not None) else cfg.radius_m
-            ov = max(overlap_fraction(obj.points, node, radius), held)
+            ov = 1.0 if node.node_id in same_ray else max(overlap_fraction(obj.points, node, radius), held)
             if ov < cfg.min_overlap or self._overgrown(node, lo, hi, size):
                 continue
             score = cfg.geo_weight * ov + cfg.sem_weight * sim
@@ -941,9 +956,24 @@ class ObjectMap:
         self.nodes[node_id] = node
         return node
 
+    def _same_ray(self, node: NodeState, obj: Object3D) -> bool:
+        """Whether ``obj`` (a single-view detection) lies along a ray of ``node`` (coarse) from the same camera
+        centre, within ``coarse_same_ray_deg``: the camera sees again what it placed there."""
+        if obj.ray_origin is None or not node.rays or self.cfg.coarse_same_ray_deg <= 0:
+            return False
+        mine = _rays_of(obj)
+        if not mine:
+            return False
+        o, d = mine[0]
+        cos_min = math.cos(math.radians(self.cfg.coarse_same_ray_deg))
+        return any(float(np.linalg.norm(ro - o)) < 1e-3 and float(rd @ d) >= cos_min for ro, rd in node.rays)
+
     def _absorb(self, node: NodeState, obj: Object3D, source_id: str, stamp_ns: int) -> None:
         n = node.observations
-        if node.rays and obj.ray_origin is None:
+        again = self._same_ray(node, obj)  # seen again along a ray it has: its place along it stays as it is
+        if again:
+            pass
+        elif node.rays and obj.ray_origin is None:
             node.points = self._cap(obj.points.astype(np.float32))  # measured depth replaces a coarse guess
         elif not node.rays and obj.ray_origin is not None:
             pass  # a coarse guess adds nothing to measured depth: the observation and its label still count
@@ -957,7 +987,8 @@ class ObjectMap:
         node.sources.add(source_id)
         node.first_seen_ns = min(node.first_seen_ns, stamp_ns)
         node.last_seen_ns = max(node.last_seen_ns, stamp_ns)
-        node.rays = node.rays + _rays_of(obj) if (node.rays and obj.ray_origin is not None) else []
+        if not again:
+            node.rays = node.rays + _rays_of(obj) if (node.rays and obj.ray_origin is not None) else []
         node.view_size_m = max(node.view_size_m, _view_size(obj))
         node.touch()
 

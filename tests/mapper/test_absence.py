@@ -567,6 +567,28 @@ class TestSingleViewMisses:
         assert not res.retired and om.nodes[chair].rays  # still a single-view placement
         assert np.linalg.norm(np.asarray(om.nodes[chair].centre) - there) < 1e-6
 
+    def test_a_camera_sees_again_what_it_placed_though_other_cameras_moved_it_along_its_ray(self) -> None:
+        """A fixed camera without depth keyframes whenever its image changes (a person walking elsewhere); each
+        keyframe places the same television at the same guessed depth. Other cameras moved the node along the
+        ray, so the guess no longer overlaps it: it made a new node every keyframe."""
+        for deg, created in ((1.0, 0), (0.0, 1)):
+            om = ObjectMap(FusionConfig(merge_every_updates=100, coarse_same_ray_deg=deg))
+            _, objs = keyframe({"chair": CHAIR, "lamp": LAMP})
+            coarse = [Object3D(o.points, o.label, 0.9, label_descriptor(o.label), ray_origin=np.asarray(EYE, float))
+                      for o in objs]
+            om.integrate(coarse, "cam1", 1)
+            chair = node_of(om, "chair")
+            node = om.nodes[chair]
+            (_, d), = node.rays
+            node.points = node.points + (0.6 * d).astype(np.float32)  # triangulated 0.6 m farther
+            node.touch()
+            moved = node.points.copy()
+            res = om.integrate(coarse, "cam1", 2)
+            assert res.created == created and len(om.nodes) == 2 + created
+            if created == 0:
+                assert np.array_equal(om.nodes[chair].points, moved) and len(om.nodes[chair].rays) == 1
+                assert om.nodes[chair].observations == 2
+
     def test_a_passer_by_in_front_or_another_camera_is_no_miss(self) -> None:
         om = mapped({"chair": CHAIR})
         chair = node_of(om, "chair")
