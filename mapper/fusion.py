@@ -323,8 +323,8 @@ class FusionConfig(BaseModel):
     join_split_by_people: bool = Field(
         default=True,
         description="join the pieces of one object that a person in front cut in two (same label, descriptors "
-        "merge_similarity alike, both masks touching that person's): otherwise each pass of a person in front of a "
-        "sofa leaves a duplicate node (mapper.perception.occluded)",
+        "merge_similarity alike, both masks touching that person's): a segmenter that reports connected regions "
+        "would make each piece a node (mapper.perception.occluded)",
     )
     max_label_alternatives: int = Field(default=3, ge=0, description="label alternatives kept per node")
     seed: int = Field(default=0, description="seed of point subsampling")
@@ -1011,8 +1011,8 @@ class ObjectMap:
         # A moving camera's MIXED view counts a miss where the node was detected from about there before.
         missable = {k for k, j in judged.items() if self.cfg.absence_missed_to_retire > 0
                     and j.occluded <= self.cfg.absence_missed_max_occluded * j.pixels
-                    and (j.verdict in (Verdict.THERE, Verdict.MIXED) and fixed and source_id in self.nodes[k].sources
-                         or j.verdict is Verdict.MIXED and not fixed and self._sighted_from(self.nodes[k], view))}
+                    and ((j.verdict in (Verdict.THERE, Verdict.MIXED) and fixed and source_id in self.nodes[k].sources)
+                         or (j.verdict is Verdict.MIXED and not fixed and self._sighted_from(self.nodes[k], view)))}
         inside = (self.containment(objects, view) if view is not None and self.cfg.mask_association
                   else [{} for _ in objects])
         # Match everything against the map as it was before this view: detections of one view are
