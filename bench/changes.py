@@ -118,18 +118,19 @@ def place_visible(center: Sequence[float] | np.ndarray, K: Any, T_world_cam: np.
     return d == 0.0 or d >= p[2] - margin_m
 
 
-def place_seen(box: Any, K: Any, T_world_cam: np.ndarray, depth_m: np.ndarray, min_visible: float = 0.5) -> bool:
+def place_seen(box: Any, K: Any, T_world_cam: np.ndarray, depth_m: np.ndarray, min_visible: float = 0.5,
+               occupied: bool = True) -> bool:
     """Whether a view sees an object's place (``box``, an oriented box): at least ``min_visible`` of 27 points
-    spread through it are in the image and not hidden (:func:`place_visible`, the margin grown by half the box's
-    largest side: the object's own front hides its inside). The centre alone counted views through a doorway
-    with a wall in front of most of the place."""
+    spread through it are in the image and not hidden (:func:`place_visible`; where the object stands,
+    ``occupied``, the margin grows by half the box's largest side: its own front hides its inside). The centre
+    alone counts a view that sees it past the edge of what hides the rest (a table in front of a chair)."""
     c = np.asarray(box.center, float)
     ext = np.asarray(box.extent, float)
     cy, sy = math.cos(box.yaw_rad), math.sin(box.yaw_rad)
     R = np.array([[cy, -sy, 0.0], [sy, cy, 0.0], [0.0, 0.0, 1.0]])
     f = np.array([-1.0, 0.0, 1.0]) / 3.0
     grid = np.stack(np.meshgrid(f, f, f, indexing="ij"), -1).reshape(-1, 3) * ext
-    margin = 0.3 + 0.5 * float(ext.max())
+    margin = 0.3 + (0.5 * float(ext.max()) if occupied else 0.0)
     seen = sum(place_visible(c + R @ g, K, T_world_cam, depth_m, margin) for g in grid)
     return seen >= min_visible * len(grid)
 
@@ -140,7 +141,7 @@ class _EditTrack:
     edit: Any
     old: Any  # the object before the edit (None for an add)
     new: Any  # the object after it (None for a removal)
-    places: list[Any]  # the boxes of the object's old and new place
+    places: list[tuple[Any, bool]]  # the boxes of the object's old and new place; whether it stands there
     known_before: bool | None = None
     node_before: str | None = None
     t_right: float | None = None
@@ -172,7 +173,7 @@ class ChangeScorer:
             before = self.world.states[i]
             old = before.object_by_id(e.obj_id) if e.kind != "add" else None
             new = e.obj
-            places = [o.box for o in (old, new) if o is not None]
+            places = [(o.box, o is new) for o in (old, new) if o is not None]  # (box, the object stands there)
             self.tracks.append(_EditTrack(i, e, old, new, places))
         self._prev: tuple[float, dict[int, str], int] | None = None  # time, obj -> node, state index
 
@@ -181,7 +182,7 @@ class ChangeScorer:
         for tr in self.tracks:
             if tr.edit.t_s > t_s or tr.t_right is not None:
                 continue
-            if any(place_seen(b, K, T_world_cam, depth_m) for b in tr.places):
+            if any(place_seen(b, K, T_world_cam, depth_m, occupied=there) for b, there in tr.places):
                 if robot:
                     tr.robot_views += 1
                 else:

@@ -141,6 +141,9 @@ def test_retired_nodes_are_gone_and_places_are_seen() -> None:
     wall = np.full((100, 100), 1.0, np.float32)
     wall[:, 47:54] = 3.0  # a doorway 7 pixels wide
     assert place_visible(box.center, K, T, wall) and not place_seen(box, K, T, wall)
+    # a surface 0.35 m before the place's centre: the object's own front where it stands, else a table in front
+    near = np.full((100, 100), 1.65, np.float32)
+    assert place_seen(box, K, T, near) and not place_seen(box, K, T, near, occupied=False)
 
 
 @pytest.mark.slow
