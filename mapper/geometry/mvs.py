@@ -294,6 +294,11 @@ class MvsReconstructor:
             self._blas = blas_controller()
         return compute_threads(self.config.threads, self._blas)
 
+    def thread_limit(self) -> Any:
+        """Context manager: torch, OpenCV and BLAS limited to this reconstructor's ``threads`` (restored after). A
+        keyframe job runs the work around the reconstruction under it too (``mapper.work.compute``)."""
+        return self._threads()
+
     def register(self, view: View, map_keyframes: Sequence[Any], config: Any = None) -> Any:
         """Pose of a view without extrinsics against mapped keyframes (``register.register_view``), reusing
         this reconstructor's feature cache across calls. Returns a ``PoseEstimate`` (check ``ok``)."""
