@@ -12,6 +12,7 @@ called from other threads (they take the graph lock, which ``ingest`` holds only
 from __future__ import annotations
 
 import collections
+import contextlib
 import dataclasses
 import logging
 import threading
@@ -148,6 +149,7 @@ class MapperCore:
         # Calibrated fixed cameras whose last keyframe saw a node's place empty: source -> that keyframe's stamp.
         # Their next frame absence_confirm_s later is a keyframe too (they keyframe only on image change).
         self._confirm: dict[str, int] = {}
+        self._blas: Any = None  # threadpoolctl controller (False: not installed), found at the first keyframe
 
     def views_to_keep(self) -> list[View]:
         """Every view a later window or retry may still use: the stored keyframes and recent frames, and the
@@ -350,6 +352,11 @@ class MapperCore:
     def _commit(self, changed: set[str], removed: set[str], stamp_ns: int,
                 frames: dict[str, int] | None = None, moves: list[NodeMove] | None = None,
                 retired: dict[str, GraphNode] | None = None) -> GraphDelta | None:
+        with self._one_blas_thread():
+            return self._commit_edges(changed, removed, stamp_ns, frames, moves, retired)
+
+    def _commit_edges(self, changed: set[str], removed: set[str], stamp_ns: int, frames: dict[str, int] | None,
+                      moves: list[NodeMove] | None, retired: dict[str, GraphNode] | None) -> GraphDelta | None:
         t = time.perf_counter()
         boxes = self.objects.boxes()
         edges = compute_edges(boxes, self.config.relations, self._edges)
@@ -423,9 +430,23 @@ class MapperCore:
             return None
         return self.apply_products(view, products)
 
+    def _one_blas_thread(self) -> Any:
+        """Context manager: BLAS limited to one thread (restored after), when threadpoolctl is installed. The
+        mapper's numeric work is many small products; with BLAS's default pool (a thread per core) the idle thread
+        spins after each and on a busy machine costs more CPU than the products themselves."""
+        if self._blas is None:
+            from mapper.geometry.mvs import blas_controller
+
+            self._blas = blas_controller() or False
+        return self._blas.limit(limits=1) if self._blas else contextlib.nullcontext()
+
     def apply_products(self, view: View, products: KeyframeProducts) -> UpdateResult:
         """The mapper's part of a keyframe once its heavy work is done (here or by a worker): typical depth,
         the depth check, the keyframe store, then fusion."""
+        with self._one_blas_thread():
+            return self._apply_products(view, products)
+
+    def _apply_products(self, view: View, products: KeyframeProducts) -> UpdateResult:
         times = dict(products.timings_s)
         vg, T_world_cam = products.geometry, products.T_world_cam
         depth_m = typical_depth(vg.depth_m, vg.confidence)
