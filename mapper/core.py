@@ -12,7 +12,6 @@ called from other threads (they take the graph lock, which ``ingest`` holds only
 from __future__ import annotations
 
 import collections
-import contextlib
 import dataclasses
 import logging
 import threading
@@ -39,6 +38,7 @@ from mapper.fusion import (
 from mapper.geometry.background import behind_background
 from mapper.geometry.contract import Reconstructor, View
 from mapper.geometry.features import Features, LruCache, extract_features
+from mapper.geometry.mvs import OneBlasThread
 from mapper.geometry.posecheck import rotation_between
 from mapper.geometry.singleview import PlacedBox, SeenView, depth_to_world, layout_depth, place_objects
 from mapper.geometry.support import MappedTop, place_on_mapped_support, place_on_measured_support
@@ -149,7 +149,8 @@ class MapperCore:
         # Calibrated fixed cameras whose last keyframe saw a node's place empty: source -> that keyframe's stamp.
         # Their next frame absence_confirm_s later is a keyframe too (they keyframe only on image change).
         self._confirm: dict[str, int] = {}
-        self._blas: Any = None  # threadpoolctl controller (False: not installed), found at the first keyframe
+        # Fusion and edges are many small products: BLAS on one thread (its idle pool thread spins otherwise).
+        self._one_blas_thread = OneBlasThread()
 
     def views_to_keep(self) -> list[View]:
         """Every view a later window or retry may still use: the stored keyframes and recent frames, and the
@@ -429,16 +430,6 @@ class MapperCore:
             self._count("views_unposed_skipped")
             return None
         return self.apply_products(view, products)
-
-    def _one_blas_thread(self) -> Any:
-        """Context manager: BLAS limited to one thread (restored after), when threadpoolctl is installed. The
-        mapper's numeric work is many small products; with BLAS's default pool (a thread per core) the idle thread
-        spins after each and on a busy machine costs more CPU than the products themselves."""
-        if self._blas is None:
-            from mapper.geometry.mvs import blas_controller
-
-            self._blas = blas_controller() or False
-        return self._blas.limit(limits=1) if self._blas else contextlib.nullcontext()
 
     def apply_products(self, view: View, products: KeyframeProducts) -> UpdateResult:
         """The mapper's part of a keyframe once its heavy work is done (here or by a worker): typical depth,

@@ -25,7 +25,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Iterator, Sequence
-from contextlib import contextmanager
+from contextlib import contextmanager, nullcontext
 from dataclasses import dataclass
 from typing import Any, cast
 
@@ -249,6 +249,21 @@ def blas_controller() -> Any:
     except ImportError:
         return None
     return ThreadpoolController()
+
+
+class OneBlasThread:
+    """Calling it gives a context manager limiting BLAS to one thread (restored after); a no-op without
+    threadpoolctl. For the small numeric products around the heavy work (composing, decoding a result, fusion):
+    with BLAS's default pool (a thread per core) the idle thread spins after each product, and on a busy machine
+    that costs more CPU than the products. The loaded libraries are looked up once, at the first call."""
+
+    def __init__(self) -> None:
+        self._blas: Any = None  # False: threadpoolctl is not installed
+
+    def __call__(self) -> Any:
+        if self._blas is None:
+            self._blas = blas_controller() or False
+        return self._blas.limit(limits=1) if self._blas else nullcontext()
 
 
 class StageClock:
