@@ -143,6 +143,35 @@ def census_best(planes: F32, ref_bits: NDArray[np.bool_], offsets: list[tuple[in
 
 
 @_jit
+def _plane_inside(rays_src: Any, depth: Any, t: Any, fx: Any, cx: Any, fy: Any, cy: Any, w_max: Any, h_max: Any,
+                  inside: Any) -> None:  # pragma: no cover - compiled
+    # planesweep.warp_grid's float32 arithmetic, one operation at a time in its order (no fused multiply-add).
+    h, w = inside.shape
+    z_min = np.float32(1e-4)
+    for y in range(h):
+        for x in range(w):
+            pz = depth * rays_src[y, x, 2] + t[2]
+            if pz <= z_min:
+                inside[y, x] = False
+                continue
+            us = (depth * rays_src[y, x, 0] + t[0]) / pz * fx + cx
+            vs = (depth * rays_src[y, x, 1] + t[1]) / pz * fy + cy
+            inside[y, x] = us >= 0 and us <= w_max and vs >= 0 and vs <= h_max
+
+
+def plane_inside(rays_src: F32, depth: float, t: F32, K_src: NDArray[np.float64], src_hw: tuple[int, int],
+                 inside: NDArray[np.bool_]) -> None:
+    """Which reference pixels of the plane at ``depth`` land on the source image and in front of it, written to
+    ``inside`` (H, W): ``planesweep.warp_grid`` and its bounds test in one pass, the same float32 numbers.
+    ``rays_src`` (H, W, 3) float32: ``planesweep.rotated_rays``; ``t`` (3,) float32: the source-from-reference
+    translation; ``src_hw``: the source image's rows and columns."""
+    f32 = np.float32
+    _plane_inside(np.ascontiguousarray(rays_src, np.float32), f32(depth), np.ascontiguousarray(t, np.float32),
+                  f32(K_src[0, 0]), f32(K_src[0, 2]), f32(K_src[1, 1]), f32(K_src[1, 2]), f32(src_hw[1] - 1),
+                  f32(src_hw[0] - 1), inside)
+
+
+@_jit
 def _nearest_both_ways(m: Any, row_arg: Any, row_top2: Any, col_arg: Any) -> None:  # pragma: no cover - compiled
     rows, cols = m.shape
     col_best = np.empty(cols, np.float32)

@@ -25,7 +25,7 @@ from __future__ import annotations
 
 import time
 from collections.abc import Iterator, Sequence
-from contextlib import contextmanager
+from contextlib import contextmanager, nullcontext
 from dataclasses import dataclass
 from typing import Any, cast
 
@@ -251,6 +251,21 @@ def blas_controller() -> Any:
     return ThreadpoolController()
 
 
+class OneBlasThread:
+    """Calling it gives a context manager limiting BLAS to one thread (restored after); a no-op without
+    threadpoolctl. For the small numeric products around the heavy work (composing, decoding a result, fusion):
+    with BLAS's default pool (a thread per core) the idle thread spins after each product, and on a busy machine
+    that costs more CPU than the products. The loaded libraries are looked up once, at the first call."""
+
+    def __init__(self) -> None:
+        self._blas: Any = None  # False: threadpoolctl is not installed
+
+    def __call__(self) -> Any:
+        if self._blas is None:
+            self._blas = blas_controller() or False
+        return self._blas.limit(limits=1) if self._blas else nullcontext()
+
+
 class StageClock:
     """CPU seconds (this process, all threads) spent per named stage of one reconstruction: ``with clock("sweep"):``
     adds the block's CPU time to that stage. ``seconds()`` gives them with ``other`` for what no stage covered."""
@@ -293,6 +308,11 @@ class MvsReconstructor:
         if self._blas is None:
             self._blas = blas_controller()
         return compute_threads(self.config.threads, self._blas)
+
+    def thread_limit(self) -> Any:
+        """Context manager: torch, OpenCV and BLAS limited to this reconstructor's ``threads`` (restored after). A
+        keyframe job runs the work around the reconstruction under it too (``mapper.work.compute``)."""
+        return self._threads()
 
     def register(self, view: View, map_keyframes: Sequence[Any], config: Any = None) -> Any:
         """Pose of a view without extrinsics against mapped keyframes (``register.register_view``), reusing

@@ -124,23 +124,31 @@ def warp_planes(
     rays_src: torch.Tensor | None = None  # for planes partly behind the source, computed once
     R, t = T_src_ref[:3, :3], T_src_ref[:3, 3]
     K_ref_inv = np.linalg.inv(K_ref)
-    n = np.array([0.0, 0.0, 1.0])
+    t_n = np.outer(t, np.array([0.0, 0.0, 1.0]))
     corners = np.array([[0, 0, 1], [w - 1, 0, 1], [0, h - 1, 1], [w - 1, h - 1, 1]], np.float64).T
     rays = K_ref_inv @ corners  # z = 1
+    depth_list = depths.tolist()
+    # z of the plane's corners in the source, every plane at once (the same numbers as plane by plane).
+    z_corners = np.stack([(R @ (rays * d))[2] + t[2] for d in depth_list]) if depth_list else np.zeros((0, 4))
+    in_front = np.all(z_corners > 1e-4, axis=1)  # z is affine in the pixel on a plane: corners in front => all
     warped = np.empty((len(depths), h, w), np.float32)
     inside = np.empty((len(depths), h, w), bool)
     flags = cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP
-    for i, d in enumerate(depths.tolist()):
-        H = K_src @ (R + np.outer(t, n) / d) @ K_ref_inv
-        warped[i] = cv2.warpPerspective(src_np, H, (w, h), flags=flags, borderMode=cv2.BORDER_REPLICATE)
-        z_corners = (R @ (rays * d))[2] + t[2]
-        if np.all(z_corners > 1e-4):  # z is affine in the pixel on a plane: corners in front => all in front
-            cv2.warpPerspective(ones, H, (w, h), dst=inside[i].view(np.uint8),
-                                flags=cv2.INTER_NEAREST | cv2.WARP_INVERSE_MAP, borderMode=cv2.BORDER_CONSTANT,
-                                borderValue=0)
-        else:  # part of the plane is behind the source camera: test every pixel
-            if rays_src is None:
-                rays_src = rotated_rays(K_ref, T_src_ref, h, w)
+    nearest = cv2.INTER_NEAREST | cv2.WARP_INVERSE_MAP
+    for i, d in enumerate(depth_list):
+        H = K_src @ (R + t_n / d) @ K_ref_inv
+        cv2.warpPerspective(src_np, H, (w, h), dst=warped[i], flags=flags, borderMode=cv2.BORDER_REPLICATE)
+        if in_front[i]:
+            cv2.warpPerspective(ones, H, (w, h), dst=inside[i].view(np.uint8), flags=nearest,
+                                borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+            continue
+        # Part of the plane is behind the source camera: test every pixel.
+        if rays_src is None:
+            rays_src = rotated_rays(K_ref, T_src_ref, h, w)
+        if kernels.AVAILABLE:
+            kernels.plane_inside(rays_src.numpy(), depths[i].item(), np.asarray(t, np.float32), K_src, (hs, ws),
+                                 inside[i])
+        else:
             g = warp_grid(K_ref, K_src, T_src_ref, depths[i: i + 1], h, w, rays_src)[0].numpy()
             inside[i] = (g[..., 0] >= 0) & (g[..., 0] <= ws - 1) & (g[..., 1] >= 0) & (g[..., 1] <= hs - 1)
     return torch.from_numpy(warped), torch.from_numpy(inside)

@@ -124,11 +124,10 @@ class ClassicalSegmenter:
             x0, y0 = stats[k, cv2.CC_STAT_LEFT], stats[k, cv2.CC_STAT_TOP]
             box = np.s_[y0: y0 + stats[k, cv2.CC_STAT_HEIGHT], x0: x0 + stats[k, cv2.CC_STAT_WIDTH]]
             sel = cc[box] == k
-            p = points[box][sel]
-            zr = np.percentile(p[:, 2], [2, 98])
-            xy = p[:, :2]
-            width = float(np.linalg.norm(np.percentile(xy, 98, axis=0) - np.percentile(xy, 2, axis=0)))
-            if zr[1] - zr[0] >= cfg.wall_min_height_m and width >= cfg.wall_min_width_m:
+            # One call for x, y and z: the same order statistics as a call per axis, a third of the overhead.
+            lo_q, hi_q = np.percentile(points[box][sel], [2, 98], axis=0)
+            width = float(np.linalg.norm(hi_q[:2] - lo_q[:2]))
+            if hi_q[2] - lo_q[2] >= cfg.wall_min_height_m and width >= cfg.wall_min_width_m:
                 walls[box] |= sel
         return floor | ceiling | walls
 

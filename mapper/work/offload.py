@@ -25,6 +25,7 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
 from mapper.geometry.contract import View
+from mapper.geometry.mvs import OneBlasThread
 from mapper.work.compute import KeyframeProducts
 from mapper.work.config import OffloadConfig
 from mapper.work.dispatch import Dispatcher, Outcome
@@ -86,6 +87,7 @@ class Offloader:
         self._session: zenoh.Session | None = None
         self._decls: list[Any] = []
         self.stages = StageTimes()  # a job's stages (status: kf_s.*)
+        self._one_blas_thread = OneBlasThread()
 
     # -- Zenoh -----------------------------------------------------------------------------------------
     def open(self, session: zenoh.Session) -> None:
@@ -288,7 +290,8 @@ class Offloader:
         if p is not None:
             t0 = time.perf_counter()
             try:
-                products = decode_result(res, p.job)
+                with self._one_blas_thread():  # its points are one small product: see OneBlasThread
+                    products = decode_result(res, p.job)
                 self.counters.add("work_decode_s_sum", time.perf_counter() - t0)  # the mapper's cost of a result
                 fetch = float(res.timings_s.get("fetch", 0.0))  # the worker getting the window's images
                 self.counters.add("work_fetch_s_sum", fetch if 0.0 <= fetch <= 3600.0 else 0.0)  # NaN: not added

@@ -172,3 +172,22 @@ class TestRefineWithPoints:
         e = compute_edges({"bottle": bottle, "tub": tub})
         got = refine_with_points(e, {"bottle": bottle, "tub": tub}, {"tub": walls})
         assert ("bottle", "inside", "tub") in {(x.subject_id, x.predicate, x.object_id) for x in got}
+
+
+def test_compiled_clip_equals_python_clip() -> None:
+    from mapper import relations
+
+    if relations._clip_compiled is None:
+        pytest.skip("numba not installed")
+    rng = np.random.default_rng(3)
+
+    def square(cx: float, cy: float, sx: float, sy: float, yaw: float) -> np.ndarray:
+        c, s = math.cos(yaw), math.sin(yaw)
+        local = np.array([[-sx, -sy], [sx, -sy], [sx, sy], [-sx, sy]]) / 2.0
+        return local @ np.array([[c, s], [-s, c]]) + [cx, cy]
+
+    for k in range(300):
+        a = square(*rng.normal(size=2), *rng.uniform(0.1, 1.0, 2), rng.uniform(0, 3))
+        b = a.copy() if k % 10 == 0 else square(*rng.normal(size=2), *rng.uniform(0.1, 1.0, 2), rng.uniform(0, 3))
+        got, want = relations._clip(a, b), relations._clip_python(a, b)
+        assert got.shape == want.shape and np.array_equal(got, want)
