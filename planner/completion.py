@@ -24,8 +24,6 @@ log = logging.getLogger(__name__)
 
 ROOM_MARGIN_M = 0.45
 """Rooms extend this far beyond their outermost navigable viewpoints (robot radius, wall furniture)."""
-ROOM_REACH_M = 1.5
-"""A viewpoint in no room of the mapper's layer within this far of a room's outline belongs to that room."""
 
 
 @dataclass(frozen=True)
@@ -144,38 +142,21 @@ def room_of_points(xy: np.ndarray, layer: RoomLayer) -> list[str | None]:
     return out
 
 
-def rooms_from_layer(layer: RoomLayer, vp_xy: np.ndarray, min_confidence: float = 0.5,
-                     reach_m: float = ROOM_REACH_M) -> tuple[RoomInfo, ...]:
-    """Rooms from the mapper's room layer (built from its own map): its label as the kind when at least
-    ``min_confidence`` (else unknown: inferred from the objects, like an unnamed room), the viewpoints inside its
-    outline and those in no room within ``reach_m`` of its outline's bounding box (the nearest room's: the part
-    of the room the map has not seen yet, where its missing objects are), and as its extent the outline's
-    bounding box and those viewpoints' (grown by ``ROOM_MARGIN_M``). An outline covers only seen floor: asp's
-    hypotheses, which a past view must not have seen, found no place inside it. The viewpoints left make one
-    more region, ``unexplored``: rooms the map has not reached count too."""
+def rooms_from_layer(layer: RoomLayer, vp_xy: np.ndarray, min_confidence: float = 0.5) -> tuple[RoomInfo, ...]:
+    """Rooms from the mapper's room layer (built from its own map): each room's outline's bounding box, its label
+    as the kind when at least ``min_confidence`` (else unknown: inferred from the objects, like an unnamed room),
+    the viewpoints inside its outline. The viewpoints in no room make one more region, ``unexplored``: rooms the
+    map has not reached count too."""
     vp_xy = np.asarray(vp_xy, dtype=np.float64).reshape(-1, 2)
     where = np.array([r or "" for r in room_of_points(vp_xy, layer)], dtype=object)
-    rooms = [(r, np.asarray(r.polygon, dtype=np.float64).reshape(-1, 2)) for r in layer.rooms]
-    rooms = [(r, poly) for r, poly in rooms if poly.shape[0] >= 3]
-    loose = np.flatnonzero(where == "")
-    if rooms and loose.size and reach_m > 0:
-        lo = np.stack([poly.min(axis=0) for _, poly in rooms])
-        hi = np.stack([poly.max(axis=0) for _, poly in rooms])
-        p = vp_xy[loose][:, None, :]
-        d = np.linalg.norm(p - np.clip(p, lo[None], hi[None]), axis=2)  # (loose, rooms) to each bounding box
-        for row, i in enumerate(loose):
-            j = int(d[row].argmin())
-            if d[row, j] <= reach_m:
-                where[i] = rooms[j][0].room_id
     out = []
-    for r, poly in rooms:
+    for r in layer.rooms:
+        poly = np.asarray(r.polygon, dtype=np.float64).reshape(-1, 2)
+        if poly.shape[0] < 3:
+            continue
         kind = r.label if r.label != UNKNOWN_ROOM_LABEL and r.label_confidence >= min_confidence else None
-        mine = vp_xy[where == r.room_id]
-        lo, hi = poly.min(axis=0), poly.max(axis=0)
-        if mine.shape[0]:
-            lo = np.minimum(lo, mine.min(axis=0) - ROOM_MARGIN_M)
-            hi = np.maximum(hi, mine.max(axis=0) + ROOM_MARGIN_M)
-        out.append(RoomInfo(name=r.room_id, kind=kind, xy_min=lo, xy_max=hi, vp_xy=mine))
+        out.append(RoomInfo(name=r.room_id, kind=kind, xy_min=poly.min(axis=0), xy_max=poly.max(axis=0),
+                            vp_xy=vp_xy[where == r.room_id]))
     rest = vp_xy[where == ""]
     if rest.shape[0]:
         out.append(RoomInfo(name=UNEXPLORED, kind=None, xy_min=rest.min(axis=0) - ROOM_MARGIN_M,

@@ -37,19 +37,6 @@ def test_rooms_from_the_layer_and_the_unexplored_rest() -> None:
     assert room_of_points(np.array([[-0.5, 0.0], [9.0, 9.0]]), LAYER) == ["room1", None]
 
 
-def test_a_map_room_reaches_over_the_viewpoints_next_to_its_outline() -> None:
-    """An outline covers the floor the map has seen; the viewpoints just beyond it are the room's unseen part,
-    where asp's hypotheses of its missing objects go (a past view has seen everything inside the outline)."""
-    vp = np.array([[-1.0, 0.0], [-4.0, 1.0], [-4.2, -3.8], [7.0, 0.0]])
-    rooms = {r.name: r for r in rooms_from_layer(LAYER, vp)}
-    assert len(rooms["room1"].vp_xy) == 3 and len(rooms[UNEXPLORED].vp_xy) == 1  # 7 m is 4 m from room2
-    assert np.allclose(rooms["room1"].xy_min, [-4.2 - 0.45, -3.8 - 0.45])
-    assert np.allclose(rooms["room1"].xy_max, [0.0, 3.0])
-    assert np.allclose(rooms["room2"].xy_min, [0.0, -3.0])  # no viewpoint: its outline
-    narrow = {r.name: r for r in rooms_from_layer(LAYER, vp, reach_m=0.0)}
-    assert len(narrow["room1"].vp_xy) == 1 and len(narrow[UNEXPLORED].vp_xy) == 3
-
-
 def test_a_map_room_without_a_viewpoint_still_takes_its_objects() -> None:
     """The demo's planner failed every decision once the mapper's layer had a room no viewpoint lies in (an empty
     minimum): such a room is as near as its outline."""
