@@ -1,11 +1,12 @@
 """Detections of one object that a person in front cut in two, joined again (pure: no I/O).
 
-A passer-by in front of a sofa, a television or a table can leave its mask in two pieces, left and right of
-them, and a segmenter that reports regions (SAM's automatic masks) gives two detections. Fusion takes the detections of one view as distinct objects (one node per view), so the second piece
-would become a second node, kept apart from the first afterwards because one keyframe told them apart. Two pieces
-are joined when they carry the same label, their descriptors are alike and both touch the same person's mask; the
-people themselves are left out, as fusion leaves them out. (The simulator's ORACLE segmenter gives one mask per
-instance, split or not, so ``argus eval changes`` does not exercise this.)
+A passer-by in front of a sofa, a television or a table can leave its mask in two pieces, left and right of them,
+and a segmenter that reports regions (SAM's automatic masks) gives two detections. Fusion takes the detections of
+one view as distinct objects (one node per view), so the second piece would become a second node, kept apart from
+the first afterwards because one keyframe told them apart. Two pieces are joined when they carry the same label,
+their descriptors are alike and both touch the same person's mask; the people themselves are left out, as fusion
+leaves them out. (The simulator's ORACLE segmenter gives one mask per instance, split or not, so ``argus eval
+changes`` does not exercise this.)
 """
 
 from __future__ import annotations
