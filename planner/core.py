@@ -420,6 +420,15 @@ class Planner:
         self.info.hypotheses_by_room = dict(collections.Counter(r or "" for r in hyps.room))
         return hyps
 
+    def _candidate_rooms(self, c: Candidates) -> tuple[str | None, ...]:
+        """The room of each candidate in the rooms asp's hypotheses were placed in: the viewpoints' room names,
+        or with the map's rooms (``info.room_source`` map) the map room its position lies in, else
+        ``unexplored`` (as :func:`rooms_from_layer` groups viewpoints). The names of one source never match the
+        other's: with the map's rooms every hypothesis was out of every candidate's room, and asp found no gain."""
+        if self.info.room_source != "map" or self.rooms is None:
+            return c.rooms
+        return tuple(r or UNEXPLORED for r in room_of_points(c.xy_yaw[:, :2], self.rooms))
+
     def _map_rooms(self) -> RoomLayer | None:
         """The mapper's room layer when this plan uses it (config ``rooms``), else None."""
         src = self.config.rooms
@@ -662,8 +671,9 @@ class Planner:
         )
         V &= keep[None, :]
         if not acfg.cross_room_visibility:
-            codes = {name: k for k, name in enumerate(sorted({r for r in (*c.rooms, *hyps.room) if r}), start=1)}
-            cand_room = np.array([codes.get(r or "", 0) for r in c.rooms], dtype=np.int64)[sub]
+            cand_rooms = self._candidate_rooms(c)
+            codes = {name: k for k, name in enumerate(sorted({r for r in (*cand_rooms, *hyps.room) if r}), start=1)}
+            cand_room = np.array([codes.get(r or "", 0) for r in cand_rooms], dtype=np.int64)[sub]
             hyp_room = np.array([codes.get(r or "", 0) for r in hyps.room], dtype=np.int64)
             V &= (
                 (cand_room[:, None] == hyp_room[None, :]) | (cand_room[:, None] == 0) | (hyp_room[None, :] == 0)

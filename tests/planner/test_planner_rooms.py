@@ -45,6 +45,22 @@ def test_a_map_room_without_a_viewpoint_still_takes_its_objects() -> None:
     assert assign_room(np.array([[1.5, 0.5], [-1.0, 0.2], [6.5, 0.0]]), rooms) == ["room2", "room1", UNEXPLORED]
 
 
+def test_asp_with_the_map_rooms_sees_hypotheses_from_viewpoints_named_by_the_simulator() -> None:
+    """Viewpoints carry the simulator's room names, the map's rooms their own ids: asp compared one with the other,
+    ruled every hypothesis out of every candidate's room and found no gain (the demo: 30 of 31 decisions fell back
+    to frontiers). A candidate's room is the map room it stands in."""
+    vps = two_view_set()
+    named = vps.model_copy(
+        update={"viewpoints": [v.model_copy(update={"room": "living_room"}) for v in vps.viewpoints]})
+    robots = {"r1": (S.robot_state("r1", 0.5, 0.5, math.pi / 2), named)}
+    pm = S.point_map(closed_room(True), VOXEL, counts=5.0)
+    planner = Planner(PlannerConfig(strategy="asp", asp=AspConfig(n_completions=2, n_jitter=1), rooms="map"))
+    planner.rooms = LAYER
+    goal = planner.plan(S.snapshot([]), pm, robots)[0]
+    assert planner.info.room_source == "map" and planner.info.n_hypotheses > 0
+    assert goal.reason.startswith("asp: ") and "fallback" not in goal.reason
+
+
 def test_frontier_and_goal_know_their_room() -> None:
     planner = Planner(PlannerConfig(strategy="see"))
     planner.rooms = LAYER
