@@ -38,7 +38,7 @@ from mapper.fusion import (
 from mapper.geometry.background import behind_background
 from mapper.geometry.contract import Reconstructor, View
 from mapper.geometry.features import Features, LruCache, extract_features
-from mapper.geometry.mvs import OneBlasThread
+from mapper.geometry.mvs import one_blas_thread
 from mapper.geometry.posecheck import rotation_between
 from mapper.geometry.singleview import PlacedBox, SeenView, depth_to_world, layout_depth, place_objects
 from mapper.geometry.support import MappedTop, place_on_mapped_support, place_on_measured_support
@@ -150,8 +150,6 @@ class MapperCore:
         # Calibrated fixed cameras whose last keyframe saw a node's place empty: source -> that keyframe's stamp.
         # Their next frame absence_confirm_s later is a keyframe too (they keyframe only on image change).
         self._confirm: dict[str, int] = {}
-        # Fusion and edges are many small products: BLAS on one thread (its idle pool thread spins otherwise).
-        self._one_blas_thread = OneBlasThread()
 
     def views_to_keep(self) -> list[View]:
         """Every view a later window or retry may still use: the stored keyframes and recent frames, and the
@@ -354,7 +352,7 @@ class MapperCore:
     def _commit(self, changed: set[str], removed: set[str], stamp_ns: int,
                 frames: dict[str, int] | None = None, moves: list[NodeMove] | None = None,
                 retired: dict[str, GraphNode] | None = None) -> GraphDelta | None:
-        with self._one_blas_thread():
+        with one_blas_thread():
             return self._commit_edges(changed, removed, stamp_ns, frames, moves, retired)
 
     def _commit_edges(self, changed: set[str], removed: set[str], stamp_ns: int, frames: dict[str, int] | None,
@@ -435,7 +433,7 @@ class MapperCore:
     def apply_products(self, view: View, products: KeyframeProducts) -> UpdateResult:
         """The mapper's part of a keyframe once its heavy work is done (here or by a worker): typical depth,
         the depth check, the keyframe store, then fusion."""
-        with self._one_blas_thread():
+        with one_blas_thread():  # fusion and edges are many small products (see one_blas_thread)
             return self._apply_products(view, products)
 
     def _apply_products(self, view: View, products: KeyframeProducts) -> UpdateResult:

@@ -23,6 +23,7 @@ Pipeline per call (a window of views, dense depth for ``targets``):
 
 from __future__ import annotations
 
+import functools
 import time
 from collections.abc import Iterator, Sequence
 from contextlib import contextmanager, nullcontext
@@ -217,19 +218,16 @@ def local_std(gray: torch.Tensor, radius: int) -> torch.Tensor:
 
 
 @contextmanager
-def compute_threads(n: int, blas: Any = None) -> Iterator[None]:
+def compute_threads(n: int) -> Iterator[None]:
     """Limit torch, OpenCV and BLAS to ``n`` threads for the duration, then restore the caller's settings.
 
     The work here is many small operations; on a busy 2-core machine worker threads of each library spin
-    waiting for each other and measured 3-10x slower than one thread. ``blas``: a ``threadpoolctl``
-    ``ThreadpoolController`` to reuse (finding the loaded libraries costs ~10 ms in a worker: not per call);
-    default: a fresh look when threadpoolctl is installed.
+    waiting for each other and measured 3-10x slower than one thread.
     """
     torch_before, cv_before = torch.get_num_threads(), cv2.getNumThreads()
     torch.set_num_threads(n)
     cv2.setNumThreads(n)
-    if blas is None:
-        blas = blas_controller()
+    blas = blas_controller()
     try:
         if blas is not None:
             with blas.limit(limits=n):
@@ -241,9 +239,11 @@ def compute_threads(n: int, blas: Any = None) -> Iterator[None]:
         cv2.setNumThreads(cv_before)
 
 
+@functools.cache
 def blas_controller() -> Any:
-    """A ``threadpoolctl.ThreadpoolController`` of the thread pools loaded now, None without threadpoolctl (optional:
-    BLAS then keeps its own thread count)."""
+    """The process's ``threadpoolctl.ThreadpoolController``, looked up once (~10 ms in a worker: not per call; the
+    BLAS libraries are loaded with numpy and torch, which this module imports); None without threadpoolctl
+    (optional: BLAS then keeps its own thread count)."""
     try:
         from threadpoolctl import ThreadpoolController
     except ImportError:
@@ -251,19 +251,13 @@ def blas_controller() -> Any:
     return ThreadpoolController()
 
 
-class OneBlasThread:
-    """Calling it gives a context manager limiting BLAS to one thread (restored after); a no-op without
-    threadpoolctl. For the small numeric products around the heavy work (composing, decoding a result, fusion):
-    with BLAS's default pool (a thread per core) the idle thread spins after each product, and on a busy machine
-    that costs more CPU than the products. The loaded libraries are looked up once, at the first call."""
-
-    def __init__(self) -> None:
-        self._blas: Any = None  # False: threadpoolctl is not installed
-
-    def __call__(self) -> Any:
-        if self._blas is None:
-            self._blas = blas_controller() or False
-        return self._blas.limit(limits=1) if self._blas else nullcontext()
+def one_blas_thread() -> Any:
+    """A context manager limiting BLAS to one thread (restored after); a no-op without threadpoolctl. For the
+    small numeric products around the heavy work (composing, decoding a result, fusion): with BLAS's default pool
+    (a thread per core) the idle thread spins after each product, and on a busy machine that costs more CPU than
+    the products."""
+    blas = blas_controller()
+    return blas.limit(limits=1) if blas is not None else nullcontext()
 
 
 class StageClock:
@@ -301,25 +295,18 @@ class MvsReconstructor:
         self._pair_rot = features.LruCache(self.config.cache_size * 16)  # (key a, key b) -> R_b_a, both orders
         self._depth = features.LruCache(self.config.cache_size)  # key -> (depth at sweep res, K sweep)
         self._reg_feats = features.LruCache(self.config.cache_size)  # registration features of map keyframes
-        self._blas: Any = None  # threadpoolctl controller, found at the first call (the libraries are loaded then)
-
-    def _threads(self) -> Any:
-        """:func:`compute_threads` with this reconstructor's thread count and its BLAS controller."""
-        if self._blas is None:
-            self._blas = blas_controller()
-        return compute_threads(self.config.threads, self._blas)
 
     def thread_limit(self) -> Any:
         """Context manager: torch, OpenCV and BLAS limited to this reconstructor's ``threads`` (restored after). A
         keyframe job runs the work around the reconstruction under it too (``mapper.work.compute``)."""
-        return self._threads()
+        return compute_threads(self.config.threads)
 
     def register(self, view: View, map_keyframes: Sequence[Any], config: Any = None) -> Any:
         """Pose of a view without extrinsics against mapped keyframes (``register.register_view``), reusing
         this reconstructor's feature cache across calls. Returns a ``PoseEstimate`` (check ``ok``)."""
         from mapper.geometry.register import register_view
 
-        with self._threads():
+        with self.thread_limit():
             return register_view(view, map_keyframes, config, cache=self._reg_feats)
 
     # ---- features -------------------------------------------------------------------------------------
@@ -789,7 +776,7 @@ class MvsReconstructor:
     def reconstruct(self, views: Sequence[View], targets: Sequence[int] | None = None) -> FactoredReconstruction:
         if not views:
             raise ValueError("reconstruct needs at least one view")
-        with self._threads():
+        with self.thread_limit():
             return self._reconstruct(views, targets)
 
     def _reconstruct(self, views: Sequence[View], targets: Sequence[int] | None) -> FactoredReconstruction:

@@ -25,7 +25,7 @@ from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
 from mapper.geometry.contract import View
-from mapper.geometry.mvs import OneBlasThread
+from mapper.geometry.mvs import one_blas_thread
 from mapper.work.compute import KeyframeProducts
 from mapper.work.config import OffloadConfig
 from mapper.work.dispatch import Dispatcher, Outcome
@@ -87,7 +87,6 @@ class Offloader:
         self._session: zenoh.Session | None = None
         self._decls: list[Any] = []
         self.stages = StageTimes()  # a job's stages (status: kf_s.*)
-        self._one_blas_thread = OneBlasThread()
 
     # -- Zenoh -----------------------------------------------------------------------------------------
     def open(self, session: zenoh.Session) -> None:
@@ -290,7 +289,7 @@ class Offloader:
         if p is not None:
             t0 = time.perf_counter()
             try:
-                with self._one_blas_thread():  # its points are one small product: see OneBlasThread
+                with one_blas_thread():  # its points are one small product: see one_blas_thread
                     products = decode_result(res, p.job)
                 self.counters.add("work_decode_s_sum", time.perf_counter() - t0)  # the mapper's cost of a result
                 fetch = float(res.timings_s.get("fetch", 0.0))  # the worker getting the window's images
