@@ -187,8 +187,12 @@ class MapperNode(Process):
             self.counters.add("heap_releases")
 
     def _finish_jobs(self, offloader: Offloader) -> None:
-        """Keyframes back from workers (or left to the mapper) into the graph, then jobs out."""
+        """Jobs out to free workers, keyframes back from workers (or left to the mapper) into the graph, then
+        jobs out again (those the finished keyframes made)."""
         todo = offloader.step()
+        # Free workers take their next job before this thread fuses the results they sent: a worker would
+        # otherwise idle through the fusion (~0.1-0.2 s a keyframe), and the job is the same (made at ingest).
+        todo.extend(offloader.send())
         while True:
             for done in todo:
                 delta = self._finish(done)
