@@ -21,6 +21,9 @@ The id rule (RoomTracker.update), written once here and tested:
   the merged room keeps the id of the one it overlaps most, the other id is retired.
 - When an old room's cells split into two regions (a wall was seen), the larger keeps the id.
 - Any other region gets a fresh id (``room<n>``, n counting up from 1, never reused in one tracker).
+- A room left smaller than ``min_room_m2`` by the split-back (a sliver of an early, coarser segmentation that the
+  segmentation itself would no longer make a room) is no room: its cells join the rooms it touches and its id is
+  retired; one that touches no other room stays.
 
 Frames: the grid's cell ``(i, j)`` covers world ``x in [(i0 + i) * cell_m, (i0 + i + 1) * cell_m)`` and the
 same for y with ``j``; ``origin_ij = (i0, j0)`` are whole cells, so grids of different updates align.
@@ -455,7 +458,7 @@ class RoomTracker:
         winner = {idx: n for n, (_c, idx) in claims.items()}
         for idx, (reg, _ovs) in enumerate(regions):
             out[reg] = winner[idx] if idx in winner else self._fresh()
-        return out
+        return _absorb_small(out, space, self.params.min_room_m2 / grid.cell_m ** 2)
 
     def _seen_open(self, between: np.ndarray, grid: FloorGrid) -> bool:
         """Whether the strip ``between`` two old rooms (cells that were in neither, next to both: where a wall
@@ -515,6 +518,21 @@ class RoomTracker:
         poly = _outline(mask, grid)
         self._outlines[room_id] = (key, poly)
         return poly
+
+
+def _absorb_small(numbers: np.ndarray, space: np.ndarray, min_cells: float) -> np.ndarray:
+    """``numbers`` with each room under ``min_cells`` cells flooded by the rooms it touches (a watershed over the
+    free space's distance transform, as :func:`segment` treats its small regions); one touching none stays."""
+    from skimage.segmentation import watershed
+
+    nums, sizes = np.unique(numbers[numbers > 0], return_counts=True)
+    small = nums[sizes < min_cells]
+    if len(small) == 0 or len(small) == len(nums):
+        return numbers
+    is_small = np.isin(numbers, small)
+    flooded = watershed(-ndimage.distance_transform_edt(space), np.where(is_small, 0, numbers),
+                        mask=numbers > 0).astype(np.int32)
+    return np.where(is_small & (flooded == 0), numbers, flooded)
 
 
 def _root(groups: dict[int, int], n: int) -> int:

@@ -93,6 +93,21 @@ class TestIds:
         assert opened.doorways == []
         assert set(rm.in_room.values()) == {opened.rooms[0].room_id}
 
+    def test_a_sliver_left_by_the_split_back_joins_its_neighbour(self) -> None:
+        rm = RoomMapper()
+        ids = sorted(r.room_id for r in rm.update(two_rooms(), NODES).rooms)
+        # An earlier, coarser segmentation left a 0.8 x 0.8 m piece of the left room numbered as a room of its own
+        # (under min_room_m2): the region that covers both is split back along them, and the sliver is no room.
+        t = rm.tracker
+        assert t._numbers is not None
+        ij = np.argwhere(t._numbers > 0)
+        corner = ij.min(0)
+        t._numbers[corner[0]:corner[0] + 8, corner[1]:corner[1] + 8] = 99
+        t._ids[99] = "room99"
+        again = rm.update(two_rooms(), NODES)
+        assert sorted(r.room_id for r in again.rooms) == ids
+        assert "room99" not in rm.in_room.values()
+
     def test_a_new_room_gets_a_fresh_id_never_reused(self) -> None:
         rm = RoomMapper()
         one = rm.update(floor_points(0, 0, 4, 4), [])
