@@ -269,6 +269,8 @@ class FrameIntake:
             self._oracle[(msg.source_id, msg.seq)] = msg
             while len(self._oracle) > self.config.max_oracle_cache:
                 self._oracle.popitem(last=False)
+        if self._pending:  # a frame may be waiting for this sample: ready() need not sleep out its timeout
+            self.slots.wake()
 
     def _take_oracle(self, frame: Frame) -> OracleFrame | None:
         with self._oracle_lock:

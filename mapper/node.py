@@ -76,6 +76,7 @@ class MapperNode(Process):
             self.offloader = Offloader(config.workers, config, self.keys, self.counters, perception,
                                        bad_input=self.intake.bad_input)
             self.core.offload = self.offloader.offload
+            self.offloader.on_news = self.intake.slots.wake  # a worker's ack or result ends the wait for frames
 
     # -- persistence -----------------------------------------------------------------------------
     def save(self, force: bool = False) -> None:
@@ -131,9 +132,8 @@ class MapperNode(Process):
         )
         self.outbox.periodic(force=True)
         while node.running:
-            # Results of workers arrive in between frames: poll them often while jobs are out.
-            busy = self.offloader is not None and self.offloader.busy()
-            self._step(timeout_s=0.02 if busy else 0.2)
+            # Waits for frames, or for a worker's news (Offloader.on_news wakes it), or 0.2 s for the periodic work.
+            self._step(timeout_s=0.2)
 
     def _start_local_workers(self) -> LocalWorkers | None:
         """The worker processes of ``[workers] local`` (stopped with the mapper); None when there are none. They

@@ -191,6 +191,7 @@ class LatestSlots(Generic[T]):
         self.evicted_keys = 0
         self.bytes = 0
         """Bytes buffered now (with ``max_bytes``)."""
+        self._woken = False
 
     def _bytes_of(self, item: T) -> int:
         return self._size(item) if self._size is not None else 0
@@ -237,15 +238,22 @@ class LatestSlots(Generic[T]):
         return False
 
     def take_all(self, timeout: float | None = None) -> list[tuple[str, T]]:
-        """Take every buffered item (oldest first per key); waits up to ``timeout`` for one."""
+        """Take every buffered item (oldest first per key); waits up to ``timeout`` for one, or for :meth:`wake`."""
         with self._cond:
-            if timeout is not None and not any(self._rings.values()):
+            if timeout is not None and not any(self._rings.values()) and not self._woken:
                 self._cond.wait(timeout)
+            self._woken = False
             out = [(k, item) for k, ring in self._rings.items() for item in ring]
             for ring in self._rings.values():
                 ring.clear()
             self.bytes = 0
             return out
+
+    def wake(self) -> None:
+        """End the :meth:`take_all` waiting now, or else the next one, at once (news of another kind arrived)."""
+        with self._cond:
+            self._woken = True
+            self._cond.notify_all()
 
     def __len__(self) -> int:
         with self._cond:

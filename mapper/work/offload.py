@@ -21,6 +21,7 @@ import collections
 import logging
 import threading
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Any
 
@@ -87,6 +88,7 @@ class Offloader:
         self._session: zenoh.Session | None = None
         self._decls: list[Any] = []
         self.stages = StageTimes()  # a job's stages (status: kf_s.*)
+        self.on_news: Callable[[], None] | None = None  # called (Zenoh thread) when an ack or result arrives
 
     # -- Zenoh -----------------------------------------------------------------------------------------
     def open(self, session: zenoh.Session) -> None:
@@ -116,6 +118,8 @@ class Offloader:
         if what == "result":
             self.counters.add("work_result_bytes", len(sample.payload))
         self._inbox.append((what, sample.payload.to_bytes()))
+        if self.on_news is not None:
+            self.on_news()
 
     def _on_alive(self, sample: zenoh.Sample) -> None:
         try:
@@ -205,10 +209,6 @@ class Offloader:
         return True
 
     # -- the mapper's thread ---------------------------------------------------------------------------
-    def busy(self) -> bool:
-        """Whether jobs are out (the mapper then polls for results more often)."""
-        return bool(self._pending)
-
     def has_news(self) -> bool:
         """Whether acks or results wait to be taken (:meth:`step`)."""
         return bool(self._inbox)

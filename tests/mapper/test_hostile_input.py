@@ -189,6 +189,28 @@ def test_latest_slots_byte_bound_drops_the_oldest_across_keys() -> None:
         LatestSlots(max_bytes=10)
 
 
+def test_latest_slots_wake_ends_a_wait_for_frames_and_is_not_lost_before_it() -> None:
+    import threading
+
+    slots: LatestSlots[bytes] = LatestSlots()
+    got: list[list[tuple[str, bytes]]] = []
+    slots.wake()  # news before the wait: the next take_all does not sleep out its timeout
+    early = threading.Thread(target=lambda: got.append(slots.take_all(timeout=60.0)), daemon=True)
+    early.start()
+    early.join(timeout=5.0)
+    assert not early.is_alive() and got == [[]]
+    got.clear()
+    t = threading.Thread(target=lambda: got.append(slots.take_all(timeout=60.0)), daemon=True)
+    t.start()
+    while not got and t.is_alive():
+        slots.wake()  # a worker's result arrives while the mapper waits for frames
+        t.join(timeout=0.05)
+    t.join(timeout=5.0)
+    assert not t.is_alive() and got == [[]]
+    slots.put("a", b"x")
+    assert slots.take_all(timeout=60.0) == [("a", b"x")]
+
+
 def test_decode_budget() -> None:
     b = DecodeBudget(100)
     assert b.acquire(60) and not b.acquire(41) and b.acquire(40)

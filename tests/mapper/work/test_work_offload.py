@@ -394,3 +394,20 @@ def test_junk_work_messages_reach_the_log_rate_limited_and_cleaned(caplog: pytes
     lines = [r.getMessage() for r in caplog.records]
     assert 1 <= len(lines) <= 3, lines
     assert all("\x00" not in ln and ln.isprintable() for ln in lines)
+
+
+def test_an_ack_or_result_from_a_worker_wakes_the_mapper() -> None:
+    o, _, _ = offloader()
+    news: list[int] = []
+    o.on_news = lambda: news.append(1)
+
+    class Payload(bytes):
+        def to_bytes(self) -> bytes:
+            return bytes(self)
+
+    class Sample:
+        payload = Payload(b"junk")
+
+    o._receive("result", Sample())  # type: ignore[arg-type]
+    o._receive("ack", Sample())  # type: ignore[arg-type]
+    assert news == [1, 1] and o.has_news()
