@@ -525,9 +525,10 @@ def _absorb_small(numbers: np.ndarray, space: np.ndarray, min_cells: float) -> n
     free space's distance transform, as :func:`segment` treats its small regions); one touching none stays."""
     from skimage.segmentation import watershed
 
-    nums, sizes = np.unique(numbers[numbers > 0], return_counts=True)
-    small = nums[sizes < min_cells]
-    if len(small) == 0 or len(small) == len(nums):
+    sizes = np.bincount(numbers.ravel())
+    sizes[0] = 0
+    small = np.flatnonzero((sizes > 0) & (sizes < min_cells))
+    if len(small) == 0 or len(small) == np.count_nonzero(sizes):
         return numbers
     is_small = np.isin(numbers, small)
     flooded = watershed(-ndimage.distance_transform_edt(space), np.where(is_small, 0, numbers),
