@@ -694,6 +694,13 @@ class MapperCore:
         with self.lock:
             return self.store.snapshot()
 
+    def snapshot_key(self) -> tuple[str, int, int | None]:
+        """(epoch, version, the room layer's version): the snapshot changes exactly when this does (a room layer can
+        join the delta of the version it was built at after that version was committed)."""
+        with self.lock:
+            rooms = self.store.rooms
+            return self.store.epoch, self.store.version, rooms.version if rooms is not None else None
+
     def nodes(self) -> list[GraphNode]:
         with self.lock:
             return [self.store.nodes[k] for k in sorted(self.store.nodes)]

@@ -44,6 +44,9 @@ class GraphQueries:
     def __init__(self, core: MapperCore, keys: Keys, counters: Counters,
                  refuse: Callable[..., None]) -> None:
         self.core, self.keys, self.counters, self.refuse = core, keys, counters, refuse
+        # The encoded whole-graph snapshot of the newest graph (MapperCore.snapshot_key): consumers that poll it get
+        # the same bytes until the graph changes.
+        self._snapshot_bytes: tuple[tuple[str, int, int | None], bytes] | None = None
 
     def on_query(self, query: zenoh.Query) -> None:
         self._guarded_answer(query, json_view=False)
@@ -84,11 +87,27 @@ class GraphQueries:
             for reply_key, msg in self._select(self.keys.from_graph_json(key), str(query.parameters)):
                 query.reply(self.keys.graph_json(reply_key), msg.model_dump_json(),
                             encoding=message_encoding(type(msg), "application/json"))
+        elif key == self.keys.graph_snapshot:
+            self.counters.add("queries")
+            query.reply(key, self.snapshot_bytes(), encoding=message_encoding(GraphSnapshot))
         else:
             self.counters.add("queries")
             for reply_key, msg in self._select(key, str(query.parameters)):
                 query.reply(reply_key, encode(msg), encoding=message_encoding(type(msg)))
         self.counters.set("last_query_ms", (time.perf_counter() - t0) * 1e3)
+
+    def snapshot_bytes(self) -> bytes:
+        """The encoded :meth:`MapperCore.snapshot`, encoded once per graph change (``snapshot_encodes`` counts)."""
+        k = self.core.snapshot_key()
+        cached = self._snapshot_bytes
+        if cached is not None and cached[0] == k:
+            return cached[1]
+        snap = self.core.snapshot()
+        k = (snap.epoch, snap.version, snap.rooms.version if snap.rooms is not None else None)  # as taken
+        data = encode(snap)
+        self._snapshot_bytes = (k, data)
+        self.counters.add("snapshot_encodes")
+        return data
 
     def _select(self, key: str, params: str) -> list[tuple[str, Message]]:
         """What a query on ``key`` (under ``graph/``) answers: ``(reply key, message)`` pairs."""
