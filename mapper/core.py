@@ -715,6 +715,19 @@ class MapperCore:
             out = self.store.query(q)
         return out if members is None else [n for n in out if n.node_id in members]
 
+    def select_graph(self, q: GraphQuery) -> GraphSnapshot:
+        """The nodes ``q`` selects, the edges among them and their last moves (and the retired nodes ``q`` asks
+        for), without building the whole graph's snapshot."""
+        nodes = self.query(q)
+        ids = {n.node_id for n in nodes}
+        retired = self.retired(q) if q.include_retired else []
+        with self.lock:
+            st = self.store
+            edges = [st.edges[k] for k in sorted(st.edges)
+                     if st.edges[k].subject_id in ids and st.edges[k].object_id in ids]
+            return GraphSnapshot(epoch=st.epoch, version=st.version, stamp_ns=st.stamp_ns, nodes=nodes, edges=edges,
+                                 moves=st.moves_of(ids), retired=retired)
+
     def retired(self, q: GraphQuery) -> list[RetiredNode]:
         """The retired nodes (seen gone, kept ``max_retired`` / ``retired_keep_s``) that ``q`` selects, newest
         first; none with ``q.room`` (rooms hold live nodes only)."""

@@ -121,15 +121,7 @@ class GraphQueries:
                 raise NotFound("this mapper builds no rooms (rooms.enabled = false)")
             return [(key, layer)]
         if key == self.keys.graph_nodes:
-            q = GraphQuery.from_parameters(params)
-            nodes = self.core.query(q)
-            ids = {n.node_id for n in nodes}
-            snap = self.core.snapshot()
-            edges = [e for e in snap.edges if e.subject_id in ids and e.object_id in ids]
-            return [(key, GraphSnapshot(epoch=snap.epoch, version=snap.version, stamp_ns=snap.stamp_ns,
-                                        nodes=nodes, edges=edges,
-                                        moves=[m for m in snap.moves if m.node_id in ids],
-                                        retired=self.core.retired(q) if q.include_retired else []))]
+            return [(key, self.core.select_graph(GraphQuery.from_parameters(params)))]
         try:
             node_id = self.keys.parse_node(key)
         except ValueError:

@@ -238,12 +238,21 @@ class FakeCore:
     def snapshot(self) -> GraphSnapshot:
         return self.snap
 
+    def snapshot_key(self) -> tuple[str, int, int | None]:
+        return self.snap.epoch, self.snap.version, None
+
     def nodes(self) -> list[GraphNode]:
         return list(self.snap.nodes)
 
     def query(self, q: Any) -> list[GraphNode]:
         members = None if q.room is None else set(self.rooms.members(q.room))
         return [n for n in self.snap.nodes if q.matches(n) and (members is None or n.node_id in members)]
+
+    def select_graph(self, q: Any) -> GraphSnapshot:
+        nodes = self.query(q)
+        ids = {n.node_id for n in nodes}
+        return self.snap.model_copy(update={"nodes": nodes, "edges": [
+            e for e in self.snap.edges if e.subject_id in ids and e.object_id in ids]})
 
     rooms = RoomLayer(version=7, stamp_ns=9, rooms=[RoomNode(
         room_id="room1", label="kitchen", label_confidence=0.8, polygon=[(0.0, 0.0), (4.0, 0.0), (4.0, 3.0)],
