@@ -698,8 +698,16 @@ class MapperCore:
         """(epoch, version, the room layer's version): the snapshot changes exactly when this does (a room layer can
         join the delta of the version it was built at after that version was committed)."""
         with self.lock:
-            rooms = self.store.rooms
-            return self.store.epoch, self.store.version, rooms.version if rooms is not None else None
+            return self._snapshot_key()
+
+    def keyed_snapshot(self) -> tuple[GraphSnapshot, tuple[str, int, int | None]]:
+        """:meth:`snapshot` and its :meth:`snapshot_key`, taken together."""
+        with self.lock:
+            return self.store.snapshot(), self._snapshot_key()
+
+    def _snapshot_key(self) -> tuple[str, int, int | None]:
+        rooms = self.store.rooms
+        return self.store.epoch, self.store.version, rooms.version if rooms is not None else None
 
     def nodes(self) -> list[GraphNode]:
         with self.lock:

@@ -102,8 +102,7 @@ class GraphQueries:
         cached = self._snapshot_bytes
         if cached is not None and cached[0] == k:
             return cached[1]
-        snap = self.core.snapshot()
-        k = (snap.epoch, snap.version, snap.rooms.version if snap.rooms is not None else None)  # as taken
+        snap, k = self.core.keyed_snapshot()
         data = encode(snap)
         self._snapshot_bytes = (k, data)
         self.counters.add("snapshot_encodes")

@@ -241,6 +241,9 @@ class FakeCore:
     def snapshot_key(self) -> tuple[str, int, int | None]:
         return self.snap.epoch, self.snap.version, None
 
+    def keyed_snapshot(self) -> tuple[GraphSnapshot, tuple[str, int, int | None]]:
+        return self.snap, self.snapshot_key()
+
     def nodes(self) -> list[GraphNode]:
         return list(self.snap.nodes)
 
