@@ -108,8 +108,27 @@ def warp_grid(K_ref: F64, K_src: F64, T_src_ref: F64, depths: torch.Tensor, h: i
     return torch.stack([us, vs], dim=-1)
 
 
+MAX_PAD_PX = 64
+"""Planes that would need a wider replicated margin (seen at a grazing angle) are warped with OpenCV's replicating
+border instead."""
+
+
+def _homography_reach(H: F64, h: int, w: int, reach_px: int) -> int:
+    """Source pixels, beyond the source image, that reference pixels up to ``reach_px`` from a pixel landing on it
+    can map to under ``H`` (reference -> source pixels): the Jacobian's largest row norm at the reference image's
+    corners (a plane in front of both cameras stretches most at a corner, where its depth in the source is
+    smallest), with a margin."""
+    corners = np.array([[0.0, 0.0, 1.0], [w - 1.0, 0.0, 1.0], [0.0, h - 1.0, 1.0], [w - 1.0, h - 1.0, 1.0]])
+    q = corners @ H.T  # (4, 3): homogeneous source points
+    uv = q[:, :2] / q[:, 2:3]
+    J = (H[None, :2, :2] - uv[:, :, None] * H[None, 2:3, :2]) / q[:, 2, None, None]  # (4, 2, 2) d(uv)/d(xy)
+    stretch = float(np.abs(J).sum(axis=2).max())  # a step of one pixel in x and y at once: the L1 row norm
+    return int(np.ceil(1.25 * reach_px * max(stretch, 1.0))) + 2
+
+
 def warp_planes(
-    src: torch.Tensor, K_ref: F64, K_src: F64, T_src_ref: F64, depths: torch.Tensor, h: int, w: int
+    src: torch.Tensor, K_ref: F64, K_src: F64, T_src_ref: F64, depths: torch.Tensor, h: int, w: int,
+    reach_px: int = 5,
 ) -> tuple[torch.Tensor, torch.Tensor]:
     """The source image warped onto every fronto-parallel reference plane, and where it is seen.
 
@@ -117,6 +136,14 @@ def warp_planes(
     ``K_src (R + t n^T / d) K_ref^-1`` (n = (0, 0, 1)), so each plane is one ``cv2.warpPerspective`` call,
     much cheaper than projecting every pixel of every plane. Returns warped (D, H, W) float32 (bilinear,
     edge-replicated) and inside (D, H, W) bool (the source pixel exists and lies in front of the source).
+
+    Edge replication is what the census of a pixel near the source's border compares against, but OpenCV's
+    replicating border is ~3x slower than its constant one wherever pixels fall outside (most planes). So for a
+    plane wholly in front of the source, the source is padded by replication far enough that every pixel within
+    ``reach_px`` reference pixels (the census radius) of one that lands on the source still samples the padding
+    (:func:`_homography_reach`, at most ``MAX_PAD_PX``), and warped with a constant border: the same numbers there
+    (to float32 rounding of the shifted homography); only pixels further out, which no census of a seen pixel reads,
+    differ.
     """
     src_np = np.ascontiguousarray(src.numpy(), dtype=np.float32)
     hs, ws = src_np.shape
@@ -135,9 +162,19 @@ def warp_planes(
     inside = np.empty((len(depths), h, w), bool)
     flags = cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP
     nearest = cv2.INTER_NEAREST | cv2.WARP_INVERSE_MAP
-    for i, d in enumerate(depth_list):
-        H = K_src @ (R + t_n / d) @ K_ref_inv
-        cv2.warpPerspective(src_np, H, (w, h), dst=warped[i], flags=flags, borderMode=cv2.BORDER_REPLICATE)
+    homographies = [K_src @ (R + t_n / d) @ K_ref_inv for d in depth_list]
+    reach = [_homography_reach(H, h, w, reach_px) if ok else MAX_PAD_PX + 1
+             for H, ok in zip(homographies, in_front, strict=True)]
+    padded_ok = [r <= MAX_PAD_PX for r in reach]
+    pad = max((r for r, ok in zip(reach, padded_ok, strict=True) if ok), default=0)
+    padded = cv2.copyMakeBorder(src_np, pad, pad, pad, pad, cv2.BORDER_REPLICATE)
+    shift = np.array([[1.0, 0.0, pad], [0.0, 1.0, pad], [0.0, 0.0, 1.0]])
+    for i, H in enumerate(homographies):
+        if padded_ok[i]:
+            cv2.warpPerspective(padded, shift @ H, (w, h), dst=warped[i], flags=flags, borderMode=cv2.BORDER_CONSTANT,
+                                borderValue=0)
+        else:
+            cv2.warpPerspective(src_np, H, (w, h), dst=warped[i], flags=flags, borderMode=cv2.BORDER_REPLICATE)
         if in_front[i]:
             cv2.warpPerspective(ones, H, (w, h), dst=inside[i].view(np.uint8), flags=nearest,
                                 borderMode=cv2.BORDER_CONSTANT, borderValue=0)
@@ -167,7 +204,7 @@ def sweep_cost(
     assert src_grays, "sweep_cost needs at least one source"
     h, w = ref_gray.shape
     ref_bits = census_bits(ref_gray, params.census_radius, params.census_stride)
-    warps = (warp_planes(src, K_ref, K_s, T, depths, h, w)
+    warps = (warp_planes(src, K_ref, K_s, T, depths, h, w, params.census_radius)
              for src, K_s, T in zip(src_grays, K_srcs, T_src_ref, strict=True))
     best_two = _best_two_compiled if kernels.AVAILABLE else _best_two_torch
     best1, best2 = best_two(warps, ref_bits, params.census_radius, params.census_stride)
