@@ -113,17 +113,18 @@ MAX_PAD_PX = 64
 border instead."""
 
 
-def _homography_reach(H: F64, h: int, w: int, reach_px: int) -> int:
-    """Source pixels, beyond the source image, that reference pixels up to ``reach_px`` from a pixel landing on it
-    can map to under ``H`` (reference -> source pixels): the Jacobian's largest row norm at the reference image's
-    corners (a plane in front of both cameras stretches most at a corner, where its depth in the source is
-    smallest), with a margin."""
+def _homography_reach(Hs: F64, h: int, w: int, reach_px: int) -> NDArray[np.int64]:
+    """Per homography of ``Hs`` (D, 3, 3; reference -> source pixels), the source pixels beyond the source image that
+    reference pixels up to ``reach_px`` from a pixel landing on it can map to: the Jacobian's largest row norm at the
+    reference image's corners (a plane in front of both cameras stretches most at a corner, where its depth in the
+    source is smallest), with a margin."""
     corners = np.array([[0.0, 0.0, 1.0], [w - 1.0, 0.0, 1.0], [0.0, h - 1.0, 1.0], [w - 1.0, h - 1.0, 1.0]])
-    q = corners @ H.T  # (4, 3): homogeneous source points
-    uv = q[:, :2] / q[:, 2:3]
-    J = (H[None, :2, :2] - uv[:, :, None] * H[None, 2:3, :2]) / q[:, 2, None, None]  # (4, 2, 2) d(uv)/d(xy)
-    stretch = float(np.abs(J).sum(axis=2).max())  # a step of one pixel in x and y at once: the L1 row norm
-    return int(np.ceil(1.25 * reach_px * max(stretch, 1.0))) + 2
+    q = np.einsum("dij,cj->dci", Hs, corners)  # (D, 4, 3): homogeneous source points of the corners
+    uv = q[..., :2] / q[..., 2:3]
+    # d(uv)/d(xy) at each corner: (H[:2, :2] - uv H[2, :2]) / q_z, (D, 4, 2, 2)
+    J = (Hs[:, None, :2, :2] - uv[..., :, None] * Hs[:, None, 2:3, :2]) / q[..., 2, None, None]
+    stretch = np.abs(J).sum(axis=3).max(axis=(1, 2))  # a step of one pixel in x and y at once: the L1 row norm
+    return np.ceil(1.25 * reach_px * np.maximum(stretch, 1.0)).astype(np.int64) + 2
 
 
 def warp_planes(
@@ -154,19 +155,19 @@ def warp_planes(
     t_n = np.outer(t, np.array([0.0, 0.0, 1.0]))
     corners = np.array([[0, 0, 1], [w - 1, 0, 1], [0, h - 1, 1], [w - 1, h - 1, 1]], np.float64).T
     rays = K_ref_inv @ corners  # z = 1
-    depth_list = depths.tolist()
-    # z of the plane's corners in the source, every plane at once (the same numbers as plane by plane).
-    z_corners = np.stack([(R @ (rays * d))[2] + t[2] for d in depth_list]) if depth_list else np.zeros((0, 4))
+    d = depths.numpy().astype(np.float64)
+    # z of each plane's corners in the source: R (rays d) + t, every plane at once.
+    z_corners = d[:, None] * (R[2] @ rays)[None, :] + t[2]
     in_front = np.all(z_corners > 1e-4, axis=1)  # z is affine in the pixel on a plane: corners in front => all
     warped = np.empty((len(depths), h, w), np.float32)
     inside = np.empty((len(depths), h, w), bool)
     flags = cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP
     nearest = cv2.INTER_NEAREST | cv2.WARP_INVERSE_MAP
-    homographies = [K_src @ (R + t_n / d) @ K_ref_inv for d in depth_list]
-    reach = [_homography_reach(H, h, w, reach_px) if ok else MAX_PAD_PX + 1
-             for H, ok in zip(homographies, in_front, strict=True)]
-    padded_ok = [r <= MAX_PAD_PX for r in reach]
-    pad = max((r for r, ok in zip(reach, padded_ok, strict=True) if ok), default=0)
+    # K_src (R + t n^T / d) K_ref^-1 for every plane: A + B / d.
+    homographies = (K_src @ R @ K_ref_inv)[None] + (K_src @ t_n @ K_ref_inv)[None] / d[:, None, None]
+    reach = _homography_reach(homographies, h, w, reach_px) if len(d) else np.zeros(0, np.int64)
+    padded_ok = in_front & (reach <= MAX_PAD_PX)
+    pad = int(reach[padded_ok].max()) if padded_ok.any() else 0
     padded = cv2.copyMakeBorder(src_np, pad, pad, pad, pad, cv2.BORDER_REPLICATE)
     shift = np.array([[1.0, 0.0, pad], [0.0, 1.0, pad], [0.0, 0.0, 1.0]])
     for i, H in enumerate(homographies):
