@@ -26,6 +26,11 @@ from typing import Any
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
+try:
+    import numba
+except ImportError:  # optional (the ``server`` extra): DBSCAN's components come from scipy
+    numba = None  # type: ignore[assignment]
+
 from mapper.absence import AbsenceParams, Judgement, Verdict, judge, nearest_depth
 from mapper.association import KeyframeView, containment
 from mapper.perception.base import Detection, unit
@@ -379,15 +384,30 @@ def sum_by_index(index: np.ndarray, values: np.ndarray, n: int) -> np.ndarray:
 
 def dbscan_labels(points: np.ndarray, eps: float, min_samples: int) -> np.ndarray:
     """DBSCAN cluster label per point (-1 = noise), via a KD-tree and connected components."""
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import connected_components
     from scipy.spatial import cKDTree
 
     n = len(points)
-    labels = np.full(n, -1, dtype=np.int64)
     if n == 0:
-        return labels
+        return np.full(n, -1, dtype=np.int64)
     pairs = cKDTree(points).query_pairs(eps, output_type="ndarray")
+    if _dbscan_compiled is not None:
+        # Compiled: the same labels without a sparse matrix per detection (its construction and validation cost
+        # more than the search: a detection's cloud has ~100 neighbours per point).
+        labels = np.full(n, -1, dtype=np.int64)
+        _dbscan_compiled(np.ascontiguousarray(pairs, np.int64).reshape(-1, 2), min_samples, labels)
+        return labels
+    return _dbscan_from_pairs(pairs, n, min_samples)
+
+
+def _dbscan_from_pairs(pairs: np.ndarray, n: int, min_samples: int) -> np.ndarray:
+    """DBSCAN labels of ``n`` points from their neighbour ``pairs`` (E, 2): core points (at least
+    ``min_samples`` with themselves) by connected components, numbered as ``connected_components`` numbers
+    them (each component by its lowest point); a border point takes the cluster of its last core neighbour in
+    pair order (the pairs with it second take precedence)."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    labels = np.full(n, -1, dtype=np.int64)
     degree = np.bincount(pairs.reshape(-1), minlength=n) + 1  # a point counts itself
     core = degree >= min_samples
     if not core.any():
@@ -401,6 +421,55 @@ def dbscan_labels(points: np.ndarray, eps: float, min_samples: int) -> np.ndarra
         sel = core[pairs[:, a]] & ~core[pairs[:, b]]
         labels[pairs[sel, b]] = comp[pairs[sel, a]]
     return labels
+
+
+def _dbscan_loops(pairs: Any, min_samples: int, labels: Any) -> None:  # pragma: no cover - compiled
+    # What _dbscan_from_pairs computes, into ``labels`` (n, all -1): union-find with the lowest point as root.
+    n = labels.shape[0]
+    degree = np.ones(n, np.int64)
+    for e in range(pairs.shape[0]):
+        degree[pairs[e, 0]] += 1
+        degree[pairs[e, 1]] += 1
+    core = degree >= min_samples
+    if not core.any():
+        return
+    root = np.arange(n)
+    for e in range(pairs.shape[0]):
+        i, j = pairs[e, 0], pairs[e, 1]
+        if not (core[i] and core[j]):
+            continue
+        while root[i] != i:
+            root[i] = root[root[i]]
+            i = root[i]
+        while root[j] != j:
+            root[j] = root[root[j]]
+            j = root[j]
+        if i < j:
+            root[j] = i
+        elif j < i:
+            root[i] = j
+    comp = np.empty(n, np.int64)
+    count = 0
+    for v in range(n):  # roots come first in their component: number components by their lowest point
+        r = v
+        while root[r] != r:
+            r = root[r]
+        root[v] = r
+        if r == v:
+            comp[v] = count
+            count += 1
+        else:
+            comp[v] = comp[r]
+        if core[v]:
+            labels[v] = comp[v]
+    for a in range(2):
+        for e in range(pairs.shape[0]):
+            p, q = pairs[e, a], pairs[e, 1 - a]
+            if core[p] and not core[q]:
+                labels[q] = comp[p]
+
+
+_dbscan_compiled = numba.njit(cache=True, nogil=True)(_dbscan_loops) if numba is not None else None
 
 
 def main_cluster(points: np.ndarray, eps: float, min_samples: int) -> np.ndarray:

@@ -69,6 +69,23 @@ class TestHelpers:
         assert len(main_cluster(pts, 0.1, 4)) == 200
         assert len(main_cluster(np.zeros((0, 3)), 0.1, 4)) == 0
 
+    def test_compiled_dbscan_equals_sparse_components(self) -> None:
+        from scipy.spatial import cKDTree
+
+        from mapper import fusion
+
+        if fusion._dbscan_compiled is None:
+            pytest.skip("numba not installed")
+        rng = np.random.default_rng(5)
+        for k in range(200):
+            # sparse clouds of a few clumps: many border points between clusters, noise and single points
+            n = int(rng.integers(0, 120))
+            pts = rng.normal(0, 0.3, (n, 3)) + rng.integers(0, 3, (n, 1)) * 0.5
+            eps, min_samples = float(rng.uniform(0.05, 0.3)), int(rng.integers(1, 8))
+            pairs = cKDTree(pts).query_pairs(eps, output_type="ndarray")
+            want = fusion._dbscan_from_pairs(pairs, n, min_samples)
+            assert np.array_equal(dbscan_labels(pts, eps, min_samples), want), k
+
     def test_fit_box_rotated(self) -> None:
         rng = np.random.default_rng(1)
         local = rng.uniform([-1.0, -0.25, 0.0], [1.0, 0.25, 0.5], (2000, 3))
