@@ -191,3 +191,21 @@ def test_compiled_clip_equals_python_clip() -> None:
         b = a.copy() if k % 10 == 0 else square(*rng.normal(size=2), *rng.uniform(0.1, 1.0, 2), rng.uniform(0, 3))
         got, want = relations._clip(a, b), relations._clip_python(a, b)
         assert got.shape == want.shape and np.array_equal(got, want)
+
+
+def test_gap_estimate_decides_as_footprint_gap() -> None:
+    from mapper import relations
+
+    rng = np.random.default_rng(4)
+    for k in range(300):
+        a = footprint(OrientedBox(center=(*rng.normal(size=2), 0.0), extent=(*rng.uniform(0.05, 1.0, 2), 1.0),
+                                  yaw_rad=float(rng.uniform(-0.8, 0.8))))
+        b = footprint(OrientedBox(center=(*rng.normal(size=2), 0.0), extent=(*rng.uniform(0.05, 1.0, 2), 1.0),
+                                  yaw_rad=float(rng.uniform(-0.8, 0.8))))
+        inter = footprint_intersection_area(a, b)
+        gap = footprint_gap(a, b)
+        if inter == 0.0:
+            assert relations._gap_estimate(a, b) == pytest.approx(gap, abs=1e-12)
+        # thresholds far from the gap, and at it (there only footprint_gap itself can decide)
+        for gap_max in (gap - 0.05, gap, gap + 0.05, np.nextafter(gap, 0.0), np.nextafter(gap, 1.0)):
+            assert relations._gap_at_most(a, b, inter, gap_max) == (gap <= gap_max), k
