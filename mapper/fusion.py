@@ -771,6 +771,10 @@ def seen_together(a: NodeState, b: NodeState) -> bool:
     return not set(a.seen_in).isdisjoint(b.seen_in)
 
 
+# Added to a search radius where points certainly beyond it are skipped: rounding moves a distance by ~1e-16 of it.
+_SEARCH_MARGIN_M = 1e-6
+
+
 def footprint_diagonal(lo: np.ndarray, hi: np.ndarray) -> float:
     """Horizontal diagonal (metres) of the axis-aligned box ``lo``..``hi`` (x, y, z)."""
     return float(np.hypot(hi[0] - lo[0], hi[1] - lo[1]))
@@ -780,8 +784,16 @@ def overlap_fraction(points: np.ndarray, node: NodeState, radius_m: float) -> fl
     """Fraction of ``points`` with a point of ``node`` within ``radius_m``."""
     if len(points) == 0 or len(node.points) == 0:
         return 0.0
-    d, _ = node.tree.query(points, k=1, distance_upper_bound=radius_m)
-    return float(np.mean(d <= radius_m))
+    # Only points inside the node's box grown by the radius can have a neighbour in it: the others (most, for
+    # a detection beside the node) are not searched. The margin is far above what rounding can move a distance.
+    lo, hi = node.aabb
+    pad = radius_m + _SEARCH_MARGIN_M
+    pts = np.asarray(points)
+    near = np.all((pts >= lo.astype(np.float64) - pad) & (pts <= hi.astype(np.float64) + pad), axis=1)
+    if not near.any():
+        return 0.0
+    d, _ = node.tree.query(pts[near], k=1, distance_upper_bound=radius_m)
+    return float(np.count_nonzero(d <= radius_m) / len(pts))  # the mean over all points, bit for bit
 
 
 def box_overlap(a: OrientedBox, b: OrientedBox) -> float:
@@ -887,14 +899,17 @@ class ObjectMap:
 
     # -- association ---------------------------------------------------------------------------
     def _candidates(self, pts: np.ndarray) -> list[NodeState]:
+        """The nodes whose point box comes within ``radius_m`` of ``pts``' (one vectorised test of every node's
+        ``aabb``, element for element the comparisons a loop over the nodes makes)."""
+        if not self.nodes:
+            return []
         r = self.cfg.radius_m
         lo, hi = pts.min(0) - r, pts.max(0) + r
-        out = []
-        for node in self.nodes.values():
-            nlo, nhi = node.aabb
-            if np.all(nlo <= hi) and np.all(nhi >= lo):
-                out.append(node)
-        return out
+        nodes = list(self.nodes.values())
+        nlo = np.stack([n.aabb[0] for n in nodes])
+        nhi = np.stack([n.aabb[1] for n in nodes])
+        near = np.all(nlo <= hi, axis=1) & np.all(nhi >= lo, axis=1)
+        return [n for n, ok in zip(nodes, near.tolist(), strict=True) if ok]
 
     def scores(self, obj: Object3D, contained: dict[str, float] | None = None) -> dict[str, float]:
         """Per node that ``obj`` may join, its match score (only nodes reaching ``match_threshold``).
@@ -904,7 +919,7 @@ class ObjectMap:
         inside = {k: v for k, v in (contained or {}).items() if v >= cfg.min_containment and k in self.nodes}
         cands = {n.node_id: n for n in self._candidates(obj.points)}
         cands.update((k, self.nodes[k]) for k in inside)
-        same_ray = {k for k, n in self.nodes.items() if self._same_ray(n, obj)}
+        same_ray = {k for k, n in self.nodes.items() if self._same_ray(n, obj)} if obj.ray_origin is not None else set()
         cands.update((k, self.nodes[k]) for k in same_ray)
         size = _view_size(obj)
         lo, hi = (obj.points.min(0), obj.points.max(0)) if size > 0 else (np.zeros(3), np.zeros(3))

@@ -86,6 +86,23 @@ class TestHelpers:
             want = fusion._dbscan_from_pairs(pairs, n, min_samples)
             assert np.array_equal(dbscan_labels(pts, eps, min_samples), want), k
 
+    def test_overlap_fraction_equals_full_search(self) -> None:
+        from scipy.spatial import cKDTree
+
+        from mapper.fusion import NodeState, overlap_fraction
+
+        rng = np.random.default_rng(6)
+        for k in range(100):
+            node_pts = rng.uniform(0, 0.5, (int(rng.integers(1, 300)), 3)).astype(np.float32)
+            pts = (rng.uniform(-0.3, 0.8, (int(rng.integers(1, 300)), 3))).astype(np.float32)
+            if k % 4 == 0:  # points at exactly the radius from node points, along an axis
+                m = min(len(pts), len(node_pts))
+                pts[:m] = node_pts[:m] + np.float32(0.0625) * np.eye(3, dtype=np.float32)[k % 3]
+            node = NodeState("n", node_pts, np.ones(4), 1, {}, set(), 0, 0, 0)
+            r = 0.0625
+            d, _ = cKDTree(node_pts).query(pts, k=1, distance_upper_bound=r)
+            assert overlap_fraction(pts, node, r) == float(np.mean(d <= r)), k
+
     def test_fit_box_rotated(self) -> None:
         rng = np.random.default_rng(1)
         local = rng.uniform([-1.0, -0.25, 0.0], [1.0, 0.25, 0.5], (2000, 3))
