@@ -31,10 +31,11 @@ try:
 except ImportError:  # optional (the ``server`` extra): DBSCAN's components come from scipy
     numba = None  # type: ignore[assignment]
 
-from mapper.absence import AbsenceParams, Judgement, Verdict, judge, nearest_depth
+from mapper.absence import AbsenceParams, Judgement, Verdict, boxes_out_of_view, judge, nearest_depth
 from mapper.association import KeyframeView, containment
 from mapper.perception.base import Detection, unit
 from protocol.messages import GraphNode, LabelScore, OrientedBox
+from protocol.poses import invert
 
 
 class FusionConfig(BaseModel):
@@ -1155,8 +1156,9 @@ class ObjectMap:
             return {}
         view = nearest_depth(view, params.window_px)
         o = np.asarray(view.T_world_cam[:3, 3], np.float64)
+        T_cam_world = invert(view.T_world_cam)
         reach = params.max_range_m + 2.0  # a node whose box is that far cannot have its median point in range
-        out: dict[str, Judgement] = {}
+        near: list[str] = []
         for node_id in sorted(self.nodes):
             node = self.nodes[node_id]
             if node.rays or len(node.points) == 0:
@@ -1164,7 +1166,18 @@ class ObjectMap:
             lo, hi = node.aabb
             if float(np.linalg.norm(np.clip(o, lo, hi) - o)) > reach:
                 continue
-            j = judge(view, node.points, params)
+            near.append(node_id)
+        if not near:
+            return {}
+        # Most nodes lie outside the view: their verdict (UNKNOWN) shows in their boxes' corners, all at once.
+        out_of_view = boxes_out_of_view(view, np.stack([self.nodes[k].aabb[0] for k in near]),
+                                        np.stack([self.nodes[k].aabb[1] for k in near]), params.max_range_m,
+                                        T_cam_world)
+        out: dict[str, Judgement] = {}
+        for node_id, skip in zip(near, out_of_view.tolist(), strict=True):
+            if skip:
+                continue
+            j = judge(view, self.nodes[node_id].points, params, T_cam_world)
             if j.verdict is not Verdict.UNKNOWN:
                 out[node_id] = j
         return out
