@@ -338,6 +338,10 @@ class EdgeCache:
         self.pairs: dict[tuple[str, str], tuple[tuple[Any, ...], tuple[Any, ...], Predicate | None]] = {}
         self.cfg: RelationConfig | None = None
         self.hits = 0
+        # refine_with_points: per ``inside`` edge, the subject's box, the object's points array (the same object:
+        # node clouds are replaced, never changed in place) and whether they enclose it; its own config.
+        self.encloses: dict[tuple[str, str], tuple[tuple[Any, ...], np.ndarray, bool]] = {}
+        self.encloses_cfg: RelationConfig | None = None
 
 
 def _box_key(box: OrientedBox) -> tuple[Any, ...]:
@@ -395,22 +399,37 @@ def refine_with_points(
     boxes: Mapping[str, OrientedBox],
     clouds: Mapping[str, np.ndarray],
     cfg: RelationConfig | None = None,
+    cache: EdgeCache | None = None,
 ) -> list[GraphEdge]:
     """Tell ``inside`` from resting on an inner surface using the nodes' points (world, metres).
 
     A box test alone cannot: a pillow on a bed whose headboard makes the box tall is "inside" the bed's
     box. ``a inside b`` is kept when b has points above a (a shelf board, a lid) or walls beside a (anywhere
     within b) at a's height on at least ``enclosure_min_sides`` of its four sides (a bathtub, a basket); otherwise
-    the edge becomes ``a on_top_of b``. Other edges pass through unchanged.
+    the edge becomes ``a on_top_of b``. Other edges pass through unchanged. With a ``cache`` (one per graph), an
+    edge whose subject box and object cloud are those of the last call is not worked out again.
     """
     cfg = cfg or RelationConfig()
+    if cache is not None and cache.encloses_cfg != cfg:
+        cache.encloses, cache.encloses_cfg = {}, cfg.model_copy()
+    known: dict[tuple[str, str], tuple[tuple[Any, ...], np.ndarray, bool]] = {}
     out = []
     for e in edges:
-        if e.predicate == "inside" and e.object_id in clouds and not _encloses(
-            boxes[e.subject_id], clouds[e.object_id], cfg
-        ):
-            e = GraphEdge(subject_id=e.subject_id, predicate="on_top_of", object_id=e.object_id)
+        if e.predicate == "inside" and e.object_id in clouds:
+            a_box, b_points = boxes[e.subject_id], clouds[e.object_id]
+            if cache is None:
+                enclosed = _encloses(a_box, b_points, cfg)
+            else:
+                pair, key = (e.subject_id, e.object_id), _box_key(a_box)
+                was = cache.encloses.get(pair)
+                enclosed = was[2] if was is not None and was[0] == key and was[1] is b_points \
+                    else _encloses(a_box, b_points, cfg)
+                known[pair] = (key, b_points, enclosed)
+            if not enclosed:
+                e = GraphEdge(subject_id=e.subject_id, predicate="on_top_of", object_id=e.object_id)
         out.append(e)
+    if cache is not None:
+        cache.encloses = known
     return out
 
 

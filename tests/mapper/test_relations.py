@@ -174,6 +174,43 @@ class TestRefineWithPoints:
         assert ("bottle", "inside", "tub") in {(x.subject_id, x.predicate, x.object_id) for x in got}
 
 
+    def test_cache_gives_the_uncached_edges(self, monkeypatch: pytest.MonkeyPatch) -> None:
+        """Keyframe after keyframe some boxes move and some clouds are replaced: the cached refinement (one
+        cache for compute_edges and refine_with_points, as the mapper keeps) equals the uncached one."""
+        from mapper import relations
+
+        calls = {"uncached": 0, "cached": 0}
+        mode = "uncached"
+        real = relations._encloses
+
+        def counted(*args: object) -> bool:
+            calls[mode] += 1
+            return real(*args)
+
+        monkeypatch.setattr(relations, "_encloses", counted)
+        rng = np.random.default_rng(2)
+
+        def some_box() -> OrientedBox:  # big ones and small ones, many inside one another
+            return box(*rng.uniform(-0.5, 0.5, 2), rng.uniform(0, 0.5), *np.exp(rng.uniform(-2.5, 0.7, 3)), 0.0)
+
+        boxes = {f"n{i}": some_box() for i in range(20)}
+        clouds = {k: rng.uniform(-1, 1, (200, 3)) * 0.5 * np.asarray(b.extent) + np.asarray(b.center)
+                  for k, b in boxes.items()}
+        cache = relations.EdgeCache()
+        for step in range(12):
+            for k in rng.choice(sorted(boxes), 4, replace=False):
+                if rng.uniform() < 0.5:
+                    boxes[k] = some_box()
+                else:
+                    clouds[k] = clouds[k] + rng.normal(0, 0.05, (1, 3))
+            cfg = RelationConfig(enclosure_min_sides=2) if step == 8 else RelationConfig()
+            mode = "uncached"
+            want = refine_with_points(compute_edges(boxes, cfg), boxes, clouds, cfg)
+            mode = "cached"
+            got = refine_with_points(compute_edges(boxes, cfg, cache), boxes, clouds, cfg, cache)
+            assert got == want, step
+        assert 0 < calls["cached"] < calls["uncached"] / 2, calls
+
 def test_compiled_clip_equals_python_clip() -> None:
     from mapper import relations
 
