@@ -374,6 +374,17 @@ def voxel_downsample(points: np.ndarray, voxel_m: float) -> np.ndarray:
     return (sums / counts[:, None]).astype(np.float32)
 
 
+def rows_all(mask: np.ndarray) -> np.ndarray:
+    """``np.all(mask, axis=-1)`` of a bool array (..., k), one column at a time: the same values, ~10x faster
+    for a short last axis (x, y, z), along which numpy reduces row by row."""
+    if mask.shape[-1] == 0:
+        return np.ones(mask.shape[:-1], dtype=bool)
+    out = mask[..., 0].copy()
+    for c in range(1, mask.shape[-1]):
+        out &= mask[..., c]
+    return out
+
+
 def sum_by_index(index: np.ndarray, values: np.ndarray, n: int) -> np.ndarray:
     """(n, k) float64 sums of the rows of ``values`` (N, k) by ``index`` (N,): ``np.add.at`` into zeros, the same
     sums bit for bit (each bin adds its values in row order, in float64) but ~10x faster (one ``bincount`` per
@@ -489,7 +500,7 @@ def trim_outliers(points: np.ndarray, fraction: float, min_points: int = 20) -> 
     if fraction <= 0.0 or len(pts) < min_points:
         return pts
     lo, hi = np.quantile(pts, [fraction, 1.0 - fraction], axis=0)
-    keep = np.all((pts >= lo) & (pts <= hi), axis=1)
+    keep = rows_all((pts >= lo) & (pts <= hi))
     return pts[keep] if int(keep.sum()) >= 3 else pts
 
 
@@ -570,7 +581,7 @@ def outside_fraction(points_world: np.ndarray, confidence: np.ndarray, depth_m: 
     slab (0 when none is confident): true geometry of a room puts (nearly) none under the floor."""
     ok = (
         np.isfinite(depth_m) & (depth_m > 0) & (depth_m <= cfg.max_depth_m) & (confidence >= cfg.min_depth_confidence)
-        & np.all(np.isfinite(points_world), axis=-1)
+        & rows_all(np.isfinite(points_world))
     )
     n = int(ok.sum())
     if n == 0:
@@ -619,7 +630,7 @@ def lift_detections(
         & (depth_m > 0)
         & (depth_m <= cfg.max_depth_m)
         & (confidence >= cfg.min_depth_confidence)
-        & np.all(np.isfinite(points_world), axis=-1)
+        & rows_all(np.isfinite(points_world))
         & (points_world[..., 2] >= cfg.min_z_m)
         & (points_world[..., 2] <= cfg.max_z_m)
     )
@@ -790,7 +801,7 @@ def overlap_fraction(points: np.ndarray, node: NodeState, radius_m: float) -> fl
     lo, hi = node.aabb
     pad = radius_m + _SEARCH_MARGIN_M
     pts = np.asarray(points)
-    near = np.all((pts >= lo.astype(np.float64) - pad) & (pts <= hi.astype(np.float64) + pad), axis=1)
+    near = rows_all((pts >= lo.astype(np.float64) - pad) & (pts <= hi.astype(np.float64) + pad))
     if not near.any():
         return 0.0
     d, _ = node.tree.query(pts[near], k=1, distance_upper_bound=radius_m)

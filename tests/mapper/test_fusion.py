@@ -367,3 +367,12 @@ class TestFusion:
         for node in other.nodes.values():
             lo, hi = node.points.min(0), node.points.max(0)
             assert node.view_size_m == pytest.approx(float(np.hypot(*(hi - lo)[:2])))
+
+
+def test_rows_all_is_np_all_over_the_last_axis() -> None:
+    from mapper.fusion import rows_all
+
+    rng = np.random.default_rng(7)
+    for shape in ((0, 3), (5, 3), (4, 6, 3), (7, 1), (3, 0)):
+        m = rng.uniform(size=shape) < 0.8
+        assert np.array_equal(rows_all(m), np.all(m, axis=-1))
