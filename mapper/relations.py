@@ -375,7 +375,7 @@ def compute_edges(boxes: Mapping[str, OrientedBox], cfg: RelationConfig | None =
     np.fill_diagonal(near, False)
     edges: list[GraphEdge] = []
     pairs: dict[tuple[str, str], tuple[tuple[Any, ...], tuple[Any, ...], Predicate | None]] = {}
-    for i, j in zip(*np.nonzero(near), strict=True):
+    for i, j in zip(*(ix.tolist() for ix in np.nonzero(near)), strict=True):  # ints: fast list indexing
         if cache is None:
             pred = _relation(prepared[i], prepared[j], cfg)
         else:
