@@ -83,16 +83,44 @@ def nearest_depth(view: KeyframeView, window_px: int) -> KeyframeView:
     return KeyframeView(view.K, view.T_world_cam, np.where(np.isfinite(near), near, 0.0).astype(np.float32))
 
 
-def judge(view: KeyframeView, points_world: np.ndarray, params: AbsenceParams) -> Judgement:
+def boxes_out_of_view(view: KeyframeView, lo: np.ndarray, hi: np.ndarray, max_range_m: float,
+                      T_cam_world: np.ndarray | None = None) -> np.ndarray:
+    """(N,) whether no point of each axis-aligned box ``lo``..``hi`` (N, 3, world) can count in :func:`judge` of
+    ``view``: all lie behind the camera's near limit, beyond one image border, or farther than ``max_range_m``
+    along its axis; then the verdict on any points inside the box is ``UNKNOWN``. Each test is linear in the
+    point, so a box's corners decide it; only a margin far above rounding (a millionth of the scale) counts, so a
+    box at a limit is left to :func:`judge`. ``T_cam_world``: ``invert(view.T_world_cam)`` when the caller has
+    it."""
+    lo, hi = np.asarray(lo, np.float64).reshape(-1, 3), np.asarray(hi, np.float64).reshape(-1, 3)
+    h, w = view.depth_m.shape
+    T = invert(view.T_world_cam) if T_cam_world is None else T_cam_world
+    pick = np.array([[(c >> a) & 1 for a in range(3)] for c in range(8)], bool)  # (8, 3): hi where set
+    corners = np.where(pick[None], hi[:, None, :], lo[:, None, :])  # (N, 8, 3)
+    p = corners @ T[:3, :3].T + T[:3, 3]
+    x, y, z = p[..., 0], p[..., 1], p[..., 2]
+    K = np.asarray(view.K, np.float64)
+    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+    # judge counts a point when z > 0.05 and 0 <= u < w, 0 <= v < h, u = fx x / z + cx: for z > 0 these are
+    # signs of linear functions of the point (u z = fx x + cx z); and its median z must be within range
+    tests = np.stack([z - 0.05, fx * x + cx * z, (w - cx) * z - fx * x, fy * y + cy * z, (h - cy) * z - fy * y,
+                      max_range_m - z])  # (6, N, 8)
+    coeffs = 1.0 + abs(fx) + abs(fy) + abs(cx) + abs(cy) + w + h + abs(max_range_m)
+    scale = coeffs * (1.0 + np.abs(p).max(axis=(1, 2)))  # (N,)
+    return np.any(tests.max(axis=2) < -1e-6 * scale, axis=0)
+
+
+def judge(view: KeyframeView, points_world: np.ndarray, params: AbsenceParams,
+          T_cam_world: np.ndarray | None = None) -> Judgement:
     """What ``view`` (a keyframe's camera and confident depth, 0 where unknown; :func:`nearest_depth` of it, as
     ``ObjectMap.absence_verdicts`` passes it) says about a node made of ``points_world`` (N, 3): see the module
-    docstring."""
+    docstring. ``T_cam_world``: ``invert(view.T_world_cam)`` when the caller has it (one per view)."""
     pts = np.asarray(points_world, np.float64).reshape(-1, 3)
     if len(pts) == 0:
         return Judgement(Verdict.UNKNOWN)
     pts = pts[:: max(1, -(-len(pts) // params.max_points))]
     h, w = view.depth_m.shape
-    T_cam_world = invert(view.T_world_cam)
+    if T_cam_world is None:
+        T_cam_world = invert(view.T_world_cam)
     p = pts @ np.ascontiguousarray(T_cam_world[:3, :3].T) + T_cam_world[:3, 3]
     uv, z = project(view.K, p)
     with np.errstate(invalid="ignore"):

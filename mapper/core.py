@@ -361,7 +361,7 @@ class MapperCore:
         boxes = self.objects.boxes()
         edges = compute_edges(boxes, self.config.relations, self._edges)
         clouds = {i: n.points for i, n in self.objects.nodes.items()}
-        edges = refine_with_points(edges, boxes, clouds, self.config.relations)
+        edges = refine_with_points(edges, boxes, clouds, self.config.relations, self._edges)
         ups = self.objects.messages(sorted(changed), with_embedding=self.config.node_embeddings)
         self._reserve()
         with self.lock:

@@ -11,7 +11,7 @@ from typing import Any
 
 import numpy as np
 
-from mapper.fusion import sum_by_index, voxel_keys
+from mapper.fusion import rows_all, sum_by_index, voxel_keys
 from protocol.messages import PointMap
 
 
@@ -49,13 +49,16 @@ class VoxelMap:
         """Add one view's points (N, 3) with optional uint8 colours (N, 3); a voxel's count grows by one
         per call that touches it."""
         pts = np.asarray(points, dtype=np.float64).reshape(-1, 3)
-        ok = np.all(np.isfinite(pts), axis=1)
-        pts = pts[ok]
+        ok = rows_all(np.isfinite(pts))
+        every = bool(ok.all())  # the usual case: no copies to drop nothing
+        pts = pts if every else pts[ok]
         if len(pts) == 0:
             return
-        cols = (
-            np.zeros_like(pts) if colors is None else np.asarray(colors, dtype=np.float64).reshape(-1, 3)[ok]
-        )
+        if colors is None:
+            cols = np.zeros_like(pts)
+        else:  # selected before the (exact) conversion: a third of the bytes to copy
+            cols = np.asarray(colors).reshape(-1, 3)
+            cols = (cols if every else cols[ok]).astype(np.float64)
         k_new = voxel_keys(pts, self.voxel_m)
         uk, inv = np.unique(k_new, return_inverse=True)
         inv = inv.reshape(-1)
@@ -63,12 +66,20 @@ class VoxelMap:
         s_new = sum_by_index(inv, pts, len(uk))
         c_new = sum_by_index(inv, cols, len(uk))
         merged, new, at = merge_sorted_keys(self.keys, uk)
+        # where the old rows go (``np.insert(a, at, 0)``'s layout, worked out once for the four arrays): ``at`` is
+        # sorted, so the k-th new key lands at ``at[k] + k``
+        old = np.ones(len(merged), dtype=bool)
+        old[at + np.arange(len(at))] = False
 
         def grown(a: np.ndarray) -> np.ndarray:  # the old rows, a zero row at each new key's place
-            return np.insert(a, at, 0, axis=0)
+            out = np.zeros((len(merged), *a.shape[1:]), dtype=a.dtype)
+            out[old] = a
+            return out
 
-        # ``+ 0.0``: what adding the old sums into zeros gave (-0.0 becomes 0.0, nothing else changes)
-        sums, csum = grown(self.sums) + 0.0, grown(self.color_sums) + 0.0
+        sums, csum = grown(self.sums), grown(self.color_sums)
+        # ``+= 0.0``: what adding the old sums into zeros gave (-0.0 becomes 0.0, nothing else changes)
+        sums += 0.0
+        csum += 0.0
         npts, cnt = grown(self.npoints), grown(self.counts)
         sums[new] += s_new
         csum[new] += c_new

@@ -92,6 +92,7 @@ class _Box:
     center: np.ndarray  # (3,)
     extent: np.ndarray  # (3,)
     yaw: float
+    diagonal: float  # np.hypot of the footprint's sides (asked for once per pair: kept)
 
 
 def footprint(box: OrientedBox, min_extent_m: float = 0.0) -> np.ndarray:
@@ -116,6 +117,7 @@ def _prep(box: OrientedBox, min_extent_m: float) -> _Box:
         center=np.asarray(box.center, dtype=np.float64),
         extent=ext,
         yaw=box.yaw_rad,
+        diagonal=np.hypot(*ext[:2]),
     )
 
 
@@ -199,7 +201,8 @@ def _poly_area(poly: np.ndarray) -> float:
     if len(poly) < 3:
         return 0.0
     x, y = poly[:, 0], poly[:, 1]
-    return float(0.5 * abs(np.dot(x, np.roll(y, -1)) - np.dot(y, np.roll(x, -1))))
+    # the rolled coordinates (np.roll(v, -1)) by slicing: the same values, without np.roll's per-call overhead
+    return float(0.5 * abs(np.dot(x, np.concatenate((y[1:], y[:1]))) - np.dot(y, np.concatenate((x[1:], x[:1])))))
 
 
 def footprint_intersection_area(a: np.ndarray, b: np.ndarray) -> float:
@@ -216,9 +219,10 @@ def _seg_point_dist(p: np.ndarray, a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return np.linalg.norm(p - proj, axis=1)
 
 
-def footprint_gap(a: np.ndarray, b: np.ndarray) -> float:
-    """Horizontal distance between two convex polygons (0 when they touch or overlap)."""
-    if footprint_intersection_area(a, b) > 0.0:
+def footprint_gap(a: np.ndarray, b: np.ndarray, inter: float | None = None) -> float:
+    """Horizontal distance between two convex polygons (0 when they touch or overlap). ``inter``: their
+    :func:`footprint_intersection_area` when the caller has it."""
+    if (footprint_intersection_area(a, b) if inter is None else inter) > 0.0:
         return 0.0
     best = math.inf
     for P, Q in ((a, b), (b, a)):
@@ -227,10 +231,40 @@ def footprint_gap(a: np.ndarray, b: np.ndarray) -> float:
     return best
 
 
-def _inside_fraction(a: _Box, b: _Box) -> float:
-    """Fraction of a's volume within b (footprints exact, heights as intervals)."""
+def _gap_estimate(a: np.ndarray, b: np.ndarray) -> float:
+    """:func:`footprint_gap` of two disjoint convex polygons in one vectorised pass (all point-segment distances
+    at once): the same distance up to rounding (not bit for bit), for deciding comparisons that are not close."""
+    dists = []
+    for P, Q in ((a, b), (b, a)):
+        A = Q
+        ab = np.concatenate((Q[1:], Q[:1])) - A  # (S, 2) segment vectors
+        ap = P[:, None, :] - A[None, :, :]  # (K, S, 2)
+        denom = np.sum(ab * ab, axis=1)
+        t = np.clip(np.sum(ap * ab, axis=2) / np.where(denom > 0.0, denom, 1.0), 0.0, 1.0) * (denom > 0.0)
+        d = ap - t[:, :, None] * ab
+        dists.append(np.sqrt(np.min(np.sum(d * d, axis=2))))
+    return float(min(dists))
+
+
+def _gap_at_most(a: np.ndarray, b: np.ndarray, inter: float, gap_max: float) -> bool:
+    """``footprint_gap(a, b, inter) <= gap_max``: by :func:`_gap_estimate` when it is clear of ``gap_max`` by far
+    more than rounding can move either (a millionth of a millimetre per metre of coordinates), by
+    :func:`footprint_gap` itself otherwise: the same answer, without eight small numpy calls per pair."""
+    if inter > 0.0:
+        return 0.0 <= gap_max
+    est = _gap_estimate(a, b)
+    margin = 1e-9 * (1.0 + float(max(np.abs(a).max(), np.abs(b).max())))
+    if abs(est - gap_max) > margin:
+        return est < gap_max
+    return footprint_gap(a, b, inter) <= gap_max
+
+
+def _inside_fraction(a: _Box, b: _Box, inter: float | None = None) -> float:
+    """Fraction of a's volume within b (footprints exact, heights as intervals). ``inter``: the footprints'
+    intersection area when the caller has it."""
     dz = max(0.0, min(a.zmax, b.zmax) - max(a.zmin, b.zmin))
-    inter = footprint_intersection_area(a.corners_xy, b.corners_xy)
+    if inter is None:
+        inter = footprint_intersection_area(a.corners_xy, b.corners_xy)
     return inter * dz / a.volume if a.volume > 0 else 0.0
 
 
@@ -242,31 +276,43 @@ def relation(a_box: OrientedBox, b_box: OrientedBox, cfg: RelationConfig | None 
 
 def _relation(a: _Box, b: _Box, cfg: RelationConfig) -> Predicate | None:
     # Cheap reject: footprints far apart horizontally cannot relate at all.
-    reach = cfg.next_to_max_gap_m + 0.5 * (np.hypot(*a.extent[:2]) + np.hypot(*b.extent[:2]))
-    if np.hypot(*(a.center[:2] - b.center[:2])) > reach:
+    reach = cfg.next_to_max_gap_m + 0.5 * (a.diagonal + b.diagonal)
+    apart = np.hypot(*(a.center[:2] - b.center[:2]))
+    if apart > reach:
         return None
-    inter = footprint_intersection_area(a.corners_xy, b.corners_xy)
+    # The footprints' intersection (the costly part) is worked out once, and only when a predicate's height
+    # test holds: each test below asks for it after its height conditions, so the first that holds decides as
+    # if it had been computed up front.
+    inter: float | None = None
+
+    def overlap() -> float:
+        nonlocal inter
+        if inter is None:
+            inter = footprint_intersection_area(a.corners_xy, b.corners_xy)
+        return inter
+
     min_area = min(a.area, b.area)
     # 1. on_top_of: a's bottom touches b's top, a mostly over b, a's centre above b's.
     bottom_to_top = a.zmin - b.zmax
     if (
         -cfg.max_penetration_m <= bottom_to_top <= cfg.contact_gap_m
         and a.center[2] > b.center[2]
-        and inter >= cfg.min_footprint_overlap * a.area
+        and overlap() >= cfg.min_footprint_overlap * a.area
     ):
         return "on_top_of"
     # 2. over / under: stacked with a clear gap.
-    if inter >= cfg.min_vertical_footprint_overlap * min_area:
-        if cfg.contact_gap_m < a.zmin - b.zmax <= cfg.max_vertical_gap_m:
-            return "over"
-        if cfg.contact_gap_m < b.zmin - a.zmax <= cfg.max_vertical_gap_m:
-            return "under"
-    # 3. inside: a's volume mostly within the larger b.
-    if a.volume < b.volume and _inside_fraction(a, b) >= cfg.min_inside_fraction:
+    over = cfg.contact_gap_m < a.zmin - b.zmax <= cfg.max_vertical_gap_m
+    under = cfg.contact_gap_m < b.zmin - a.zmax <= cfg.max_vertical_gap_m
+    if (over or under) and overlap() >= cfg.min_vertical_footprint_overlap * min_area:
+        return "over" if over else "under"
+    # 3. inside: a's volume mostly within the larger b (no height overlap: nothing inside, whatever the footprints).
+    if a.volume < b.volume and _inside_fraction(
+        a, b, overlap() if min(a.zmax, b.zmax) > max(a.zmin, b.zmin) else 0.0
+    ) >= cfg.min_inside_fraction:
         return "inside"
     # 4. next_to: close footprints at a similar height. Items on furniture use a tighter gap, and the
     # centres must be close relative to the sizes (a long bed is not "next to" what lies beyond its foot).
-    if inter <= cfg.next_to_max_footprint_overlap * min_area and abs(a.zmin - b.zmin) <= cfg.next_to_max_base_dz_m:
+    if abs(a.zmin - b.zmin) <= cfg.next_to_max_base_dz_m and overlap() <= cfg.next_to_max_footprint_overlap * min_area:
         items = min(a.zmin, b.zmin) > cfg.item_min_base_z_m
         gap_max = cfg.next_to_max_gap_items_m if items else cfg.next_to_max_gap_m
         dz = min(a.zmax, b.zmax) - max(a.zmin, b.zmin)
@@ -274,8 +320,8 @@ def _relation(a: _Box, b: _Box, cfg: RelationConfig) -> Predicate | None:
         reach = (max(a.extent[0], a.extent[1]) + max(b.extent[0], b.extent[1])) / 2.0 + gap_max
         if (
             dz >= cfg.next_to_min_vertical_overlap * min_h
-            and np.hypot(*(a.center[:2] - b.center[:2])) <= reach
-            and footprint_gap(a.corners_xy, b.corners_xy) <= gap_max
+            and apart <= reach
+            and _gap_at_most(a.corners_xy, b.corners_xy, overlap(), gap_max)
         ):
             return "next_to"
     return None
@@ -292,6 +338,10 @@ class EdgeCache:
         self.pairs: dict[tuple[str, str], tuple[tuple[Any, ...], tuple[Any, ...], Predicate | None]] = {}
         self.cfg: RelationConfig | None = None
         self.hits = 0
+        # refine_with_points: per ``inside`` edge, the subject's box, the object's points array (the same object:
+        # node clouds are replaced, never changed in place) and whether they enclose it; its own config.
+        self.encloses: dict[tuple[str, str], tuple[tuple[Any, ...], np.ndarray, bool]] = {}
+        self.encloses_cfg: RelationConfig | None = None
 
 
 def _box_key(box: OrientedBox) -> tuple[Any, ...]:
@@ -319,13 +369,13 @@ def compute_edges(boxes: Mapping[str, OrientedBox], cfg: RelationConfig | None =
         return []
     # Vectorised horizontal pre-filter on circumscribed circles keeps this ~O(n) for sparse scenes.
     centers = np.array([p.center[:2] for p in prepared])
-    radii = np.array([0.5 * np.hypot(*p.extent[:2]) for p in prepared])
+    radii = np.array([0.5 * p.diagonal for p in prepared])
     dist = np.linalg.norm(centers[:, None, :] - centers[None, :, :], axis=2)
     near = dist <= radii[:, None] + radii[None, :] + cfg.next_to_max_gap_m
     np.fill_diagonal(near, False)
     edges: list[GraphEdge] = []
     pairs: dict[tuple[str, str], tuple[tuple[Any, ...], tuple[Any, ...], Predicate | None]] = {}
-    for i, j in zip(*np.nonzero(near), strict=True):
+    for i, j in zip(*(ix.tolist() for ix in np.nonzero(near)), strict=True):  # ints: fast list indexing
         if cache is None:
             pred = _relation(prepared[i], prepared[j], cfg)
         else:
@@ -349,22 +399,37 @@ def refine_with_points(
     boxes: Mapping[str, OrientedBox],
     clouds: Mapping[str, np.ndarray],
     cfg: RelationConfig | None = None,
+    cache: EdgeCache | None = None,
 ) -> list[GraphEdge]:
     """Tell ``inside`` from resting on an inner surface using the nodes' points (world, metres).
 
     A box test alone cannot: a pillow on a bed whose headboard makes the box tall is "inside" the bed's
     box. ``a inside b`` is kept when b has points above a (a shelf board, a lid) or walls beside a (anywhere
     within b) at a's height on at least ``enclosure_min_sides`` of its four sides (a bathtub, a basket); otherwise
-    the edge becomes ``a on_top_of b``. Other edges pass through unchanged.
+    the edge becomes ``a on_top_of b``. Other edges pass through unchanged. With a ``cache`` (one per graph), an
+    edge whose subject box and object cloud are those of the last call is not worked out again.
     """
     cfg = cfg or RelationConfig()
+    if cache is not None and cache.encloses_cfg != cfg:
+        cache.encloses, cache.encloses_cfg = {}, cfg.model_copy()
+    known: dict[tuple[str, str], tuple[tuple[Any, ...], np.ndarray, bool]] = {}
     out = []
     for e in edges:
-        if e.predicate == "inside" and e.object_id in clouds and not _encloses(
-            boxes[e.subject_id], clouds[e.object_id], cfg
-        ):
-            e = GraphEdge(subject_id=e.subject_id, predicate="on_top_of", object_id=e.object_id)
+        if e.predicate == "inside" and e.object_id in clouds:
+            a_box, b_points = boxes[e.subject_id], clouds[e.object_id]
+            if cache is None:
+                enclosed = _encloses(a_box, b_points, cfg)
+            else:
+                pair, key = (e.subject_id, e.object_id), _box_key(a_box)
+                was = cache.encloses.get(pair)
+                enclosed = was[2] if was is not None and was[0] == key and was[1] is b_points \
+                    else _encloses(a_box, b_points, cfg)
+                known[pair] = (key, b_points, enclosed)
+            if not enclosed:
+                e = GraphEdge(subject_id=e.subject_id, predicate="on_top_of", object_id=e.object_id)
         out.append(e)
+    if cache is not None:
+        cache.encloses = known
     return out
 
 

@@ -598,3 +598,25 @@ class TestSingleViewMisses:
         assert om.count_misses(seen_view({}), before, "cam2", UpdateResult()) == set()  # cam2 never detected it
         assert om.count_misses(before, before, "cam1", UpdateResult()) == set()  # still detected
         assert om.nodes[chair].missed == 0
+
+
+def test_boxes_out_of_view_only_where_no_point_can_count() -> None:
+    """A box said to be out of view has no point that judge would count (in the image, in front, in range)."""
+    from mapper.absence import boxes_out_of_view
+    from protocol.poses import invert, project
+
+    rng = np.random.default_rng(8)
+    view, _ = keyframe({"chair": CHAIR})
+    h, w = view.depth_m.shape
+    T = invert(view.T_world_cam)
+    lo = rng.uniform(-6.0, 6.0, (400, 3))
+    hi = lo + rng.uniform(0.01, 1.5, (400, 3))
+    out = boxes_out_of_view(view, lo, hi, 6.0)
+    assert 0 < out.sum() < len(out)
+    for k in np.flatnonzero(out):
+        pts = rng.uniform(lo[k], hi[k], (2000, 3))
+        corners = np.array(np.meshgrid(*zip(lo[k], hi[k], strict=True), indexing="ij")).reshape(3, -1).T
+        uv, z = project(view.K, np.concatenate([pts, corners]) @ T[:3, :3].T + T[:3, 3])
+        inside = (z > 0.05) & (uv[:, 0] >= 0) & (uv[:, 0] < w) & (uv[:, 1] >= 0) & (uv[:, 1] < h)
+        assert not inside.any() or (z[inside] > 6.0).all(), k  # none counted, or all beyond range
+    assert len(boxes_out_of_view(view, np.zeros((0, 3)), np.zeros((0, 3)), 6.0)) == 0

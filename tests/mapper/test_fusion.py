@@ -69,6 +69,40 @@ class TestHelpers:
         assert len(main_cluster(pts, 0.1, 4)) == 200
         assert len(main_cluster(np.zeros((0, 3)), 0.1, 4)) == 0
 
+    def test_compiled_dbscan_equals_sparse_components(self) -> None:
+        from scipy.spatial import cKDTree
+
+        from mapper import fusion
+
+        if fusion._dbscan_compiled is None:
+            pytest.skip("numba not installed")
+        rng = np.random.default_rng(5)
+        for k in range(200):
+            # sparse clouds of a few clumps: many border points between clusters, noise and single points
+            n = int(rng.integers(0, 120))
+            pts = rng.normal(0, 0.3, (n, 3)) + rng.integers(0, 3, (n, 1)) * 0.5
+            eps, min_samples = float(rng.uniform(0.05, 0.3)), int(rng.integers(1, 8))
+            pairs = cKDTree(pts).query_pairs(eps, output_type="ndarray")
+            want = fusion._dbscan_from_pairs(pairs, n, min_samples)
+            assert np.array_equal(dbscan_labels(pts, eps, min_samples), want), k
+
+    def test_overlap_fraction_equals_full_search(self) -> None:
+        from scipy.spatial import cKDTree
+
+        from mapper.fusion import NodeState, overlap_fraction
+
+        rng = np.random.default_rng(6)
+        for k in range(100):
+            node_pts = rng.uniform(0, 0.5, (int(rng.integers(1, 300)), 3)).astype(np.float32)
+            pts = (rng.uniform(-0.3, 0.8, (int(rng.integers(1, 300)), 3))).astype(np.float32)
+            if k % 4 == 0:  # points at exactly the radius from node points, along an axis
+                m = min(len(pts), len(node_pts))
+                pts[:m] = node_pts[:m] + np.float32(0.0625) * np.eye(3, dtype=np.float32)[k % 3]
+            node = NodeState("n", node_pts, np.ones(4), 1, {}, set(), 0, 0, 0)
+            r = 0.0625
+            d, _ = cKDTree(node_pts).query(pts, k=1, distance_upper_bound=r)
+            assert overlap_fraction(pts, node, r) == float(np.mean(d <= r)), k
+
     def test_fit_box_rotated(self) -> None:
         rng = np.random.default_rng(1)
         local = rng.uniform([-1.0, -0.25, 0.0], [1.0, 0.25, 0.5], (2000, 3))
@@ -333,3 +367,12 @@ class TestFusion:
         for node in other.nodes.values():
             lo, hi = node.points.min(0), node.points.max(0)
             assert node.view_size_m == pytest.approx(float(np.hypot(*(hi - lo)[:2])))
+
+
+def test_rows_all_is_np_all_over_the_last_axis() -> None:
+    from mapper.fusion import rows_all
+
+    rng = np.random.default_rng(7)
+    for shape in ((0, 3), (5, 3), (4, 6, 3), (7, 1), (3, 0)):
+        m = rng.uniform(size=shape) < 0.8
+        assert np.array_equal(rows_all(m), np.all(m, axis=-1))

@@ -174,6 +174,43 @@ class TestRefineWithPoints:
         assert ("bottle", "inside", "tub") in {(x.subject_id, x.predicate, x.object_id) for x in got}
 
 
+    def test_cache_gives_the_uncached_edges(self, monkeypatch: pytest.MonkeyPatch) -> None:
+        """Keyframe after keyframe some boxes move and some clouds are replaced: the cached refinement (one
+        cache for compute_edges and refine_with_points, as the mapper keeps) equals the uncached one."""
+        from mapper import relations
+
+        calls = {"uncached": 0, "cached": 0}
+        mode = "uncached"
+        real = relations._encloses
+
+        def counted(*args: object) -> bool:
+            calls[mode] += 1
+            return real(*args)
+
+        monkeypatch.setattr(relations, "_encloses", counted)
+        rng = np.random.default_rng(2)
+
+        def some_box() -> OrientedBox:  # big ones and small ones, many inside one another
+            return box(*rng.uniform(-0.5, 0.5, 2), rng.uniform(0, 0.5), *np.exp(rng.uniform(-2.5, 0.7, 3)), 0.0)
+
+        boxes = {f"n{i}": some_box() for i in range(20)}
+        clouds = {k: rng.uniform(-1, 1, (200, 3)) * 0.5 * np.asarray(b.extent) + np.asarray(b.center)
+                  for k, b in boxes.items()}
+        cache = relations.EdgeCache()
+        for step in range(12):
+            for k in rng.choice(sorted(boxes), 4, replace=False):
+                if rng.uniform() < 0.5:
+                    boxes[k] = some_box()
+                else:
+                    clouds[k] = clouds[k] + rng.normal(0, 0.05, (1, 3))
+            cfg = RelationConfig(enclosure_min_sides=2) if step == 8 else RelationConfig()
+            mode = "uncached"
+            want = refine_with_points(compute_edges(boxes, cfg), boxes, clouds, cfg)
+            mode = "cached"
+            got = refine_with_points(compute_edges(boxes, cfg, cache), boxes, clouds, cfg, cache)
+            assert got == want, step
+        assert 0 < calls["cached"] < calls["uncached"] / 2, calls
+
 def test_compiled_clip_equals_python_clip() -> None:
     from mapper import relations
 
@@ -191,3 +228,21 @@ def test_compiled_clip_equals_python_clip() -> None:
         b = a.copy() if k % 10 == 0 else square(*rng.normal(size=2), *rng.uniform(0.1, 1.0, 2), rng.uniform(0, 3))
         got, want = relations._clip(a, b), relations._clip_python(a, b)
         assert got.shape == want.shape and np.array_equal(got, want)
+
+
+def test_gap_estimate_decides_as_footprint_gap() -> None:
+    from mapper import relations
+
+    rng = np.random.default_rng(4)
+    for k in range(300):
+        a = footprint(OrientedBox(center=(*rng.normal(size=2), 0.0), extent=(*rng.uniform(0.05, 1.0, 2), 1.0),
+                                  yaw_rad=float(rng.uniform(-0.8, 0.8))))
+        b = footprint(OrientedBox(center=(*rng.normal(size=2), 0.0), extent=(*rng.uniform(0.05, 1.0, 2), 1.0),
+                                  yaw_rad=float(rng.uniform(-0.8, 0.8))))
+        inter = footprint_intersection_area(a, b)
+        gap = footprint_gap(a, b)
+        if inter == 0.0:
+            assert relations._gap_estimate(a, b) == pytest.approx(gap, abs=1e-12)
+        # thresholds far from the gap, and at it (there only footprint_gap itself can decide)
+        for gap_max in (gap - 0.05, gap, gap + 0.05, np.nextafter(gap, 0.0), np.nextafter(gap, 1.0)):
+            assert relations._gap_at_most(a, b, inter, gap_max) == (gap <= gap_max), k
