@@ -26,13 +26,9 @@ from typing import Any
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
-try:
-    import numba
-except ImportError:  # optional (the ``server`` extra): DBSCAN's components come from scipy
-    numba = None  # type: ignore[assignment]
-
 from mapper.absence import AbsenceParams, Judgement, Verdict, boxes_out_of_view, judge, nearest_depth
 from mapper.association import KeyframeView, containment
+from mapper.geometry.kernels import compiled
 from mapper.perception.base import Detection, unit
 from protocol.messages import GraphNode, LabelScore, OrientedBox
 from protocol.poses import invert
@@ -481,7 +477,7 @@ def _dbscan_loops(pairs: Any, min_samples: int, labels: Any) -> None:  # pragma:
                 labels[q] = comp[p]
 
 
-_dbscan_compiled = numba.njit(cache=True, nogil=True)(_dbscan_loops) if numba is not None else None
+_dbscan_compiled = compiled(_dbscan_loops)  # None without numba (optional, the ``server`` extra)
 
 
 def main_cluster(points: np.ndarray, eps: float, min_samples: int) -> np.ndarray:

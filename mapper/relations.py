@@ -25,11 +25,7 @@ from typing import Any
 import numpy as np
 from pydantic import BaseModel, ConfigDict, Field
 
-try:
-    import numba
-except ImportError:  # optional (the ``server`` extra): the clipping stays in Python
-    numba = None  # type: ignore[assignment]
-
+from mapper.geometry.kernels import compiled
 from protocol.messages import GraphEdge, OrientedBox, Predicate
 
 
@@ -194,7 +190,7 @@ def _clip_loops(subject: Any, clipper: Any, buf: Any) -> int:  # pragma: no cove
     return m
 
 
-_clip_compiled = numba.njit(cache=True, nogil=True)(_clip_loops) if numba is not None else None
+_clip_compiled = compiled(_clip_loops)  # None without numba (optional, the ``server`` extra)
 
 
 def _poly_area(poly: np.ndarray) -> float:

@@ -26,8 +26,13 @@ except ImportError:  # optional: planesweep falls back to torch
 F32 = NDArray[np.float32]
 
 
+def compiled(fn: Any) -> Any:
+    """``fn`` compiled by numba (cached on disk, no GIL), or None without numba (the caller keeps a Python path)."""
+    return numba.njit(cache=True, nogil=True)(fn) if AVAILABLE else None
+
+
 def _jit(fn: Any) -> Any:
-    return numba.njit(cache=True, nogil=True)(fn) if AVAILABLE else fn
+    return compiled(fn) if AVAILABLE else fn
 
 
 @_jit
