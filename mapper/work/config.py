@@ -55,7 +55,8 @@ class OffloadConfig(BaseModel):
         "is made a job or while it waits for a free worker, is dropped (keyframes_dropped.stale.<source>) and the "
         "source's next, fresher keyframe is mapped instead. Past capacity, capture-to-graph latency stays near "
         "this plus one job (~0.5 s on one core) plus the frame's wait before it reached the mapper. A job "
-        "re-issued after its worker failed is kept (no gap). 0: no deadline",
+        "re-issued after its worker failed is kept (no gap); a keyframe deferred until it had a stereo partner "
+        "counts from its retry. 0: no deadline",
     )
     fair_order: bool = Field(
         default=True,

@@ -195,12 +195,11 @@ class Offloader:
         now_ns = time.time_ns()
         with self._lock:
             fresh = view.seq >= self._newest.get(view.source_id, -1)  # else a deferred keyframe retried
-            received = self._received.get(view.key, now_ns)
-            if not fresh:
-                # A deferred keyframe could be mapped only once its newest partner came in: it ages from then.
-                # At video rate that is a frame after its own capture (a backlog's retries still go stale); a
-                # camera at 0.5 Hz would otherwise lose its first keyframe to the 2 s it waited for a partner.
-                received = max([received, *(self._received.get(v.key, received) for v in views)])
+            # A deferred keyframe is retried once its partner's own keyframe was mapped: it could not be a job
+            # before, so its deadline counts from now (a camera at 0.5 Hz would otherwise lose its first keyframe
+            # to the seconds it waited for a partner, plus the partner's job). Under overload its wait for a
+            # worker still makes it stale.
+            received = self._received.get(view.key, now_ns) if fresh else now_ns
             age_s = (now_ns - received) / 1e9
             if self.dispatcher.submit(job.job_id, view.source_id, time.monotonic(), fresh, age_s,
                                       keep=view.map_always):
