@@ -361,8 +361,12 @@ def consistency_count(
         p = X_ref @ T_n_ref[:3, :3].T + T_n_ref[:3, 3]
         z = p[..., 2]
         with np.errstate(divide="ignore", invalid="ignore"):
-            un = np.nan_to_num(p[..., 0] / z * K_n[0, 0] + K_n[0, 2], nan=-1e6, posinf=-1e6, neginf=-1e6)
-            vn = np.nan_to_num(p[..., 1] / z * K_n[1, 1] + K_n[1, 2], nan=-1e6, posinf=-1e6, neginf=-1e6)
+            # Clipped too: a point just in front of the camera projects beyond int64's range, and the cast below
+            # would warn and wrap (such pixels fall outside the image either way).
+            un = np.clip(np.nan_to_num(p[..., 0] / z * K_n[0, 0] + K_n[0, 2], nan=-1e6, posinf=-1e6, neginf=-1e6),
+                         -1e6, 1e6)
+            vn = np.clip(np.nan_to_num(p[..., 1] / z * K_n[1, 1] + K_n[1, 2], nan=-1e6, posinf=-1e6, neginf=-1e6),
+                         -1e6, 1e6)
         base = (d > 0) & (z > 1e-3)
         agree_any = np.zeros((h, w), bool)
         for oy in range(-search_px, search_px + 1):

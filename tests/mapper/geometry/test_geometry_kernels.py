@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import warnings
+
 import numpy as np
 import pytest
 import torch
@@ -140,3 +142,18 @@ def test_padded_warp_gives_the_replicated_border_wherever_a_census_reads() -> No
             mask = cv2.warpPerspective(np.ones((h, w), np.uint8), H, (w, h),
                                        flags=cv2.INTER_NEAREST | cv2.WARP_INVERSE_MAP, borderValue=0)
             np.testing.assert_array_equal(inside[i].numpy(), mask.astype(bool))
+
+
+def test_consistency_count_takes_points_in_a_neighbours_camera_plane_without_a_warning() -> None:
+    """Reference points a hair in front of a neighbour's camera plane (projected: beyond int64) agree with nothing
+    and raise no cast warning; an identical neighbour still agrees everywhere."""
+    h, w = 6, 8
+    K = np.array([[4.0, 0, 4], [0, 4.0, 3], [0, 0, 1]])
+    depth = np.ones((h, w), np.float32)
+    near = np.eye(4)  # a neighbour 1e-16 m behind the reference's depth plane, with a long lens
+    near[2, 3] = np.nextafter(1.0, 0.0)
+    K_long = np.array([[1e6, 0, 4], [0, 1e6, 3], [0, 0, 1]])
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        count = planesweep.consistency_count(depth, K, np.eye(4), [(depth, K_long, near), (depth, K, np.eye(4))])
+    assert (count == 1).all()
