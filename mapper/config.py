@@ -336,6 +336,11 @@ class RoomsConfig(BaseModel):
     camera_max_height_m: float = Field(
         default=1.8, gt=0.0, description="cameras higher than this above the floor (wall-mounted) free no space"
     )
+    sight_cameras: int = Field(
+        default=16, ge=0,
+        description="observed floor and object footprints count as free space only in sight of one of this many "
+        "nearest camera positions (no wall between: RGB-only depth and stretched boxes put some behind walls); 0: off",
+    )
     grow_m: float = Field(
         default=1.5, ge=0.0, description="rooms take unseen cells inside their walls up to this far from known space"
     )

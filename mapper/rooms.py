@@ -44,6 +44,7 @@ import cv2
 import numpy as np
 from scipy import ndimage
 
+from mapper.geometry.kernels import compiled
 from protocol.messages import GraphNode
 from protocol.prior import IndoorPrior
 from protocol.rooms import RoomLayer as RoomLayerMessage
@@ -62,6 +63,7 @@ class RoomParams:
     wall_min_points: int = 6  # voxels in the band that make a cell a wall
     camera_free_m: float = 0.3  # radius of known-free space around each camera position
     camera_max_height_m: float = 1.8  # cameras higher than this above the floor (wall-mounted) free no space
+    sight_cameras: int = 16  # observed floor and footprints count only in sight of one of this many nearest cameras
     grow_m: float = 1.5  # rooms take unseen cells inside their walls up to this far from known space
     close_m: float = 0.3  # gaps in observed floor up to this wide are filled (under furniture, sparse points)
     marker_h_m: float = 0.3  # a room's middle stands this far above the saddle to its neighbour (h-maxima)
@@ -164,6 +166,17 @@ def build_grid(points_world: np.ndarray, cameras_world: np.ndarray, footprints: 
         polys = np.round(np.stack([wy / c - lo[1], wx / c - lo[0]], 2) * 4).astype(np.int32)
         cv2.fillPoly(foot, list(polys), 1, lineType=cv2.LINE_8, shift=2)
     footb = foot.astype(bool)
+    if p.sight_cameras > 0:
+        # Nothing is seen through a wall: observed floor and footprints that no nearby camera has in sight (RGB-only
+        # depth and stretched boxes put them behind walls) say nothing about free space. Walls are those of the
+        # points alone here, so that a stretched footprint cannot first clear the wall it reaches through.
+        all_cams = np.asarray(cameras_world, np.float64).reshape(-1, 3)
+        all_cams = all_cams[np.isfinite(all_cams).all(axis=1)]
+        blocked = ndimage.binary_closing(wall, structure=np.ones((3, 3), bool)) | wall
+        ask = (floor | footb) & ~blocked
+        hidden = ask & ~in_sight(ask, blocked, all_cams[:, :2] / c - lo, p.sight_cameras, p.camera_free_m / c)
+        floor &= ~hidden
+        footb &= ~hidden
     # Tall furniture standing in a room puts points in the wall band: inside its own footprint they are not a wall.
     wall &= ~ndimage.binary_erosion(footb, iterations=1)
     wall = ndimage.binary_closing(wall, structure=np.ones((3, 3), bool)) | wall
@@ -176,6 +189,103 @@ def build_grid(points_world: np.ndarray, cameras_world: np.ndarray, footprints: 
         visited = ndimage.binary_dilation(visited, structure=disk)
     free = (floor | visited | footb) & ~wall
     return FloorGrid(origin, c, fz, wall, floor, free)
+
+
+def _sight_loops(wall: np.ndarray, cells: np.ndarray, cams: np.ndarray, order: np.ndarray, skip: float
+                 ) -> np.ndarray:  # pragma: no cover - compiled (the NumPy twin below is tested against it)
+    n, nx, ny = cells.shape[0], wall.shape[0], wall.shape[1]
+    out = np.zeros(n, np.bool_)
+    for i in range(n):
+        tx, ty = cells[i, 0] + 0.5, cells[i, 1] + 0.5
+        for k in range(order.shape[1]):
+            j = order[i, k]
+            if j < 0:
+                break
+            dx, dy = tx - cams[j, 0], ty - cams[j, 1]
+            length = math.sqrt(dx * dx + dy * dy)
+            clear = True
+            for s in range(int(2.0 * length) + 1):
+                d = 0.5 * s
+                if d > length - 1.0:
+                    break
+                if d < skip:
+                    continue
+                ix = int(math.floor(cams[j, 0] + dx * d / length))
+                iy = int(math.floor(cams[j, 1] + dy * d / length))
+                if 0 <= ix < nx and 0 <= iy < ny and wall[ix, iy]:
+                    clear = False
+                    break
+            if clear:
+                out[i] = True
+                break
+    return out
+
+
+def _sight_numpy(wall: np.ndarray, cells: np.ndarray, cams: np.ndarray, order: np.ndarray, skip: float
+                 ) -> np.ndarray:
+    """What :func:`_sight_loops` computes, without numba: the same samples, a nearest-camera rank at a time (cells
+    in chunks, to bound the memory of cells x samples)."""
+    if len(cells) > 4096:
+        return np.concatenate([_sight_numpy(wall, cells[i:i + 4096], cams, order[i:i + 4096], skip)
+                               for i in range(0, len(cells), 4096)])
+    out = np.zeros(len(cells), bool)
+    for k in range(order.shape[1]):
+        todo = np.flatnonzero(~out & (order[:, k] >= 0))
+        if len(todo) == 0:
+            break
+        a, b = cams[order[todo, k]], cells[todo].astype(np.float64) + 0.5
+        length = np.hypot(*(b - a).T)
+        d = 0.5 * np.arange(int(2.0 * length.max()) + 1)
+        ok = (d[None, :] <= length[:, None] - 1.0) & (d[None, :] >= skip)
+        unit = (b - a) / np.maximum(length, 1e-12)[:, None]
+        ij = np.floor(a[:, None, :] + d[None, :, None] * unit[:, None, :]).astype(np.int64)
+        inside = (ij[..., 0] >= 0) & (ij[..., 0] < wall.shape[0]) & (ij[..., 1] >= 0) & (ij[..., 1] < wall.shape[1])
+        hit = ok & inside
+        hit[hit] = wall[ij[..., 0][hit], ij[..., 1][hit]]
+        out[todo[~hit.any(axis=1)]] = True
+    return out
+
+
+_sight_compiled = compiled(_sight_loops)  # None without numba (optional, the ``server`` extra)
+
+
+def in_sight(mask: np.ndarray, wall: np.ndarray, cams_ij: np.ndarray, k: int, skip_cells: float) -> np.ndarray:
+    """Which cells of ``mask`` one of their ``k`` nearest cameras sees: no ``wall`` cell on the straight line from
+    the camera's cell centre to the cell's, sampled every half cell, leaving out the first ``skip_cells`` (a camera
+    mounted on a wall stands in it) and the last cell (a line grazing the wall a cell stands against). ``cams_ij``:
+    (M, 2) camera positions in cell units, the grid's frame (cameras off the grid count at its edge). Cells
+    outside ``mask`` are False; with no camera at all, every cell of ``mask`` is in sight."""
+    out = np.zeros(mask.shape, bool)
+    cells = np.argwhere(mask)
+    if len(cells) == 0:
+        return out
+    ij = np.floor(np.asarray(cams_ij, np.float64).reshape(-1, 2))
+    ij = ij[np.isfinite(ij).all(axis=1)].astype(np.int64)
+    if len(ij) == 0:
+        out[mask] = True
+        return out
+    at = np.zeros(mask.shape, bool)  # one camera per cell: thousands of keyframes stand on a few hundred cells
+    at[np.clip(ij[:, 0], 0, mask.shape[0] - 1), np.clip(ij[:, 1], 0, mask.shape[1] - 1)] = True
+    cam_cells = np.argwhere(at)
+    cams = cam_cells + 0.5
+    number = np.full(mask.shape, -1, np.int64)
+    number[cam_cells[:, 0], cam_cells[:, 1]] = np.arange(len(cam_cells))
+    # the nearest camera first (a cell's own room's, mostly in sight), from one distance transform of the grid; the
+    # k nearest (the first again among them) only for the cells it does not see
+    near = ndimage.distance_transform_edt(~at, return_distances=False, return_indices=True)
+    first = number[near[0][cells[:, 0], cells[:, 1]], near[1][cells[:, 0], cells[:, 1]]]
+    sight = _sight_compiled if _sight_compiled is not None else _sight_numpy
+    seen = sight(wall, cells, cams, first.reshape(-1, 1), float(skip_cells))
+    k = min(int(k), len(cams))
+    if k > 1 and not seen.all():
+        from scipy.spatial import cKDTree
+
+        rest = np.flatnonzero(~seen)
+        _, order = cKDTree(cams).query(cells[rest] + 0.5, k=k)
+        seen[rest] = sight(wall, cells[rest], cams, np.asarray(order, np.int64).reshape(len(rest), k),
+                           float(skip_cells))
+    out[cells[:, 0], cells[:, 1]] = seen
+    return out
 
 
 def _fill_holes(mask: np.ndarray) -> np.ndarray:

@@ -5,7 +5,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from mapper.rooms import RoomMapper, RoomParams, build_grid, estimate_floor_z, label_room
+from mapper.rooms import RoomMapper, RoomParams, build_grid, estimate_floor_z, in_sight, label_room
 from protocol.prior import load_prior
 from tests.support.floorplans import NODES, floor_points, node, two_rooms, wall_points
 
@@ -144,3 +144,59 @@ def test_voxels_seen_once_are_left_out_unless_that_leaves_almost_nothing() -> No
                                                           layer.grid.cells_of(np.array([[6.0, 2.0]]))[0][1]]
     single = RoomMapper().update(pts, NODES, np.ones(len(pts), int))  # one keyframe's map: kept whole
     assert len(single.rooms) == 2
+
+
+class TestSight:
+    """Free space only where a camera can have seen it: nothing is seen through a wall."""
+
+    @staticmethod
+    def beyond_the_wall() -> tuple[np.ndarray, list]:
+        # one 4 x 4 m room walled all round, floor seen (RGB-only-like) 1 m past its right wall, and a box stretched
+        # through that wall; the camera walked the room's middle
+        pts = np.concatenate([floor_points(0.0, 0.0, 4.0, 4.0), floor_points(4.2, 1.0, 5.2, 3.0),
+                              wall_points((0.0, 0.0), (4.0, 0.0)), wall_points((0.0, 4.0), (4.0, 4.0)),
+                              wall_points((0.0, 0.0), (0.0, 4.0)), wall_points((4.05, 0.0), (4.05, 4.0))])
+        return pts, [node("s", "sofa", 4.6, 2.0, 1.6)]
+
+    def test_floor_and_footprints_behind_a_wall_make_no_room(self) -> None:
+        pts, nodes = self.beyond_the_wall()
+        reach = {}
+        for sight in (16, 0):
+            rm = RoomMapper(RoomParams(sight_cameras=sight))
+            for y in (1.0, 2.0, 3.0):
+                rm.note_camera(np.array([2.0, y, 1.2]))
+            layer = rm.update(pts, nodes)
+            assert len(layer.rooms) == 1
+            reach[sight] = layer.rooms[0].polygon_xy[:, 0].max()
+        assert reach[16] <= 4.2  # to its wall
+        assert reach[0] >= 5.0  # the check off: the room reaches through its wall
+
+    def test_a_doorway_keeps_what_is_seen_through_it(self) -> None:
+        g = np.zeros((40, 40), bool)
+        g[20, :] = True  # a wall along x = 20 cells
+        g[20, 18:23] = False  # a doorway
+        ask = np.zeros_like(g)
+        ask[25:30, 18:23] = True  # straight through the doorway
+        ask[25:30, 2:6] = True  # behind the wall
+        cams = np.array([[10.0, 20.5]])
+        seen = in_sight(ask, g, cams, 4, 3.0)
+        assert seen[25:30, 18:23].all() and not seen[25:30, 2:6].any() and not seen[~ask].any()
+        # a second camera past the wall sees it all; with no camera at all nothing is judged hidden
+        assert in_sight(ask, g, np.array([[10.0, 20.5], [35.0, 4.0]]), 4, 3.0)[ask].all()
+        assert in_sight(ask, g, np.zeros((0, 2)), 4, 3.0)[ask].all()
+
+    def test_compiled_and_numpy_twins_agree(self) -> None:
+        from scipy.spatial import cKDTree
+
+        from mapper.rooms import _sight_compiled, _sight_loops, _sight_numpy
+
+        rng = np.random.default_rng(3)
+        wall = rng.random((70, 50)) < 0.06
+        cells = np.argwhere((rng.random((70, 50)) < 0.6) & ~wall)
+        cams = rng.uniform(0.0, 50.0, (25, 2))
+        order = cKDTree(cams).query(cells + 0.5, k=6)[1].astype(np.int64)
+        order[::7, 3:] = -1  # fewer cameras for some cells
+        ref = _sight_numpy(wall, cells, cams, order, 3.0)
+        assert 0.3 < ref.mean() < 0.99  # a test that can tell the two apart
+        loops = _sight_compiled if _sight_compiled is not None else _sight_loops
+        assert np.array_equal(loops(wall, cells, cams, order, 3.0), ref)
