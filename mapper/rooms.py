@@ -4,12 +4,15 @@ From the point map (its voxels seen by at least ``min_observations`` keyframes),
 object nodes, :func:`build_grid` makes a 2D grid of the floor (cell ``cell_m``): **wall** cells hold points in a
 band of heights above the floor that furniture rarely reaches and doorways leave open (default 1.2-2.0 m: below
 a door's lintel, above tables and beds); **free** cells are observed floor, the discs the cameras passed through
-and the footprints of objects standing on the floor, minus walls. :func:`segment` splits the free space into
-rooms the usual way: the filled free space's distance transform, one marker per h-maximum (a room's middle: a
-doorway is a saddle well below it), watershed (scikit-image); rooms then take the unseen cells inside their walls
-up to ``grow_m`` away. :class:`RoomTracker` keeps room ids across updates and finds doorways (where two rooms'
-cells touch); :class:`RoomMapper` runs it all on a growing map, puts objects in rooms (by centroid) and names
-each room from its objects with the embedded indoor prior (:class:`RoomLabeller`, protocol.prior).
+and the footprints of objects standing on the floor, minus walls. Observed floor and footprints count only
+where one of the nearest cameras has them in sight, no wall between (:func:`in_sight`): nothing is seen through a
+wall, and RGB-only depth and boxes stretched along the viewing rays put some behind walls. :func:`segment` splits
+the free space into rooms the usual way: the filled free space's distance transform, one marker per h-maximum (a
+room's middle: a doorway is a saddle well below it), watershed (scikit-image); rooms then take the unseen cells
+inside their walls up to ``grow_m`` away. :class:`RoomTracker` keeps room ids across updates and finds doorways
+(where two rooms' cells touch); :class:`RoomMapper` runs it all on a growing map, puts objects in rooms (by
+centroid) and names each room from its objects with the embedded indoor prior (:class:`RoomLabeller`,
+protocol.prior).
 
 The id rule (RoomTracker.update), written once here and tested:
 
