@@ -196,28 +196,27 @@ def build_grid(points_world: np.ndarray, cameras_world: np.ndarray, footprints: 
 
 def _sight_loops(wall: np.ndarray, cells: np.ndarray, cams: np.ndarray, order: np.ndarray, skip: float
                  ) -> np.ndarray:  # pragma: no cover - compiled (the NumPy twin below is tested against it)
-    n, nx, ny = cells.shape[0], wall.shape[0], wall.shape[1]
+    # Every sample lies between a camera and a cell centre, both on the grid (in_sight clips the cameras): the
+    # coordinates are positive and in bounds, so int() is floor() and no bounds test is needed.
+    n = cells.shape[0]
     out = np.zeros(n, np.bool_)
+    first = int(math.ceil(2.0 * skip))  # the first sample at d = 0.5 s >= skip
     for i in range(n):
         tx, ty = cells[i, 0] + 0.5, cells[i, 1] + 0.5
         for k in range(order.shape[1]):
             j = order[i, k]
             if j < 0:
                 break
-            dx, dy = tx - cams[j, 0], ty - cams[j, 1]
-            length = math.sqrt(dx * dx + dy * dy)
+            ax, ay = cams[j, 0], cams[j, 1]
+            length = math.hypot(tx - ax, ty - ay)
             clear = True
-            for s in range(int(2.0 * length) + 1):
-                d = 0.5 * s
-                if d > length - 1.0:
-                    break
-                if d < skip:
-                    continue
-                ix = int(math.floor(cams[j, 0] + dx * d / length))
-                iy = int(math.floor(cams[j, 1] + dy * d / length))
-                if 0 <= ix < nx and 0 <= iy < ny and wall[ix, iy]:
-                    clear = False
-                    break
+            if length > 1.0:
+                ux, uy = (tx - ax) / length, (ty - ay) / length
+                for s in range(first, int(math.floor(2.0 * (length - 1.0))) + 1):
+                    d = 0.5 * s
+                    if wall[int(ax + d * ux), int(ay + d * uy)]:
+                        clear = False
+                        break
             if clear:
                 out[i] = True
                 break
