@@ -9,6 +9,7 @@ colour histogram (HSV), which is what association compares.
 
 from __future__ import annotations
 
+import math
 from collections.abc import Sequence
 from typing import TYPE_CHECKING
 
@@ -41,6 +42,11 @@ class ClassicalSegmenterConfig(BaseModel):
     wall_min_width_m: float = Field(default=1.2, gt=0.0, description="... when also at least this wide")
     min_area_frac: float = Field(default=0.002, gt=0.0, description="smallest region, fraction of the image")
     max_area_frac: float = Field(default=0.5, gt=0.0, le=1.0, description="largest region, fraction of the image")
+
+
+_EXTENT_MARGIN_M = 1e-3
+"""Metres a region's full extent may fall short of a wall's size and still have its percentiles worked out: far above
+what rounding moves a percentile outside the points' range (float32 at room scale: ~1e-6 m)."""
 
 
 def _normals(points: np.ndarray) -> np.ndarray:
@@ -124,8 +130,15 @@ class ClassicalSegmenter:
             x0, y0 = stats[k, cv2.CC_STAT_LEFT], stats[k, cv2.CC_STAT_TOP]
             box = np.s_[y0: y0 + stats[k, cv2.CC_STAT_HEIGHT], x0: x0 + stats[k, cv2.CC_STAT_WIDTH]]
             sel = cc[box] == k
+            region = points[box][sel]
+            # The 2-98 % spread of an axis is at most its full extent: a region whose extent is short of a wall's
+            # (by a margin far above rounding) is not one, and most regions are judged without percentiles.
+            ext = region.max(axis=0) - region.min(axis=0)
+            if (ext[2] < cfg.wall_min_height_m - _EXTENT_MARGIN_M
+                    or math.hypot(ext[0], ext[1]) < cfg.wall_min_width_m - _EXTENT_MARGIN_M):
+                continue
             # One call for x, y and z: the same order statistics as a call per axis, a third of the overhead.
-            lo_q, hi_q = np.percentile(points[box][sel], [2, 98], axis=0)
+            lo_q, hi_q = np.percentile(region, [2, 98], axis=0)
             width = float(np.linalg.norm(hi_q[:2] - lo_q[:2]))
             if hi_q[2] - lo_q[2] >= cfg.wall_min_height_m and width >= cfg.wall_min_width_m:
                 walls[box] |= sel
