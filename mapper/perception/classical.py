@@ -9,12 +9,14 @@ colour histogram (HSV), which is what association compares.
 
 from __future__ import annotations
 
+import functools
 import math
 from collections.abc import Sequence
 from typing import TYPE_CHECKING
 
 import cv2
 import numpy as np
+from numpy.typing import NDArray
 from pydantic import BaseModel, ConfigDict, Field
 
 from mapper.perception.base import Detection, Mask2D, ViewGeometry, unit
@@ -156,6 +158,30 @@ class AppearanceEmbedderConfig(BaseModel):
     val_bins: int = Field(default=3, ge=1, le=16, description="value bins")
 
 
+@functools.lru_cache(maxsize=16)
+def _bin_of_byte(bins: int, lo: float, hi: float) -> NDArray[np.int64]:
+    """The bin ``np.histogramdd`` gives each byte value 0..255 along one axis of ``bins`` bins over ``lo``..``hi``
+    (-1: outside, not counted), found by asking it about each value once: it bins every axis on its own, so a
+    histogram of bytes is then a ``bincount`` of these, the same counts."""
+    out = np.full(256, -1, np.int64)
+    for v in range(256):
+        h, _ = np.histogramdd(np.array([[v]], np.float32), bins=(bins,), range=((lo, hi),))
+        if h.sum() == 1:
+            out[v] = int(np.argmax(h))
+    out.setflags(write=False)
+    return out
+
+
+def byte_histogram(px: NDArray[np.uint8], bins: tuple[int, int, int],
+                   ranges: tuple[tuple[float, float], ...]) -> NDArray[np.float64]:
+    """``np.histogramdd(px.astype(np.float32), bins=bins, range=ranges)[0]`` of (N, 3) bytes, the same counts
+    (float64) by a table look-up per axis and one ``bincount``: ~10x faster for a mask's pixels."""
+    idx = [_bin_of_byte(bins[k], float(ranges[k][0]), float(ranges[k][1]))[px[:, k]] for k in range(3)]
+    ok = (idx[0] >= 0) & (idx[1] >= 0) & (idx[2] >= 0)
+    flat = (idx[0][ok] * bins[1] + idx[1][ok]) * bins[2] + idx[2][ok]
+    return np.bincount(flat, minlength=bins[0] * bins[1] * bins[2]).reshape(bins).astype(np.float64)
+
+
 class AppearanceEmbedder:
     """Labels every region ``object``; the descriptor is a Hellinger-normalised HSV histogram."""
 
@@ -181,11 +207,11 @@ class AppearanceEmbedder:
             px = cache[shape][m.mask]
             if len(px) == 0:
                 continue
-            hist, _ = np.histogramdd(
-                px.astype(np.float32),
-                bins=(cfg.hue_bins, cfg.sat_bins, cfg.val_bins),
-                range=((0, 180), (0, 256), (0, 256)),
-            )
+            bins, ranges = (cfg.hue_bins, cfg.sat_bins, cfg.val_bins), ((0, 180), (0, 256), (0, 256))
+            if px.dtype == np.uint8:
+                hist = byte_histogram(px, bins, ranges)
+            else:
+                hist, _ = np.histogramdd(px.astype(np.float32), bins=bins, range=ranges)
             desc = unit(np.sqrt(hist.reshape(-1) / len(px)))
             out.append(
                 Detection(
