@@ -781,6 +781,9 @@ def seen_together(a: NodeState, b: NodeState) -> bool:
 
 # Added to a search radius where points certainly beyond it are skipped: rounding moves a distance by ~1e-16 of it.
 _SEARCH_MARGIN_M = 1e-6
+# Below a similarity threshold by this much, a batched (float64) similarity refuses a pair for certain: the float32 dot
+# product of two unit descriptors that ``similarity`` takes is off by at most ~1e-4 (a few thousand dimensions).
+_SIMILARITY_MARGIN = 1e-3
 
 
 def footprint_diagonal(lo: np.ndarray, hi: np.ndarray) -> float:
@@ -906,26 +909,33 @@ class ObjectMap:
         self._rng = np.random.default_rng(self.cfg.seed)
 
     # -- association ---------------------------------------------------------------------------
-    def _candidates(self, pts: np.ndarray) -> list[NodeState]:
+    def _node_boxes(self) -> tuple[list[NodeState], np.ndarray, np.ndarray]:
+        """The nodes and their ``aabb`` corners stacked (n, 3) each, for :meth:`_candidates`."""
+        nodes = list(self.nodes.values())
+        return nodes, np.stack([n.aabb[0] for n in nodes]), np.stack([n.aabb[1] for n in nodes])
+
+    def _candidates(self, pts: np.ndarray,
+                    boxes: tuple[list[NodeState], np.ndarray, np.ndarray] | None = None) -> list[NodeState]:
         """The nodes whose point box comes within ``radius_m`` of ``pts``' (one vectorised test of every node's
-        ``aabb``, element for element the comparisons a loop over the nodes makes)."""
+        ``aabb``, element for element the comparisons a loop over the nodes makes). ``boxes``: :meth:`_node_boxes`
+        when the caller has them (the nodes unchanged since)."""
         if not self.nodes:
             return []
         r = self.cfg.radius_m
         lo, hi = pts.min(0) - r, pts.max(0) + r
-        nodes = list(self.nodes.values())
-        nlo = np.stack([n.aabb[0] for n in nodes])
-        nhi = np.stack([n.aabb[1] for n in nodes])
+        nodes, nlo, nhi = self._node_boxes() if boxes is None else boxes
         near = np.all(nlo <= hi, axis=1) & np.all(nhi >= lo, axis=1)
         return [n for n, ok in zip(nodes, near.tolist(), strict=True) if ok]
 
-    def scores(self, obj: Object3D, contained: dict[str, float] | None = None) -> dict[str, float]:
+    def scores(self, obj: Object3D, contained: dict[str, float] | None = None,
+               boxes: tuple[list[NodeState], np.ndarray, np.ndarray] | None = None) -> dict[str, float]:
         """Per node that ``obj`` may join, its match score (only nodes reaching ``match_threshold``).
         ``contained``: per node id, the fraction of its visible points inside ``obj``'s mask (mask
-        association); a fraction of at least ``min_containment`` counts as overlap."""
+        association); a fraction of at least ``min_containment`` counts as overlap. ``boxes``:
+        :meth:`_node_boxes` when the caller has them (the nodes unchanged since)."""
         cfg = self.cfg
         inside = {k: v for k, v in (contained or {}).items() if v >= cfg.min_containment and k in self.nodes}
-        cands = {n.node_id: n for n in self._candidates(obj.points)}
+        cands = {n.node_id: n for n in self._candidates(obj.points, boxes)}
         cands.update((k, self.nodes[k]) for k in inside)
         same_ray = {k for k, n in self.nodes.items() if self._same_ray(n, obj)} if obj.ray_origin is not None else set()
         cands.update((k, self.nodes[k]) for k in same_ray)
@@ -953,7 +963,9 @@ class ObjectMap:
         takes at most one detection of the view (the assignment of highest total score): two detections of one
         view are two objects, and letting both join one node makes it swallow its neighbours (books on a shelf,
         chairs round a table). Otherwise each detection takes its best node."""
-        table = [self.scores(obj, held) for obj, held in zip(objects, inside, strict=True)]
+        # Scoring changes no node: the nodes' boxes are stacked once for all of the view's detections.
+        boxes = self._node_boxes() if self.nodes else None
+        table = [self.scores(obj, held, boxes) for obj, held in zip(objects, inside, strict=True)]
         if not self.cfg.one_node_per_view:
             return [self.nodes[min(t, key=lambda k: (-t[k], k))] if t else None for t in table]
         ids = sorted({k for t in table for k in t})
@@ -1567,6 +1579,14 @@ class ObjectMap:
         if len(ids) < 2:
             return res
         centres = np.array([self.nodes[k].centre for k in ids], np.float64)
+        # ghost_host's cheap refusals, for every host of a ghost at once: a host with rays, the ghost itself, a host
+        # seen less often (exact: flags and counts), and a dissimilar host (by a margin far above the float32
+        # rounding of a descriptor's dot product). Only the hosts left are asked, in the same order.
+        nodes = [self.nodes[k] for k in ids]
+        observed = np.array([n.observations for n in nodes])
+        no_rays = np.array([not n.rays for n in nodes])
+        shapes = {n.descriptor.shape for n in nodes}
+        descs = np.stack([n.descriptor for n in nodes]).astype(np.float64) if len(shapes) == 1 else None
         pairs: list[tuple[float, str, str]] = []
         for i, g_id in enumerate(ids):
             ghost = self.nodes[g_id]
@@ -1578,8 +1598,12 @@ class ObjectMap:
                 far = max(float((centres[i] - o) @ d) for o, d in ghost.sight)
                 rel = cfg.ghost_max_along_rel
                 reach = (1 + cfg.ghost_across_ratio) * max(cfg.ghost_max_along_m, rel / (1 - rel) * far) + 1e-6
-            near = np.flatnonzero(np.linalg.norm(centres - centres[i], axis=1) <= reach)
-            for j in near:
+            host_ok = np.linalg.norm(centres - centres[i], axis=1) <= reach
+            host_ok &= no_rays & (observed >= ghost.observations)
+            host_ok[i] = False
+            if descs is not None:  # NaN: asked, as similarity's own test refuses nothing then
+                host_ok &= ~(descs @ descs[i] < cfg.merge_similarity - _SIMILARITY_MARGIN)
+            for j in np.flatnonzero(host_ok):
                 across = self.ghost_host(ghost, self.nodes[ids[j]])
                 if across is not None:
                     pairs.append((across, g_id, ids[j]))

@@ -227,9 +227,35 @@ def footprint_gap(a: np.ndarray, b: np.ndarray, inter: float | None = None) -> f
     return best
 
 
+def _gap_loops(a: Any, b: Any) -> float:  # pragma: no cover - compiled
+    # _gap_estimate's point-segment distances one at a time: the smallest squared one, its square root.
+    best = np.inf
+    for side in range(2):
+        P, Q = (a, b) if side == 0 else (b, a)
+        n = Q.shape[0]
+        for s in range(n):
+            ax, ay = Q[s, 0], Q[s, 1]
+            abx, aby = Q[(s + 1) % n, 0] - ax, Q[(s + 1) % n, 1] - ay
+            denom = abx * abx + aby * aby
+            for k in range(P.shape[0]):
+                apx, apy = P[k, 0] - ax, P[k, 1] - ay
+                t = 0.0
+                if denom > 0.0:
+                    t = min(max((apx * abx + apy * aby) / denom, 0.0), 1.0)
+                dx, dy = apx - t * abx, apy - t * aby
+                best = min(best, dx * dx + dy * dy)
+    return math.sqrt(best)
+
+
+_gap_compiled = compiled(_gap_loops)  # None without numba (optional, the ``server`` extra)
+
+
 def _gap_estimate(a: np.ndarray, b: np.ndarray) -> float:
     """:func:`footprint_gap` of two disjoint convex polygons in one vectorised pass (all point-segment distances
-    at once): the same distance up to rounding (not bit for bit), for deciding comparisons that are not close."""
+    at once): the same distance up to rounding (not bit for bit), for deciding comparisons that are not close.
+    Compiled where numba is installed (a loop per distance, ~100x less overhead than the numpy calls)."""
+    if _gap_compiled is not None:
+        return float(_gap_compiled(np.ascontiguousarray(a, np.float64), np.ascontiguousarray(b, np.float64)))
     dists = []
     for P, Q in ((a, b), (b, a)):
         A = Q

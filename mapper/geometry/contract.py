@@ -12,6 +12,7 @@ frame a, metres once composed. Pure numpy, no I/O.
 
 from __future__ import annotations
 
+import functools
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any, Protocol, runtime_checkable
@@ -185,6 +186,15 @@ def pixel_rays(intrinsics: Intrinsics) -> F32:
     return (d / np.linalg.norm(d, axis=-1, keepdims=True)).astype(np.float32)
 
 
+@functools.lru_cache(maxsize=8)
+def _shared_pixel_rays(width: int, height: int, fx: float, fy: float, cx: float, cy: float) -> F32:
+    """:func:`pixel_rays` of a camera, computed once per process and read-only: every keyframe of a camera has the
+    same rays (~4 ms each time at 320 x 240)."""
+    rays = pixel_rays(Intrinsics(width=width, height=height, fx=fx, fy=fy, cx=cx, cy=cy))
+    rays.setflags(write=False)
+    return rays
+
+
 def z_to_ray_depth(depth_m: NDArray[np.floating], rays: F32) -> F32:
     """Convert z-depth (h, w) to depth along the unit rays (h, w, 3) of the same pixels."""
     with np.errstate(divide="ignore", invalid="ignore"):
@@ -206,13 +216,8 @@ def factored_from_metric(
     if not depth_m:
         raise ValueError("need at least one view")
     T_first_world = np.linalg.inv(as_pose(T_world_cam[0]))
-    by_camera: dict[tuple[float, ...], F32] = {}  # views with the same intrinsics share their rays: computed once
-    rays = []
-    for k in intrinsics:
-        key = (k.width, k.height, k.fx, k.fy, k.cx, k.cy)
-        if key not in by_camera:
-            by_camera[key] = pixel_rays(k)
-        rays.append(by_camera[key])
+    # Views with the same intrinsics share their rays, computed once per process.
+    rays = [_shared_pixel_rays(k.width, k.height, k.fx, k.fy, k.cx, k.cy) for k in intrinsics]
     return FactoredReconstruction(
         ray_dirs=np.stack(rays).astype(np.float32),
         depth_along_ray=np.stack([z_to_ray_depth(d, r) for d, r in zip(depth_m, rays, strict=True)]),

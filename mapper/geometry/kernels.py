@@ -113,7 +113,7 @@ def _census_best(planes: Any, ref_bits: Any, dys: Any, dxs: Any, radius: int, sc
                 row = pad[y + radius + dys[k], radius + dxs[k]: radius + dxs[k] + w]
                 bits = ref_bits[k, y]
                 for x in range(w):
-                    acc[x] += (row[x] > centre[x]) != bits[x]
+                    acc[x] += np.uint8(row[x] > centre[x]) ^ bits[x]  # bits 0 / 1: ~10% faster than bools
             ins = inside[d, y]
             for x in range(w):
                 cost[x] = np.float32(acc[x]) * scale if ins[x] else outside_cost
@@ -131,18 +131,19 @@ def _census_best(planes: Any, ref_bits: Any, dys: Any, dxs: Any, radius: int, sc
                     b1[x] = min(b1[x], cost[x])
 
 
-def census_best(planes: F32, ref_bits: NDArray[np.bool_], offsets: list[tuple[int, int]], radius: int,
+def census_best(planes: F32, ref_bits: NDArray[np.bool_ | np.uint8], offsets: list[tuple[int, int]], radius: int,
                 inside: NDArray[np.bool_], outside_cost: float, best1: F32, best2: F32, n_seen: int) -> None:
     """Merge one source's census cost into the running two cheapest costs of the sources before it, in place.
 
     The cost of a plane's pixel is the fraction of census bits (neighbours at ``offsets``, within ``radius``) that
-    differ between that plane of ``planes`` (D, H, W), edge-replicated, and the reference's ``ref_bits`` (n, H, W),
+    differ between that plane of ``planes`` (D, H, W), edge-replicated, and the reference's ``ref_bits`` (n, H, W;
+    bool, or uint8 0 / 1 as the kernel reads them: a caller with several sources converts them once),
     and ``outside_cost`` where ``inside`` (D, H, W) is False. ``best1`` / ``best2`` (D, H, W): the cheapest and second
     cheapest cost of the ``n_seen`` sources merged so far (neither is read when ``n_seen`` is 0, ``best2`` not when
     it is 1). Same numbers as ``planesweep``'s OpenCV and torch version."""
     dys = np.array([o[0] for o in offsets], np.int64)
     dxs = np.array([o[1] for o in offsets], np.int64)
-    _census_best(np.ascontiguousarray(planes, np.float32), np.ascontiguousarray(ref_bits, np.bool_), dys, dxs,
+    _census_best(np.ascontiguousarray(planes, np.float32), np.ascontiguousarray(ref_bits, np.uint8), dys, dxs,
                  radius, np.float32(1.0 / len(offsets)), np.ascontiguousarray(inside, np.bool_),
                  np.float32(outside_cost), best1, best2, n_seen)
 

@@ -238,7 +238,7 @@ def _best_two_compiled(warps: Iterable[tuple[torch.Tensor, torch.Tensor]], ref_b
     """:func:`_best_two_torch` with the census cost and the running minima fused in one compiled pass per source
     (``kernels.census_best``): the same numbers."""
     offsets = census_offsets(radius, stride)
-    bits = ref_bits.numpy()
+    bits = ref_bits.numpy().astype(np.uint8)  # what the kernel reads, converted once for every source
     best1 = best2 = np.empty(0, np.float32)
     n = 0
     for warped, inside in warps:

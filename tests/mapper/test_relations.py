@@ -246,3 +246,22 @@ def test_gap_estimate_decides_as_footprint_gap() -> None:
         # thresholds far from the gap, and at it (there only footprint_gap itself can decide)
         for gap_max in (gap - 0.05, gap, gap + 0.05, np.nextafter(gap, 0.0), np.nextafter(gap, 1.0)):
             assert relations._gap_at_most(a, b, inter, gap_max) == (gap <= gap_max), k
+
+
+def test_compiled_gap_estimate_equals_the_numpy_estimate(monkeypatch: pytest.MonkeyPatch) -> None:
+    """The compiled point-segment search gives the numpy estimate's gap to rounding, far inside _gap_at_most's
+    margin (so both decide every comparison alike)."""
+    from mapper import relations
+
+    if relations._gap_compiled is None:
+        pytest.skip("numba not installed")
+    rng = np.random.default_rng(7)
+    for _ in range(200):
+        boxes = [OrientedBox(center=(*rng.normal(size=2) * 3, 0.5), extent=tuple(rng.uniform(0.1, 2.0, 3)),
+                             yaw_rad=float(rng.uniform(-3, 3))) for _ in range(2)]
+        a, b = (relations.footprint(box, 1e-3) for box in boxes)
+        compiled = relations._gap_estimate(a, b)
+        with monkeypatch.context() as m:
+            m.setattr(relations, "_gap_compiled", None)
+            reference = relations._gap_estimate(a, b)
+        assert abs(compiled - reference) <= 1e-12 * (1.0 + max(np.abs(a).max(), np.abs(b).max()))

@@ -139,3 +139,19 @@ def test_rerun_server_is_loopback_only_and_stopped_with_its_port(tmp_path: Path)
     assert server.poll() is not None  # the viewer binary itself, stopped
     with socket.socket() as s:
         s.bind(("127.0.0.1", cfg.port))  # and its port is free again
+
+
+def test_byte_histogram_counts_as_histogramdd() -> None:
+    """The embedder's table look-up histogram of HSV bytes gives np.histogramdd's counts, bin edges and bytes past
+    the hue range (OpenCV's hue stops at 179) included."""
+    from mapper.perception.classical import byte_histogram
+
+    rng = np.random.default_rng(8)
+    px = rng.integers(0, 256, (5000, 3)).astype(np.uint8)
+    px[:256] = np.arange(256, dtype=np.uint8)[:, None]  # every byte on every axis
+    for bins in ((12, 3, 3), (7, 5, 2), (64, 16, 16)):
+        ranges = ((0, 180), (0, 256), (0, 256))
+        want, _ = np.histogramdd(px.astype(np.float32), bins=bins, range=ranges)
+        got = byte_histogram(px, bins, ranges)
+        assert got.dtype == want.dtype
+        np.testing.assert_array_equal(got, want)
