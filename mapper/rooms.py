@@ -175,21 +175,21 @@ def build_grid(points_world: np.ndarray, cameras_world: np.ndarray, footprints: 
         # points alone here, so that a stretched footprint cannot first clear the wall it reaches through.
         all_cams = np.asarray(cameras_world, np.float64).reshape(-1, 3)
         all_cams = all_cams[np.isfinite(all_cams).all(axis=1)]
-        blocked = ndimage.binary_closing(wall, structure=np.ones((3, 3), bool)) | wall
+        blocked = _closing(wall, _SQUARE3) | wall
         ask = (floor | footb) & ~blocked
         hidden = ask & ~in_sight(ask, blocked, all_cams[:, :2] / c - lo, p.sight_cameras, p.camera_free_m / c)
         floor &= ~hidden
         footb &= ~hidden
     # Tall furniture standing in a room puts points in the wall band: inside its own footprint they are not a wall.
-    wall &= ~ndimage.binary_erosion(footb, iterations=1)
-    wall = ndimage.binary_closing(wall, structure=np.ones((3, 3), bool)) | wall
+    wall &= ~_erosion(footb, _CROSS3)
+    wall = _closing(wall, _SQUARE3) | wall
     visited = np.zeros(shape, bool)
     if len(cams):
         r = int(round(p.camera_free_m / c))
         disk = np.hypot(*np.mgrid[-r:r + 1, -r:r + 1]) <= r
         ij = np.floor(cams[:, :2] / c).astype(np.int64) - lo
         visited[ij[:, 0], ij[:, 1]] = True
-        visited = ndimage.binary_dilation(visited, structure=disk)
+        visited = _dilation(visited, disk)
     free = (floor | visited | footb) & ~wall
     return FloorGrid(origin, c, fz, wall, floor, free)
 
@@ -303,6 +303,28 @@ def _fill_holes(mask: np.ndarray) -> np.ndarray:
     return mask | ~outside[bg] & (bg > 0)
 
 
+_SQUARE3 = np.ones((3, 3), bool)
+_CROSS3 = ndimage.generate_binary_structure(2, 1)
+
+
+def _dilation(mask: np.ndarray, structure: np.ndarray) -> np.ndarray:
+    """``ndimage.binary_dilation(mask, structure)`` (a symmetric ``structure``, nothing beyond the border) by OpenCV:
+    the same cells, an order of magnitude faster (the room layer's update runs several per keyframe)."""
+    k = np.asarray(structure, np.uint8)
+    return cv2.dilate(mask.astype(np.uint8), k, borderType=cv2.BORDER_CONSTANT, borderValue=0).astype(bool)
+
+
+def _erosion(mask: np.ndarray, structure: np.ndarray) -> np.ndarray:
+    """``ndimage.binary_erosion(mask, structure)`` (symmetric, the border counted empty as scipy does) by OpenCV."""
+    k = np.asarray(structure, np.uint8)
+    return cv2.erode(mask.astype(np.uint8), k, borderType=cv2.BORDER_CONSTANT, borderValue=0).astype(bool)
+
+
+def _closing(mask: np.ndarray, structure: np.ndarray) -> np.ndarray:
+    """``ndimage.binary_closing(mask, structure)``: dilation then erosion, both as scipy does them at the border."""
+    return _erosion(_dilation(mask, structure), structure)
+
+
 def _disk(r: int) -> np.ndarray:
     return np.hypot(*np.mgrid[-r:r + 1, -r:r + 1]) <= r
 
@@ -310,7 +332,7 @@ def _disk(r: int) -> np.ndarray:
 def room_space(grid: FloorGrid, params: RoomParams = RoomParams()) -> np.ndarray:
     """The cells rooms may take: known free space with small gaps closed and enclosed holes filled, no walls."""
     r = max(1, int(round(params.close_m / grid.cell_m)))
-    closed = ndimage.binary_closing(np.pad(grid.free, r), structure=_disk(r))[r:-r, r:-r]
+    closed = _closing(np.pad(grid.free, r), _disk(r))[r:-r, r:-r]
     return _fill_holes(closed | grid.free) & ~grid.wall
 
 
@@ -353,7 +375,7 @@ def _grow(labels: np.ndarray, grid: FloorGrid, space: np.ndarray, params: RoomPa
     if params.grow_m <= 0 or not labels.any():
         return labels
     r = 2
-    shell = ndimage.binary_closing(np.pad(grid.wall | space, r), structure=_disk(r))[r:-r, r:-r]
+    shell = _closing(np.pad(grid.wall | space, r), _disk(r))[r:-r, r:-r]
     inside = _fill_holes(shell) & ~grid.wall
     near = ndimage.distance_transform_edt(~space) * grid.cell_m <= params.grow_m
     dist = ndimage.distance_transform_edt(labels == 0)

@@ -200,3 +200,20 @@ class TestSight:
         assert 0.3 < ref.mean() < 0.99  # a test that can tell the two apart
         loops = _sight_compiled if _sight_compiled is not None else _sight_loops
         assert np.array_equal(loops(wall, cells, cams, order, 3.0), ref)
+
+
+@pytest.mark.parametrize("structure", ["square", "cross", "disk1", "disk2", "disk3", "disk4"])
+def test_opencv_morphology_matches_scipy(structure: str) -> None:
+    from scipy import ndimage
+
+    from mapper.rooms import _closing, _dilation, _disk, _erosion
+
+    st = {"square": np.ones((3, 3), bool), "cross": ndimage.generate_binary_structure(2, 1)}.get(structure)
+    st = st if st is not None else _disk(int(structure[-1]))
+    rng = np.random.default_rng(7)
+    for p in (0.03, 0.3, 0.8):
+        for shape in ((61, 47), (3, 11), (1, 5)):
+            m = rng.random(shape) < p
+            assert np.array_equal(_dilation(m, st), ndimage.binary_dilation(m, structure=st))
+            assert np.array_equal(_erosion(m, st), ndimage.binary_erosion(m, structure=st))
+            assert np.array_equal(_closing(m, st), ndimage.binary_closing(m, structure=st))
