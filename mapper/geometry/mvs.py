@@ -760,17 +760,13 @@ class MvsReconstructor:
         return c.default_range_m
 
     def _sweep(
-        self, r: int, prep: list[_Prepared], poses: list[F64 | None], pts: np.ndarray,
-        grays: dict[tuple[int, int, int], torch.Tensor], sw: int, sh: int,
+        self, r: int, prep: list[_Prepared], poses: list[F64 | None], pts: np.ndarray, sw: int, sh: int,
     ) -> tuple[np.ndarray, list[int]]:
         c = self.config
         seen = self._seen_depths(r, prep, poses, pts)
         srcs = self._select_sources(r, prep, poses, seen)
         if not srcs:
             return np.zeros((sh, sw), np.float32), []
-        for s in [r, *srcs]:
-            if (s, sw, sh) not in grays:
-                grays[(s, sw, sh)] = self._gray(prep[s].view, sw, sh)
         K_r = prep[r].intr.scaled(sw, sh).K()
         T_r = poses[r]
         assert T_r is not None
@@ -779,7 +775,7 @@ class MvsReconstructor:
             c.n_planes, c.census_radius, c.census_stride, c.sgm_p1, c.sgm_p2, c.best_k_sources
         )
         depth = planesweep.plane_sweep_depth(
-            grays[(r, sw, sh)], [grays[(s, sw, sh)] for s in srcs], K_r,
+            self._gray(prep[r].view, sw, sh), [self._gray(prep[s].view, sw, sh) for s in srcs], K_r,
             [prep[s].intr.scaled(sw, sh).K() for s in srcs],
             [invert(poses[s]) @ T_r for s in srcs], lo, hi, params,  # type: ignore[arg-type]
         )
@@ -820,7 +816,6 @@ class MvsReconstructor:
         T0 = poses[0] if poses[0] is not None else np.eye(4)
         t_dense = time.perf_counter()
         sw = c.sweep_width
-        grays: dict[tuple[int, int, int], torch.Tensor] = {}  # (view, width, height) -> grey image
         depth_lo: dict[int, np.ndarray] = {}
         sources: dict[int, list[int]] = {}
         shapes = {}
@@ -831,7 +826,7 @@ class MvsReconstructor:
             if poses[r] is None:
                 continue
             with clock("sweep"):
-                depth_lo[r], sources[r] = self._sweep(r, prep, poses, pts, grays, *shapes[r])
+                depth_lo[r], sources[r] = self._sweep(r, prep, poses, pts, *shapes[r])
         # Neighbour depth maps for the consistency check: this call's, else cached, else swept now.
         neigh_depth: dict[int, tuple[np.ndarray, F64]] = {}
         for r in list(depth_lo):
@@ -850,7 +845,7 @@ class MvsReconstructor:
                     if s in depth_lo or s in neigh_depth:
                         continue
                     with clock("sweep"):
-                        d, _ = self._sweep(s, prep, poses, pts, grays, *shapes[s])
+                        d, _ = self._sweep(s, prep, poses, pts, *shapes[s])
                     # Not cached for later jobs: swept again there with their own poses and sparse points, it
                     # agrees with their target better (cached, the sim's early keyframes lost up to 0.64 of
                     # their confident pixels: a map swept in a two-view window with refined odometry priors).
@@ -883,7 +878,7 @@ class MvsReconstructor:
                 )
                 need = max(1, min(c.consistency_views, len(nbs)))
                 conf = np.clip(cnt / need, 0.0, 1.0).astype(np.float32)
-                tex = local_std(grays[(i, *shapes[i])], c.census_radius).numpy()
+                tex = local_std(self._gray(views[i], *shapes[i]), c.census_radius).numpy()
                 # Where the image is flat the cost has no minimum of its own: SGM fills it from the edges, and
                 # neighbours may agree on the same guess, so consistency alone is not enough there.
                 conf *= np.clip(2.0 * tex / max(c.min_texture, 1e-6) - 1.0, 0.0, 1.0)
