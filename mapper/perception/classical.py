@@ -207,11 +207,8 @@ class AppearanceEmbedder:
             px = cache[shape][m.mask]
             if len(px) == 0:
                 continue
-            bins, ranges = (cfg.hue_bins, cfg.sat_bins, cfg.val_bins), ((0, 180), (0, 256), (0, 256))
-            if px.dtype == np.uint8:
-                hist = byte_histogram(px, bins, ranges)
-            else:
-                hist, _ = np.histogramdd(px.astype(np.float32), bins=bins, range=ranges)
+            # HSV of a uint8 RGB image (the View contract) is uint8
+            hist = byte_histogram(px, (cfg.hue_bins, cfg.sat_bins, cfg.val_bins), ((0, 180), (0, 256), (0, 256)))
             desc = unit(np.sqrt(hist.reshape(-1) / len(px)))
             out.append(
                 Detection(
