@@ -186,10 +186,9 @@ def build_grid(points_world: np.ndarray, cameras_world: np.ndarray, footprints: 
     visited = np.zeros(shape, bool)
     if len(cams):
         r = int(round(p.camera_free_m / c))
-        disk = np.hypot(*np.mgrid[-r:r + 1, -r:r + 1]) <= r
         ij = np.floor(cams[:, :2] / c).astype(np.int64) - lo
         visited[ij[:, 0], ij[:, 1]] = True
-        visited = _dilation(visited, disk)
+        visited = _dilation(visited, _disk(r))
     free = (floor | visited | footb) & ~wall
     return FloorGrid(origin, c, fz, wall, floor, free)
 
