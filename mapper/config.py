@@ -360,6 +360,11 @@ class RoomsConfig(BaseModel):
     assign_max_m: float = Field(
         default=0.6, ge=0.0, description="an object outside every room joins the nearest one within this distance"
     )
+    wall_share_m: float = Field(
+        default=0.3, ge=0.0,
+        description="a wall cell up to this deep in a thick wall band (RGB-only depth scatters walls) joins the room "
+        "nearest to it, so the band splits down its middle (0: rooms take only the ring of wall cells next to them)",
+    )
     max_cameras: int = Field(default=20_000, ge=1, description="camera positions kept as known-free space (bound)")
     every_keyframes: int = Field(
         default=5, ge=0,

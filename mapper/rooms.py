@@ -76,6 +76,7 @@ class RoomParams:
     merge_open_m: float = 1.5  # the seen-open rule: an opening this wide between two rooms merges them
     merge_floor_fraction: float = 0.7  # ... with observed floor along this much of it
     assign_max_m: float = 0.6  # an object outside every room joins the nearest one within this distance
+    wall_share_m: float = 0.3  # a wall cell up to this deep in a wall band joins the room nearest to it (0: a ring)
 
 
 @dataclass(frozen=True)
@@ -625,9 +626,17 @@ class RoomTracker:
             xy = grid.xy_of(mid.mean(0, keepdims=True))[0]
             ra, rb = sorted((room_ids[a - 1], room_ids[b - 1]), key=_id_order)
             doors.append(Doorway(ra, rb, (float(xy[0]), float(xy[1])), w))
-        # a wall cell next to a room joins it (next to two: the larger label, a tie rule that keeps it cheap)
+        # A wall cell next to a room joins it (next to two: the larger label, a tie rule that keeps it cheap). Deeper
+        # in a thick wall band (RGB-only depth scatters a wall's points across it), a cell joins the room whose cell
+        # is its nearest cell outside the band, within wall_share_m: the band splits down its middle between the
+        # rooms on either side, and between a room and the unknown beyond an outer wall.
+        wall = (open_labels == 0) & grid.wall
         near = ndimage.grey_dilation(open_labels, footprint=np.ones((3, 3), bool))
-        labels = np.where((open_labels == 0) & grid.wall, near, open_labels).astype(np.int32)
+        if p.wall_share_m > 0 and wall.any():
+            depth, (ii, jj) = ndimage.distance_transform_edt(wall, return_indices=True)
+            near = np.where(wall & (depth <= p.wall_share_m / c + 1e-6) & (open_labels[ii, jj] > 0), open_labels[ii, jj],
+                            near)
+        labels = np.where(wall, near, open_labels).astype(np.int32)
         seen = grid.free  # observed floor, crossed by a camera, or under an object standing on the floor
         rooms = []
         for i, rid in enumerate(room_ids, start=1):

@@ -146,6 +146,30 @@ def test_voxels_seen_once_are_left_out_unless_that_leaves_almost_nothing() -> No
     assert len(single.rooms) == 2
 
 
+def test_a_thick_wall_band_splits_down_its_middle_between_the_rooms() -> None:
+    """RGB-only depth scatters a wall's points across a band: each room takes the half of the band on its side."""
+    rng = np.random.default_rng(3)
+    thin = two_rooms(wall=False, floor_under_wall=False)
+    face = wall_points((4.05, 0.0), (4.05, 4.0), gaps=((1.5, 2.4),))
+    band = np.concatenate([face + [rng.uniform(-0.3, 0.3), 0.0, 0.0] for _ in range(40)])
+    pts = np.concatenate([thin, band])
+    edges = {}
+    for share in (0.3, 0.0):
+        layer = RoomMapper(RoomParams(wall_share_m=share)).update(pts, NODES)
+        assert len(layer.rooms) == 2
+        left, right = sorted(layer.rooms, key=lambda r: r.centroid_xy[0])
+        g = layer.grid
+        row = g.cells_of(np.stack([np.arange(2.0, 6.0, 0.05), np.full(80, 0.8)], 1))  # along y = 0.8, off the door
+        owner = np.array([g.xy_of(ij[None])[0][0] for ij in row])
+        room = layer.labels[row[:, 0], row[:, 1]]
+        ids = [r.room_id for r in layer.rooms]
+        edges[share] = (owner[room == ids.index(left.room_id) + 1].max(),
+                        owner[room == ids.index(right.room_id) + 1].min())
+    assert edges[0.3][0] == pytest.approx(4.05, abs=0.15) and edges[0.3][1] == pytest.approx(4.05, abs=0.15)
+    # a ring of wall cells alone leaves most of the band to no room
+    assert edges[0.0][0] < 3.9 and edges[0.0][1] > 4.2
+
+
 class TestSight:
     """Free space only where a camera can have seen it: nothing is seen through a wall."""
 
