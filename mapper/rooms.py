@@ -9,8 +9,10 @@ where one of the nearest cameras has them in sight, no wall between (:func:`in_s
 wall, and RGB-only depth and boxes stretched along the viewing rays put some behind walls. :func:`segment` splits
 the free space into rooms the usual way: the filled free space's distance transform, one marker per h-maximum (a
 room's middle: a doorway is a saddle well below it), watershed (scikit-image); rooms then take the unseen cells
-inside their walls up to ``grow_m`` away. :class:`RoomTracker` keeps room ids across updates and finds doorways
-(where two rooms' cells touch); :class:`RoomMapper` runs it all on a growing map, puts objects in rooms (by
+inside their walls up to ``grow_m`` away, and the wall cells that face them: the ring next to each room, and in a
+thick wall band (RGB-only depth scatters a wall's points across one) each cell up to ``wall_share_m`` deep whose
+nearest cell outside the band is a room's, so the band splits down its middle. :class:`RoomTracker` keeps room
+ids across updates and finds doorways (where two rooms' cells touch); :class:`RoomMapper` runs it all on a growing map, puts objects in rooms (by
 centroid) and names each room from its objects with the embedded indoor prior (:class:`RoomLabeller`,
 protocol.prior).
 
