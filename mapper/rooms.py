@@ -12,9 +12,9 @@ room's middle: a doorway is a saddle well below it), watershed (scikit-image); r
 inside their walls up to ``grow_m`` away, and the wall cells that face them: the ring next to each room, and in a
 thick wall band (RGB-only depth scatters a wall's points across one) each cell up to ``wall_share_m`` deep whose
 nearest cell outside the band is a room's, so the band splits down its middle. :class:`RoomTracker` keeps room
-ids across updates and finds doorways (where two rooms' cells touch); :class:`RoomMapper` runs it all on a growing map, puts objects in rooms (by
-centroid) and names each room from its objects with the embedded indoor prior (:class:`RoomLabeller`,
-protocol.prior).
+ids across updates and finds doorways (where two rooms' cells touch); :class:`RoomMapper` runs it all on a
+growing map, puts objects in rooms (by centroid) and names each room from its objects with the embedded indoor
+prior (:class:`RoomLabeller`, protocol.prior).
 
 The id rule (RoomTracker.update), written once here and tested:
 
@@ -636,8 +636,8 @@ class RoomTracker:
         near = ndimage.grey_dilation(open_labels, footprint=np.ones((3, 3), bool))
         if p.wall_share_m > 0 and wall.any():
             depth, (ii, jj) = ndimage.distance_transform_edt(wall, return_indices=True)
-            near = np.where(wall & (depth <= p.wall_share_m / c + 1e-6) & (open_labels[ii, jj] > 0), open_labels[ii, jj],
-                            near)
+            side = open_labels[ii, jj]
+            near = np.where(wall & (depth <= p.wall_share_m / c + 1e-6) & (side > 0), side, near)
         labels = np.where(wall, near, open_labels).astype(np.int32)
         seen = grid.free  # observed floor, crossed by a camera, or under an object standing on the floor
         rooms = []
