@@ -160,7 +160,7 @@ def test_a_thick_wall_band_splits_down_its_middle_between_the_rooms() -> None:
         left, right = sorted(layer.rooms, key=lambda r: r.centroid_xy[0])
         g = layer.grid
         row = g.cells_of(np.stack([np.arange(2.0, 6.0, 0.05), np.full(80, 0.8)], 1))  # along y = 0.8, off the door
-        owner = np.array([g.xy_of(ij[None])[0][0] for ij in row])
+        owner = g.xy_of(row)[:, 0]
         room = layer.labels[row[:, 0], row[:, 1]]
         ids = [r.room_id for r in layer.rooms]
         edges[share] = (owner[room == ids.index(left.room_id) + 1].max(),
