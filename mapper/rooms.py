@@ -637,6 +637,7 @@ class RoomTracker:
         if p.wall_share_m > 0 and wall.any():
             depth, (ii, jj) = ndimage.distance_transform_edt(wall, return_indices=True)
             side = open_labels[ii, jj]
+            # + 1e-6: 0.3 m / 0.1 m is 2.9999999999999996 in floats, and a cell 3 deep must count
             near = np.where(wall & (depth <= p.wall_share_m / c + 1e-6) & (side > 0), side, near)
         labels = np.where(wall, near, open_labels).astype(np.int32)
         seen = grid.free  # observed floor, crossed by a camera, or under an object standing on the floor
