@@ -365,6 +365,11 @@ class RoomsConfig(BaseModel):
         description="a wall cell up to this deep in a thick wall band (RGB-only depth scatters walls) joins the room "
         "nearest to it, so the band splits down its middle (0: rooms take only the ring of wall cells next to them)",
     )
+    door_max_m: float = Field(
+        default=2.0, ge=0.0,
+        description="two regions joined by free space at least this wide (wider than any doorway) are one room: the "
+        "distance transform's saddle between them stands at half this (0: h-maxima alone decide)",
+    )
     max_cameras: int = Field(default=20_000, ge=1, description="camera positions kept as known-free space (bound)")
     every_keyframes: int = Field(
         default=5, ge=0,

@@ -8,7 +8,8 @@ and the footprints of objects standing on the floor, minus walls. Observed floor
 where one of the nearest cameras has them in sight, no wall between (:func:`in_sight`): nothing is seen through a
 wall, and RGB-only depth and boxes stretched along the viewing rays put some behind walls. :func:`segment` splits
 the free space into rooms the usual way: the filled free space's distance transform, one marker per h-maximum (a
-room's middle: a doorway is a saddle well below it), watershed (scikit-image); rooms then take the unseen cells
+room's middle: a doorway is a saddle well below it), watershed (scikit-image); two regions that meet where the
+free space is at least ``door_max_m`` wide are one room (no doorway is that wide); rooms then take the unseen cells
 inside their walls up to ``grow_m`` away, and the wall cells that face them: the ring next to each room, and in a
 thick wall band (RGB-only depth scatters a wall's points across one) each cell up to ``wall_share_m`` deep whose
 nearest cell outside the band is a room's, so the band splits down its middle. :class:`RoomTracker` keeps room
@@ -23,7 +24,9 @@ The id rule (RoomTracker.update), written once here and tested:
 - When one new region covers two or more old rooms, it is split back along the old rooms (a watershed from
   their cells) unless the boundary between two of them is **seen open**: at least ``merge_open_m`` long (wider
   than any doorway) and observed floor along at least ``merge_floor_fraction`` of it. Only then do they merge;
-  the merged room keeps the id of the one it overlaps most, the other id is retired.
+  the merged room keeps the id of the one it overlaps most, the other id is retired. (A fresh segmentation joins
+  regions across free space wider than ``door_max_m``; rooms it once split stay split until seen open, so a wall
+  lost from the map, its floor never seen, merges nothing.)
 - When an old room's cells split into two regions (a wall was seen), the larger keeps the id.
 - Any other region gets a fresh id (``room<n>``, n counting up from 1, never reused in one tracker).
 - A room left smaller than ``min_room_m2`` by the split-back (a sliver of an early, coarser segmentation that the
@@ -79,6 +82,7 @@ class RoomParams:
     merge_floor_fraction: float = 0.7  # ... with observed floor along this much of it
     assign_max_m: float = 0.6  # an object outside every room joins the nearest one within this distance
     wall_share_m: float = 0.3  # a wall cell up to this deep in a wall band joins the room nearest to it (0: a ring)
+    door_max_m: float = 2.0  # two regions joined by free space this wide (no doorway is) are one room (0: never)
 
 
 @dataclass(frozen=True)
@@ -365,8 +369,33 @@ def segment(grid: FloorGrid, params: RoomParams = RoomParams()) -> np.ndarray:
         markers = np.zeros(grid.shape, np.int32)
         markers[np.unravel_index(int(np.argmax(dt)), dt.shape)] = 1
     labels = watershed(-dt, markers, mask=space).astype(np.int32)
+    if params.door_max_m > 0:
+        labels = _join_wide_necks(labels, dt, 0.5 * params.door_max_m)
     labels = _drop_small(labels, dt, space, params.min_room_m2 / grid.cell_m ** 2)
     return _grow(labels, grid, space, params)
+
+
+def _join_wide_necks(labels: np.ndarray, dt: np.ndarray, half_width_m: float) -> np.ndarray:
+    """``labels`` with each two regions that touch (4-neighbours) where the distance transform ``dt`` (metres to
+    the nearest cell outside the free space) is at least ``half_width_m`` on both sides made one: an opening twice
+    that wide is no doorway. h-maxima split wherever a room's middle stands ``marker_h_m`` above the saddle,
+    however wide the neck: in one large room whose floor RGB-only saw in patches, a neck 2.5 m wide splits it."""
+    n = int(labels.max())
+    if n < 2:
+        return labels
+    groups = {k: k for k in range(1, n + 1)}
+    for axis in (0, 1):
+        a = labels[:-1, :] if axis == 0 else labels[:, :-1]
+        b = labels[1:, :] if axis == 0 else labels[:, 1:]
+        da = dt[:-1, :] if axis == 0 else dt[:, :-1]
+        db = dt[1:, :] if axis == 0 else dt[:, 1:]
+        m = (a > 0) & (b > 0) & (a != b) & (np.minimum(da, db) >= half_width_m)
+        for x, y in set(zip(a[m].tolist(), b[m].tolist(), strict=True)):
+            rx, ry = _root(groups, x), _root(groups, y)
+            if rx != ry:
+                groups[max(rx, ry)] = min(rx, ry)
+    lut = np.array([0] + [_root(groups, k) for k in range(1, n + 1)], np.int32)
+    return _compact(lut[labels])
 
 
 def _grow(labels: np.ndarray, grid: FloorGrid, space: np.ndarray, params: RoomParams) -> np.ndarray:

@@ -170,6 +170,21 @@ def test_a_thick_wall_band_splits_down_its_middle_between_the_rooms() -> None:
     assert edges[0.0][0] < 3.9 and edges[0.0][1] > 4.2
 
 
+def test_a_neck_wider_than_any_doorway_does_not_split_a_room() -> None:
+    """One 8 x 5 m room whose floor was seen in two patches joined by 2.6 m of floor (RGB-only sees a large room's
+    floor in patches): h-maxima alone split it at the neck; no doorway is that wide, so it stays one room."""
+    pts = np.concatenate([floor_points(0.0, 0.0, 3.5, 5.0), floor_points(4.5, 0.0, 8.0, 5.0),
+                          floor_points(3.5, 1.2, 4.5, 3.8), wall_points((0.0, 0.0), (8.0, 0.0)),
+                          wall_points((0.0, 5.0), (8.0, 5.0)), wall_points((0.0, 0.0), (0.0, 5.0)),
+                          wall_points((8.0, 0.0), (8.0, 5.0))])
+    assert len(RoomMapper(RoomParams(door_max_m=0.0)).update(pts, NODES).rooms) == 2
+    layer = RoomMapper().update(pts, NODES)
+    assert len(layer.rooms) == 1 and layer.doorways == []
+    assert layer.rooms[0].area_m2 == pytest.approx(40.0, rel=0.12)
+    # a doorway (0.9 m) between two rooms stays a split
+    assert len(RoomMapper().update(two_rooms(), NODES).rooms) == 2
+
+
 class TestSight:
     """Free space only where a camera can have seen it: nothing is seen through a wall."""
 
