@@ -365,6 +365,13 @@ class RoomsConfig(BaseModel):
         description="a wall cell up to this deep in a thick wall band (RGB-only depth scatters walls) joins the room "
         "nearest to it, so the band splits down its middle (0: rooms take only the ring of wall cells next to them)",
     )
+    wall_bridge_m: float = Field(
+        default=2.5, ge=0.0,
+        description="a gap up to this long in a straight wall line, between two stretches of wall, that no camera "
+        "passed through is wall the map did not see (RGB-only misses parts of walls); a doorway the robot has not "
+        "used yet stays closed until it does (0: off)",
+    )
+    wall_run_m: float = Field(default=0.5, gt=0.0, description="... between two stretches at least this long")
     door_max_m: float = Field(
         default=2.0, ge=0.0,
         description="two regions joined by free space at least this wide (wider than any doorway) are one room: the "

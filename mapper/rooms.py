@@ -12,7 +12,10 @@ room's middle: a doorway is a saddle well below it), watershed (scikit-image); t
 free space is at least ``door_max_m`` wide are one room (no doorway is that wide); rooms then take the unseen cells
 inside their walls up to ``grow_m`` away, and the wall cells that face them: the ring next to each room, and in a
 thick wall band (RGB-only depth scatters a wall's points across one) each cell up to ``wall_share_m`` deep whose
-nearest cell outside the band is a room's, so the band splits down its middle. :class:`RoomTracker` keeps room
+nearest cell outside the band is a room's, so the band splits down its middle. Walls are straight: a gap of up to
+``wall_bridge_m`` between two stretches of one wall line (at the walls' dominant angle) that no camera passed
+through is taken for wall the map did not see (:func:`bridge_walls`; a doorway the robot has not yet used closes
+until it does; a map without a moving camera bridges nothing). :class:`RoomTracker` keeps room
 ids across updates and finds doorways (where two rooms' cells touch); :class:`RoomMapper` runs it all on a
 growing map, puts objects in rooms (by centroid) and names each room from its objects with the embedded indoor
 prior (:class:`RoomLabeller`, protocol.prior).
@@ -82,6 +85,8 @@ class RoomParams:
     merge_floor_fraction: float = 0.7  # ... with observed floor along this much of it
     assign_max_m: float = 0.6  # an object outside every room joins the nearest one within this distance
     wall_share_m: float = 0.3  # a wall cell up to this deep in a wall band joins the room nearest to it (0: a ring)
+    wall_bridge_m: float = 2.5  # a gap up to this long in a straight wall that no camera passed is wall (0: off)
+    wall_run_m: float = 0.5  # ... between two stretches of wall at least this long
     door_max_m: float = 2.0  # two regions joined by free space this wide (no doorway is) are one room (0: never)
 
 
@@ -196,8 +201,65 @@ def build_grid(points_world: np.ndarray, cameras_world: np.ndarray, footprints: 
         ij = np.floor(cams[:, :2] / c).astype(np.int64) - lo
         visited[ij[:, 0], ij[:, 1]] = True
         visited = _dilation(visited, _disk(r))
+    if p.wall_bridge_m > 0 and len(cams):
+        # Gaps in straight walls that no camera passed through are wall the map did not see. Only on a map cameras
+        # moved through: fixed cameras high on walls pass through nothing and would close every doorway. Sight
+        # (above) keeps the gaps: a room seen through a doorway the robot has not used is still seen, as a room.
+        wall |= bridge_walls(wall, visited, p.wall_bridge_m / c, p.wall_run_m / c)
     free = (floor | visited | footb) & ~wall
     return FloorGrid(origin, c, fz, wall, floor, free)
+
+
+def dominant_angle(ij: np.ndarray, step_deg: float = 1.0) -> float:
+    """The rotation (radians, [0, pi/2)) that lines the cells ``ij`` (N, 2) up best with the grid's axes: the
+    angle whose rotated cells pile up into the fewest rows and columns (sum of squared row and column counts)."""
+    best, best_score = 0.0, -1.0
+    x, y = ij[:, 0].astype(np.float64), ij[:, 1].astype(np.float64)
+    for t in np.deg2rad(np.arange(0.0, 90.0, step_deg)):
+        ct, st = math.cos(t), math.sin(t)
+        score = 0.0
+        for v in (ct * x + st * y, -st * x + ct * y):
+            k = np.round(v).astype(np.int64)
+            score += float(np.sum(np.bincount(k - k.min()).astype(np.float64) ** 2))
+        if score > best_score:
+            best, best_score = float(t), score
+    return best
+
+
+def bridge_walls(wall: np.ndarray, visited: np.ndarray, gap_max: float, run_min: float) -> np.ndarray:
+    """Cells (bool) that close the gaps of straight walls: along each row and column of the wall cells rotated to
+    their dominant angle, a gap of at most ``gap_max`` cells between two runs of at least ``run_min`` cells that no
+    ``visited`` cell lies on (no camera passed through: not a doorway it used)."""
+    out = np.zeros_like(wall)
+    ij = np.argwhere(wall)
+    if len(ij) < 2:
+        return out
+    t = dominant_angle(ij)
+    ct, st = math.cos(t), math.sin(t)
+    uv = np.stack([ct * ij[:, 0] + st * ij[:, 1], -st * ij[:, 0] + ct * ij[:, 1]], 1)
+    for axis in (0, 1):
+        along, row = uv[:, axis], np.round(uv[:, 1 - axis]).astype(np.int64)
+        order = np.lexsort((along, row))
+        a, r = along[order], row[order]
+        brk = np.concatenate([[True], (r[1:] != r[:-1]) | (a[1:] - a[:-1] > 2.5)])
+        run = np.cumsum(brk) - 1
+        starts = np.flatnonzero(brk)
+        ends = np.concatenate([starts[1:], [len(a)]]) - 1
+        length = a[ends] - a[starts] + 1.0
+        for k in np.flatnonzero(brk[1:] & (r[1:] == r[:-1])):
+            g = a[k + 1] - a[k]
+            if g > gap_max + 1.0 or length[run[k]] < run_min or length[run[k + 1]] < run_min:
+                continue
+            s = np.arange(a[k], a[k + 1], 0.5)
+            other = np.full_like(s, float(r[k]))
+            uu, vv = (s, other) if axis == 0 else (other, s)
+            ci = np.round(ct * uu - st * vv).astype(np.int64)
+            cj = np.round(st * uu + ct * vv).astype(np.int64)
+            ok = (ci >= 0) & (ci < wall.shape[0]) & (cj >= 0) & (cj < wall.shape[1])
+            ci, cj = ci[ok], cj[ok]
+            if not visited[ci, cj].any():
+                out[ci, cj] = True
+    return out
 
 
 def _sight_loops(wall: np.ndarray, cells: np.ndarray, cams: np.ndarray, order: np.ndarray, skip: float

@@ -5,7 +5,8 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from mapper.rooms import RoomMapper, RoomParams, build_grid, estimate_floor_z, in_sight, label_room
+from mapper.rooms import (RoomMapper, RoomParams, bridge_walls, build_grid, dominant_angle, estimate_floor_z, in_sight,
+                          label_room)
 from protocol.prior import load_prior
 from tests.support.floorplans import NODES, floor_points, node, two_rooms, wall_points
 
@@ -185,6 +186,54 @@ def test_a_neck_wider_than_any_doorway_does_not_split_a_room() -> None:
     assert len(RoomMapper().update(two_rooms(), NODES).rooms) == 2
 
 
+class TestBridges:
+    """A straight wall the map saw in two stretches is one wall, unless a camera passed through the gap."""
+
+    @staticmethod
+    def plan() -> np.ndarray:
+        # the wall between the rooms seen only for y < 0.8 and y > 2.6: a 1.8 m gap, floor seen all through it
+        return np.concatenate([two_rooms(wall=False), wall_points((4.05, 0.0), (4.05, 0.8)),
+                               wall_points((4.05, 2.6), (4.05, 4.0))])
+
+    @staticmethod
+    def walked(params: RoomParams, y: float) -> RoomMapper:
+        """A mapper whose camera walked along ``y`` from x = 1 to 7 at 1.2 m (a robot's path), or stood on a wall."""
+        rm = RoomMapper(params)
+        for x in np.arange(1.0, 7.01, 0.25):
+            rm.note_camera(np.array([x, y, 1.2]))
+        return rm
+
+    def test_a_gap_no_camera_passed_is_wall(self) -> None:
+        layer = self.walked(RoomParams(), 3.3).update(self.plan(), NODES)  # through the wall's seen stretch
+        assert len(layer.rooms) == 2 and layer.doorways == []
+        open_ = self.walked(RoomParams(wall_bridge_m=0.0), 3.3).update(self.plan(), NODES)
+        assert len(open_.doorways) == 1 and open_.doorways[0].width_m >= 1.5
+        # cameras fixed high on a wall pass through nothing: no bridge, the gap stays the opening it looks like
+        fixed = RoomMapper()
+        fixed.note_camera(np.array([0.2, 0.2, 2.4]))
+        assert len(fixed.update(self.plan(), NODES).doorways) == 1
+
+    def test_a_gap_a_camera_passed_through_stays_open(self) -> None:
+        layer = self.walked(RoomParams(), 1.7).update(self.plan(), NODES)
+        assert len(layer.doorways) == 1 and layer.doorways[0].width_m >= 1.5
+
+    def test_bridges_follow_the_walls_dominant_angle(self) -> None:
+        # a 6 m wall at 30 degrees to the grid with a 1.5 m gap in its middle, as grid cells
+        t = np.deg2rad(30.0)
+        s = np.concatenate([np.arange(0.0, 22.5, 0.5), np.arange(37.5, 60.0, 0.5)])
+        ij = np.round(np.stack([10 + s * np.cos(t), 10 + s * np.sin(t)], 1)).astype(int)
+        wall = np.zeros((70, 50), bool)
+        wall[ij[:, 0], ij[:, 1]] = True
+        assert np.rad2deg(dominant_angle(np.argwhere(wall))) == pytest.approx(30.0, abs=1.5)
+        bridge = bridge_walls(wall, np.zeros_like(wall), gap_max=25.0, run_min=5.0)
+        mid = np.round([10 + 30 * np.cos(t), 10 + 30 * np.sin(t)]).astype(int)
+        assert bridge[mid[0] - 1:mid[0] + 2, mid[1] - 1:mid[1] + 2].any()
+        far = np.argwhere(bridge) - [10, 10]
+        assert np.abs(far[:, 0] * np.sin(t) - far[:, 1] * np.cos(t)).max() <= 1.5  # on the wall's line only
+        shorter = bridge_walls(wall, np.zeros_like(wall), gap_max=10.0, run_min=5.0)  # the gap is longer: open
+        assert not shorter[mid[0] - 3:mid[0] + 4, mid[1] - 3:mid[1] + 4].any()
+
+
 class TestSight:
     """Free space only where a camera can have seen it: nothing is seen through a wall."""
 
@@ -201,7 +250,8 @@ class TestSight:
         pts, nodes = self.beyond_the_wall()
         reach = {}
         for sight in (16, 0):
-            rm = RoomMapper(RoomParams(sight_cameras=sight))
+            # (bridging off with the check: it would close the gap the stretched box cut in the wall)
+            rm = RoomMapper(RoomParams(sight_cameras=sight, wall_bridge_m=2.5 if sight else 0.0))
             for y in (1.0, 2.0, 3.0):
                 rm.note_camera(np.array([2.0, y, 1.2]))
             layer = rm.update(pts, nodes)
