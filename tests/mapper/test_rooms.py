@@ -5,8 +5,16 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from mapper.rooms import (RoomMapper, RoomParams, bridge_walls, build_grid, dominant_angle, estimate_floor_z, in_sight,
-                          label_room)
+from mapper.rooms import (
+    RoomMapper,
+    RoomParams,
+    bridge_walls,
+    build_grid,
+    dominant_angle,
+    estimate_floor_z,
+    in_sight,
+    label_room,
+)
 from protocol.prior import load_prior
 from tests.support.floorplans import NODES, floor_points, node, two_rooms, wall_points
 
