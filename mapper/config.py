@@ -371,7 +371,9 @@ class RoomsConfig(BaseModel):
         "passed through is wall the map did not see (RGB-only misses parts of walls); a doorway the robot has not "
         "used yet stays closed until it does (0: off)",
     )
-    wall_run_m: float = Field(default=0.5, gt=0.0, description="... between two stretches at least this long")
+    wall_run_m: float = Field(
+        default=1.0, gt=0.0, description="... between two stretches at least this long (shorter ones: furniture)"
+    )
     door_max_m: float = Field(
         default=2.0, ge=0.0,
         description="two regions joined by free space at least this wide (wider than any doorway) are one room: the "

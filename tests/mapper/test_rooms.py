@@ -199,30 +199,33 @@ class TestBridges:
 
     @staticmethod
     def plan() -> np.ndarray:
-        # the wall between the rooms seen only for y < 0.8 and y > 2.6: a 1.8 m gap, floor seen all through it
-        return np.concatenate([two_rooms(wall=False), wall_points((4.05, 0.0), (4.05, 0.8)),
-                               wall_points((4.05, 2.6), (4.05, 4.0))])
+        # the wall between the rooms seen only for y < 1.2 and y > 2.8: a 1.6 m gap, floor seen all through it
+        return np.concatenate([two_rooms(wall=False), wall_points((4.05, 0.0), (4.05, 1.2)),
+                               wall_points((4.05, 2.8), (4.05, 4.0))])
 
     @staticmethod
     def walked(params: RoomParams, y: float) -> RoomMapper:
-        """A mapper whose camera walked along ``y`` from x = 1 to 7 at 1.2 m (a robot's path), or stood on a wall."""
+        """A mapper whose camera walked along ``y`` from x = 1 to 7, 1.2 m above the floor (a robot's path)."""
         rm = RoomMapper(params)
         for x in np.arange(1.0, 7.01, 0.25):
             rm.note_camera(np.array([x, y, 1.2]))
         return rm
 
     def test_a_gap_no_camera_passed_is_wall(self) -> None:
-        layer = self.walked(RoomParams(), 3.3).update(self.plan(), NODES)  # through the wall's seen stretch
+        layer = self.walked(RoomParams(), 3.4).update(self.plan(), NODES)  # through the wall's seen stretch
         assert len(layer.rooms) == 2 and layer.doorways == []
-        open_ = self.walked(RoomParams(wall_bridge_m=0.0), 3.3).update(self.plan(), NODES)
+        open_ = self.walked(RoomParams(wall_bridge_m=0.0), 3.4).update(self.plan(), NODES)
         assert len(open_.doorways) == 1 and open_.doorways[0].width_m >= 1.5
+        # stretches of wall shorter than wall_run_m (tall furniture) bridge nothing (these are 1.2 m)
+        short = self.walked(RoomParams(wall_run_m=1.5), 3.4).update(self.plan(), NODES)
+        assert len(short.doorways) == 1
         # cameras fixed high on a wall pass through nothing: no bridge, the gap stays the opening it looks like
         fixed = RoomMapper()
         fixed.note_camera(np.array([0.2, 0.2, 2.4]))
         assert len(fixed.update(self.plan(), NODES).doorways) == 1
 
     def test_a_gap_a_camera_passed_through_stays_open(self) -> None:
-        layer = self.walked(RoomParams(), 1.7).update(self.plan(), NODES)
+        layer = self.walked(RoomParams(), 2.0).update(self.plan(), NODES)
         assert len(layer.doorways) == 1 and layer.doorways[0].width_m >= 1.5
 
     def test_bridges_follow_the_walls_dominant_angle(self) -> None:
