@@ -375,7 +375,7 @@ class RoomsConfig(BaseModel):
         default=1.0, gt=0.0, description="... between two stretches at least this long (shorter ones: furniture)"
     )
     door_max_m: float = Field(
-        default=2.0, ge=0.0,
+        default=2.4, ge=0.0,
         description="two regions joined by free space at least this wide (wider than any doorway) are one room: the "
         "distance transform's saddle between them stands at half this (0: h-maxima alone decide)",
     )

@@ -87,7 +87,7 @@ class RoomParams:
     wall_share_m: float = 0.3  # a wall cell up to this deep in a wall band joins the room nearest to it (0: a ring)
     wall_bridge_m: float = 2.5  # a gap up to this long in a straight wall that no camera passed is wall (0: off)
     wall_run_m: float = 1.0  # ... between two stretches of wall at least this long
-    door_max_m: float = 2.0  # two regions joined by free space this wide (no doorway is) are one room (0: never)
+    door_max_m: float = 2.4  # two regions joined by free space this wide (no doorway is) are one room (0: never)
 
 
 @dataclass(frozen=True)
