@@ -466,24 +466,37 @@ class MapperCore:
 
     def _single_view(self, view: View) -> UpdateResult | None:
         """Objects of a posed view with no stereo partner, placed from the floor plane (coarse, low confidence;
-        the view stays deferred for multi-view stereo). Segmentation runs first: placement needs the masks."""
+        the view stays deferred for multi-view stereo). Perception runs first: placement needs the masks, and the
+        people among them (``_not_people``) are occluders, never supports (an object behind a passer-by is not set
+        on the passer-by)."""
         assert view.T_world_cam is not None
         t = time.perf_counter()
         masks = self.segmenter.segment(view, None)
         if not masks:
             return UpdateResult()
+        dets = self.embedder.embed(view, masks)
+        times = {"perception": time.perf_counter() - t}
+        t = time.perf_counter()
+        things = self._not_people(dets, count=False)
+        kept = {id(d) for d in things}
+        shown = [d.mask for d in things]
+        people = [d.mask for d in dets if id(d) not in kept]
         K = intrinsics_of(view).K()
-        shown = [m.mask for m in masks]
         sv = self.config.single_view
-        boxes = place_objects(shown, K, view.T_world_cam, sv.params(), view.image if sv.floor_colour_check else None)
+        boxes = place_objects(shown, K, view.T_world_cam, sv.params(), view.image if sv.floor_colour_check else None,
+                              occluders=people)
         floor_masks = [m for m, b in zip(shown, boxes, strict=True) if b is not None and b.support < 0]
         self._count("keyframes_single_view")
         self._count("single_view_masks", len(masks))
         self._count("single_view_placed", sum(b is not None for b in boxes))
-        depth, conf = layout_depth(shown, boxes, K, view.T_world_cam, sv.confidence)
+        if shown:
+            depth, conf = layout_depth(shown, boxes, K, view.T_world_cam, sv.confidence)
+        else:  # only people: nothing to place, but what they hide is still seen as not floor (SeenView)
+            depth = np.zeros(masks[0].mask.shape, np.float32)
+            conf = np.zeros_like(depth)
         vg = ViewGeometry(points_world=depth_to_world(depth, K, view.T_world_cam), depth_m=depth, confidence=conf)
-        return self._fuse(view, vg, view.T_world_cam, {"geometry": time.perf_counter() - t}, masks,
-                          floor_masks=floor_masks)
+        times["geometry"] = time.perf_counter() - t
+        return self._fuse(view, vg, view.T_world_cam, times, floor_masks=floor_masks, dets=dets)
 
     def _fuse(self, view: View, vg: ViewGeometry, T_world_cam: np.ndarray, times: dict[str, float],
               masks: list[Mask2D] | None = None, floor_masks: list[np.ndarray] | None = None,
@@ -561,15 +574,17 @@ class MapperCore:
         self.last = KeyframeResult(view, T_world_cam, vg, len(dets), lift, times)
         return res
 
-    def _not_people(self, dets: list[Detection]) -> list[Detection]:
+    def _not_people(self, dets: list[Detection], count: bool = True) -> list[Detection]:
         """``dets`` less the people (``fusion.people_labels``, unless ``fusion.fuse_people``): a person is not a
-        furniture node, and one walking through would leave a trail of them."""
+        furniture node, and one walking through would leave a trail of them. ``count``: add them to
+        ``detections_people``."""
         fc = self.config.fusion
         if fc.fuse_people or not fc.people_labels:
             return dets
         people = {p.lower() for p in fc.people_labels}
         kept = [d for d in dets if d.label.lower() not in people]
-        self._count("detections_people", len(dets) - len(kept))
+        if count:
+            self._count("detections_people", len(dets) - len(kept))
         return kept
 
     def _join_split_by_people(self, all_dets: list[Detection], dets: list[Detection]) -> list[Detection]:

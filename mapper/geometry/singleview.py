@@ -275,13 +275,23 @@ def lowest_pixels(mask: np.ndarray, border_px: int = 1) -> tuple[NDArray[np.int6
     return cols[keep], low[keep]
 
 
+_OCCLUDED = -3
+"""``owner`` of a pixel on an occluder (a passer-by): neither background (floor) nor a support."""
+
+
 def place_objects(masks: Sequence[np.ndarray], K: F64, T_world_cam: F64,
                   params: SingleViewParams = SingleViewParams(), image: np.ndarray | None = None,
+                  occluders: Sequence[np.ndarray] = (),
                   ) -> list[PlacedBox | None]:
     """One upright box per mask (None where it cannot be placed), masks (H, W) bool at the resolution of
     ``K``; see the module docstring. With the ``image`` (H, W, 3 RGB), floor contacts must also look like
     the floor under the other objects' feet: an object whose feet seem to stand on a wall (the TV above a
-    stand, seen against the wall) is not pushed through it."""
+    stand, seen against the wall) is not pushed through it.
+
+    ``occluders`` (H, W) bool: what stands in front of the scene and holds nothing up (people). A column whose
+    lowest pixel has an occluder just below says nothing (the object goes on behind it): it is neither a floor
+    contact nor a support, so an object behind a passer-by is not set on the passer-by's box; occluder pixels may
+    hide the object (they do not count against its silhouette)."""
     p = params
     n = len(masks)
     if n == 0:
@@ -290,6 +300,10 @@ def place_objects(masks: Sequence[np.ndarray], K: F64, T_world_cam: F64,
     owner = np.full((h, w), -1, np.int32)
     for i, m in enumerate(masks):
         owner[m & (owner < 0)] = i
+    for m in occluders:
+        if m.shape != (h, w):
+            raise ValueError(f"occluder mask {m.shape} is not the masks' shape {(h, w)}")
+        owner[m & (owner == -1)] = _OCCLUDED
     R, t = T_world_cam[:3, :3], T_world_cam[:3, 3]
     boxes: list[PlacedBox | None] = [None] * n
     # Per mask: contact columns and what lies just below each.
@@ -303,7 +317,7 @@ def place_objects(masks: Sequence[np.ndarray], K: F64, T_world_cam: F64,
         for k in range(1, p.below_px + 1):
             rows = np.minimum(low + k, h - 1)
             o = owner[rows, cols]
-            below = np.where((below == -2) & (o >= 0) & ~m[rows, cols], o, below)
+            below = np.where((below == -2) & ((o >= 0) | (o == _OCCLUDED)) & ~m[rows, cols], o, below)
         below = np.where(below == -2, -1, below)
         contacts.append((cols.astype(float), low.astype(float), below))
     floor_cols = [None if c is None else _floor_columns(*c, p) for c in contacts]
@@ -324,7 +338,8 @@ def place_objects(masks: Sequence[np.ndarray], K: F64, T_world_cam: F64,
                 pts, support = _support_points(us, vs, below, boxes, K, R, t, p)
             if pts is None or len(pts) < p.min_contact_columns:
                 continue
-            box = box_from_contacts(pts, masks[i], (owner >= 0) & (owner != i), K, T_world_cam, support, p)
+            others = ((owner >= 0) & (owner != i)) | (owner == _OCCLUDED)
+            box = box_from_contacts(pts, masks[i], others, K, T_world_cam, support, p)
             if box is None:
                 continue
             boxes[i] = box
@@ -540,7 +555,7 @@ def _other_floor(geo: tuple[F64, F64] | None, seen: tuple[F64, F64] | None, mask
     lab = cv2.cvtColor(np.ascontiguousarray(image), cv2.COLOR_RGB2LAB).astype(np.float64)
     under = lab[np.minimum(geo[1].astype(int) + 3, h - 1), u]
     rows = np.maximum(np.argmax(mask[:, u], axis=0) - 3, 0)  # just above each column's top pixel
-    bg = owner[rows, u] < 0
+    bg = owner[rows, u] == -1
     if int(bg.sum()) < p.min_contact_columns:
         return seen
     mu, sd = _robust_model(under)

@@ -470,3 +470,28 @@ def test_an_object_on_another_rooms_floor_is_placed_from_it() -> None:
     assert _other_floor(cols, empty, mask, owner, flat, SingleViewParams()) == empty
     flat[:150] = (90, 140, 90)
     assert _other_floor(cols, empty, mask, owner, flat, SingleViewParams()) == cols
+
+
+def test_an_object_behind_a_person_is_not_set_on_the_person() -> None:
+    """From the camera high in the corner a passer-by hides a shelf's whole bottom edge: taken as one more mask,
+    the person is a support and the shelf lands on the person's head, 1.3 m from where it stands; taken as an
+    occluder, the person says nothing about the shelf, which is left to multi-view stereo."""
+    person = silhouette(box(2.2, 1.7, 0.0, 0.45, 0.3, 1.7))
+    shelf = box(3.0, 2.3, 0.0, 0.4, 0.3, 2.0)
+    shelf_mask = silhouette(shelf) & ~person
+    on_person, _ = place_objects([shelf_mask, person], K, CAM)
+    assert on_person is not None and on_person.support == 1
+    assert np.linalg.norm(on_person.center - shelf.center) > 1.0
+    assert place_objects([shelf_mask], K, CAM, occluders=[person]) == [None]
+
+
+def test_a_person_hiding_part_of_an_objects_floor_edge_leaves_it_placed_from_the_rest() -> None:
+    truth = box(3.0, 2.2, 0.0, 1.2, 0.5, 0.7)
+    person = silhouette(box(2.4, 1.7, 0.0, 0.45, 0.3, 1.7))
+    mask = silhouette(truth) & ~person
+    assert mask.sum() < silhouette(truth).sum()  # the person does hide part of it
+    [placed] = place_objects([mask], K, CAM, occluders=[person])
+    assert placed is not None and placed.support == -1
+    assert np.linalg.norm(placed.center - truth.center) < 0.15
+    with pytest.raises(ValueError, match="occluder"):
+        place_objects([mask], K, CAM, occluders=[person[:-1]])
