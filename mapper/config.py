@@ -285,6 +285,12 @@ class SingleViewConfig(BaseModel):
         "camera now sees floor in place of is removed (taken away)",
     )
 
+    changed_only: bool = Field(
+        default=True,
+        description="a calibrated camera that has not moved places from one view only the detections that touch "
+        "cells of its view that changed since its earlier keyframes, the cells people cover left out "
+        "(``mapper.changemask``): a passer-by made it place every object of the view again, cut by the person",
+    )
     background_check: bool = Field(
         default=True,
         description="a placement whose surface lies, along its mask's rays, behind nearly all the confident depth "

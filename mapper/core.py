@@ -16,7 +16,7 @@ import dataclasses
 import logging
 import threading
 import time
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from typing import Any, cast
 
@@ -24,6 +24,7 @@ import cv2
 import numpy as np
 
 from mapper.association import KeyframeView
+from mapper.changemask import ChangeMask, touches
 from mapper.config import MapperCoreConfig
 from mapper.consistency import downsample, verify_depth
 from mapper.fusion import (
@@ -150,6 +151,9 @@ class MapperCore:
         # Calibrated fixed cameras whose last keyframe saw a node's place empty: source -> that keyframe's stamp.
         # Their next frame absence_confirm_s later is a keyframe too (they keyframe only on image change).
         self._confirm: dict[str, int] = {}
+        # Each calibrated camera's view with people left out: what changed since (single_view.changed_only).
+        kc = cfg.keyframes
+        self._changes = ChangeMask(kc.change_threshold, kc.static_max_m, kc.static_max_deg)
 
     def views_to_keep(self) -> list[View]:
         """Every view a later window or retry may still use: the stored keyframes and recent frames, and the
@@ -486,6 +490,14 @@ class MapperCore:
         boxes = place_objects(shown, K, view.T_world_cam, sv.params(), view.image if sv.floor_colour_check else None,
                               occluders=people)
         floor_masks = [m for m, b in zip(shown, boxes, strict=True) if b is not None and b.support < 0]
+        changed = self._learn_changes(view, people)
+        skip: set[int] = set()
+        if changed is not None and sv.changed_only:
+            # What did not change this camera placed before from this very pose; a passer-by changes nothing.
+            keep = [touches(d.mask, changed) for d in things]
+            self._count("single_view_unchanged", keep.count(False))
+            boxes = [b if k else None for b, k in zip(boxes, keep, strict=True)]
+            skip = {id(d) for d, k in zip(things, keep, strict=True) if not k}
         self._count("keyframes_single_view")
         self._count("single_view_masks", len(masks))
         self._count("single_view_placed", sum(b is not None for b in boxes))
@@ -496,14 +508,16 @@ class MapperCore:
             conf = np.zeros_like(depth)
         vg = ViewGeometry(points_world=depth_to_world(depth, K, view.T_world_cam), depth_m=depth, confidence=conf)
         times["geometry"] = time.perf_counter() - t
-        return self._fuse(view, vg, view.T_world_cam, times, floor_masks=floor_masks, dets=dets)
+        return self._fuse(view, vg, view.T_world_cam, times, floor_masks=floor_masks, dets=dets, skip=skip)
 
     def _fuse(self, view: View, vg: ViewGeometry, T_world_cam: np.ndarray, times: dict[str, float],
               masks: list[Mask2D] | None = None, floor_masks: list[np.ndarray] | None = None,
-              dets: list[Detection] | None = None, kv: KeyframeView | None = None) -> UpdateResult:
+              dets: list[Detection] | None = None, kv: KeyframeView | None = None,
+              skip: set[int] | None = None) -> UpdateResult:
         """2D perception (unless ``dets`` or ``masks`` are given), lifting and fusion of one keyframe's geometry.
         ``floor_masks`` (the masks it placed on the floor) marks a single-view keyframe; ``kv`` (a measured
-        keyframe's camera and confident depth) lets fusion match detections to nodes in the image."""
+        keyframe's camera and confident depth) lets fusion match detections to nodes in the image; ``skip``
+        (``id()`` of detections) are seen but not fused (a fixed camera's unchanged objects)."""
         single_view = floor_masks is not None
         outside = outside_fraction(vg.points_world, vg.confidence, vg.depth_m, self.config.fusion)
         if outside > self.config.fusion.max_outside_fraction:
@@ -521,7 +535,13 @@ class MapperCore:
             times["perception"] = time.perf_counter() - t
         t = time.perf_counter()
         all_dets, dets = dets, self._not_people(dets)
+        things = {id(d) for d in dets}
+        people = [d.mask for d in all_dets if id(d) not in things]
+        if not single_view:  # (a single-view keyframe learnt it before placing)
+            self._learn_changes(view, people)
         dets = self._join_split_by_people(all_dets, dets)
+        if skip:
+            dets = [d for d in dets if id(d) not in skip]
         focal = intrinsics_of(view).K()[0, 0] * vg.depth_m.shape[1] / view.image.shape[1]
         objs, lift = lift_detections(dets, vg.points_world, vg.confidence, vg.depth_m, self.config.fusion, focal)
         self._count("detections", len(dets))
@@ -567,12 +587,20 @@ class MapperCore:
         self._count("nodes_created", res.created)
         self._count("nodes_merged", res.merged_duplicates)
         self._count("nodes_pruned", res.pruned)
-        self._add_points(view, vg)
+        self._add_points(view, vg, people)
         if self.rooms is not None:
             self.rooms.note_camera(T_world_cam[:3, 3])
         times["fusion"] = time.perf_counter() - t
         self.last = KeyframeResult(view, T_world_cam, vg, len(dets), lift, times)
         return res
+
+    def _learn_changes(self, view: View, people: list[np.ndarray]) -> np.ndarray | None:
+        """A calibrated camera's changed cells since its earlier keyframes (``mapper.changemask``), ``people``
+        (their masks) left out, and the keyframe learnt as its background; None for other views, and when
+        everything is new."""
+        if not view.pose_trusted or view.T_world_cam is None:
+            return None
+        return self._changes.update(view.source_id, view.T_world_cam, view.stamp_ns, view.image, people)
 
     def _not_people(self, dets: list[Detection], count: bool = True) -> list[Detection]:
         """``dets`` less the people (``fusion.people_labels``, unless ``fusion.fuse_people``): a person is not a
@@ -684,10 +712,14 @@ class MapperCore:
                                       float(b.yaw_rad), float(top)))
         return tops
 
-    def _add_points(self, view: View, vg: ViewGeometry) -> None:
+    def _add_points(self, view: View, vg: ViewGeometry, people: Sequence[np.ndarray] = ()) -> None:
+        """The keyframe's confident depth into the point map, less the pixels of ``people`` (their masks): a
+        passer-by is no obstacle to plan around once gone, nor a wall for the room layer."""
         pm = self.config.point_map
         d = vg.depth_m
         ok = np.isfinite(d) & (d > 0) & (d <= pm.max_depth_m) & (vg.confidence >= pm.min_confidence)
+        for m in people:
+            ok &= ~resize_mask(m, *d.shape)
         if not ok.any():
             return
         h, w = d.shape

@@ -118,3 +118,53 @@ def test_a_retried_old_view_does_not_unflag_a_bumped_camera(scene) -> None:  # t
     core.ingest(_render(scene, look_at([1.4, 0.25, 2.3], target), "cam1", 0), force_keyframe=True)
     assert core.last is not None and core.last.view.source_id == "cam0"  # the old keyframe was retried
     assert "camera_moved_deg.cam0" in core.counters
+
+
+def _with_person(scene, T: np.ndarray, source: str, seq: int, xy: np.ndarray) -> View:  # type: ignore[no-untyped-def]
+    from sim.people import PERSON_ID_BASE, People, Walk
+
+    people = People([Walk(PERSON_ID_BASE, np.array([0.0]), np.asarray([xy], float))])
+    intr = Intrinsics.from_fov(W, H, 90.0)
+    out = Renderer(scene).render(intr, T, overlay=people.layer(0.0))
+    oracle = OracleData(depth_m=out.depth_m.astype(np.float32), T_world_cam_true=T,
+                        instance_id=out.instance_id.astype(np.int32), labels={**scene.labels(), **people.labels()})
+    return View(out.rgb, source, intr, T, pose_trusted=True, stamp_ns=(seq + 1) * 10**9, seq=seq, oracle=oracle)
+
+
+@pytest.mark.parametrize("changed_only", [True, False])
+def test_a_passer_by_makes_a_lone_fixed_camera_place_nothing_again(scene, changed_only: bool) -> None:  # type: ignore[no-untyped-def]
+    """A person walks into a lone fixed camera's view: its next keyframe (single-view, no stereo partner) places
+    nothing again (``single_view.changed_only``); without the rule it placed every object again, those the
+    person cuts included."""
+    T = fixed_camera_views(scene, 1, 3, W, H)[0].oracle.T_world_cam_true  # type: ignore[union-attr]
+    cfg = core_config("mvs", "sim")
+    cfg.single_view.changed_only = changed_only
+    core = MapperCore(cfg)
+    core.ingest(_render(scene, T, "cam0", 0), force_keyframe=True)
+    before = {n.node_id: n.box for n in core.nodes()}
+    assert len(before) >= 5
+    ahead = T[:3, 3] + 2.5 * T[:3, 2]
+    for seq, side in enumerate((-0.4, 0.0, 0.4), start=1):  # walking across the view, 2.5 m from the camera
+        xy = ahead[:2] + side * np.array([T[1, 0], -T[0, 0]]) / max(1e-9, float(np.hypot(T[0, 0], T[1, 0])))
+        core.ingest(_with_person(scene, T, "cam0", seq, xy), force_keyframe=True)
+    assert core.counters["keyframes_single_view"] == 4 and core.counters["detections_people"] >= 3
+    after = {n.node_id: n.box for n in core.nodes()}
+    if changed_only:
+        assert core.counters["single_view_placed"] == len(before)  # the first keyframe's objects only
+        assert core.counters["single_view_unchanged"] >= 3 * (len(before) - 2)
+        assert after == before
+    else:
+        assert core.counters["single_view_placed"] >= 3 * (len(before) - 2)
+        assert after != before
+
+
+def test_a_passer_by_leaves_no_points_in_the_map(scene) -> None:  # type: ignore[no-untyped-def]
+    """Measured depth (true geometry here) of a person's pixels is not added to the point map."""
+    T = fixed_camera_views(scene, 1, 3, W, H)[0].oracle.T_world_cam_true  # type: ignore[union-attr]
+    xy = (T[:3, 3] + 2.5 * T[:3, 2])[:2]
+    core = MapperCore(core_config("oracle", "sim"))
+    core.ingest(_with_person(scene, T, "cam0", 0, xy), force_keyframe=True)
+    assert core.counters["detections_people"] == 1
+    pts = core.voxels.points()
+    near = (np.hypot(pts[:, 0] - xy[0], pts[:, 1] - xy[1]) < 0.3) & (pts[:, 2] > 0.3) & (pts[:, 2] < 1.6)
+    assert len(pts) > 1000 and int(near.sum()) == 0
