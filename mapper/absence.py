@@ -11,7 +11,13 @@ the depth map's resolution, against the nearest of its own points there (its fro
 - no confident depth: unknown (stereo gives none on textureless surfaces; none of that counts).
 
 A view is evidence of absence (``FREE``) only when the node covers enough pixels to be detected at all, most of
-its pixels have confident depth, few are occluded and most of the unoccluded ones are free. It says the node
+its pixels have confident depth, few are occluded and most of the unoccluded ones are free. "Few occluded" has
+two limits when the keyframe says where people are (2D perception's people, ``KeyframeView.people``): few
+pixels hidden by a person (``max_occluded``: a passer-by in front is no evidence; a pixel of a person at the
+node's depth counts too, as occluded and never as the node's surface), and at most
+``max_occluded_static`` hidden by anything (the furniture in front of a dining chair hides half of it from a
+wall camera; the half in sight still needs ``min_pixels`` pixels). When it does not say, every occluder might be
+a person (``max_occluded`` for all). It says the node
 is ``THERE`` when most of its unoccluded pixels show a surface at its depth, and ``MIXED`` when the view could
 judge (enough pixels, known, unoccluded) but neither kind is most of them: a low box taken off the floor of a
 camera looking down leaves floor within the margin of its lower half, and a neighbour moved into its place
@@ -48,7 +54,8 @@ class AbsenceParams:
     min_pixels: int = 20  # a node covering fewer depth pixels could not have been detected there
     min_in_view: float = 0.6  # fraction of the node's points that must project inside the image
     min_known: float = 0.5  # fraction of its pixels that must have confident depth
-    max_occluded: float = 0.3  # more of its pixels occluded (something nearer): no verdict
+    max_occluded: float = 0.3  # more of its pixels occluded (by a person, or by anything when unknown): no verdict
+    max_occluded_static: float = 0.7  # more of its pixels occluded by anything (people known): no verdict
     min_free: float = 0.7  # fraction of the unoccluded known pixels that must be free for FREE
     margin_m: float = 0.1  # depth margin, metres ...
     margin_rel: float = 0.05  # ... plus this fraction of the node's depth
@@ -80,7 +87,8 @@ def nearest_depth(view: KeyframeView, window_px: int) -> KeyframeView:
     d = np.where(np.isfinite(view.depth_m) & (view.depth_m > 0), view.depth_m, np.inf).astype(np.float32)
     k = 2 * window_px + 1
     near = cv2.erode(d, np.ones((k, k), np.uint8), borderType=cv2.BORDER_REPLICATE)
-    return KeyframeView(view.K, view.T_world_cam, np.where(np.isfinite(near), near, 0.0).astype(np.float32))
+    return KeyframeView(view.K, view.T_world_cam, np.where(np.isfinite(near), near, 0.0).astype(np.float32),
+                        view.people)
 
 
 def boxes_out_of_view(view: KeyframeView, lo: np.ndarray, hi: np.ndarray, max_range_m: float,
@@ -145,8 +153,18 @@ def judge(view: KeyframeView, points_world: np.ndarray, params: AbsenceParams,
     free = known & (d > front + margin)
     there = known & ~occluded & ~free
     k, o, f, t = int(known.sum()), int(occluded.sum()), int(free.sum()), int(there.sum())
+    if view.people is None:
+        hidden = o <= params.max_occluded * n
+    else:
+        # A person in front of the place, or standing in it (people walk through furniture in a simulator, and
+        # stand right at it in a room), hides it: such pixels are occluded, never the node's own surface.
+        person = known & ~free & view.people.reshape(-1)[px]
+        by_people = int(person.sum())
+        o, t = int((occluded | person).sum()), int((there & ~person).sum())
+        hidden = (by_people <= params.max_occluded * n and o <= params.max_occluded_static * n
+                  and n - o >= params.min_pixels)
     verdict = Verdict.UNKNOWN
-    if k >= params.min_known * n and o <= params.max_occluded * n and f + t > 0:
+    if k >= params.min_known * n and hidden and f + t > 0:
         if f >= params.min_free * (f + t):
             verdict = Verdict.FREE
         elif t >= params.min_free * (f + t):

@@ -30,6 +30,7 @@ class KeyframeView:
     K: np.ndarray  # (3, 3) at the depth map's resolution
     T_world_cam: np.ndarray  # (4, 4)
     depth_m: np.ndarray  # (h, w); 0 (or non-finite) where the depth is not confident
+    people: np.ndarray | None = None  # (h, w) bool: pixels 2D perception saw a person at; None: not known
 
     def visible_pixels(self, points_world: np.ndarray, margin_m: float, margin_rel: float
                        ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:

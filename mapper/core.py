@@ -24,7 +24,7 @@ import cv2
 import numpy as np
 
 from mapper.association import KeyframeView
-from mapper.changemask import ChangeMask, touches
+from mapper.changemask import ChangeMask, Changes
 from mapper.config import MapperCoreConfig
 from mapper.consistency import downsample, verify_depth
 from mapper.fusion import (
@@ -150,10 +150,11 @@ class MapperCore:
         self._retried: collections.deque[tuple[str, int]] = collections.deque(maxlen=16)  # deferred, retried
         # Calibrated fixed cameras whose last keyframe saw a node's place empty: source -> that keyframe's stamp.
         # Their next frame absence_confirm_s later is a keyframe too (they keyframe only on image change).
-        self._confirm: dict[str, int] = {}
+        # Also when its measured keyframe made a node: seen once, a small one would be pruned as a stray.
+        self._confirm: dict[str, tuple[int, str]] = {}  # source -> (stamp, "absence" or "new")
         # Each calibrated camera's view with people left out: what changed since (single_view.changed_only).
         kc = cfg.keyframes
-        self._changes = ChangeMask(kc.change_threshold, kc.static_max_m, kc.static_max_deg)
+        self._changes = ChangeMask(static_max_m=kc.static_max_m, static_max_deg=kc.static_max_deg)
 
     def views_to_keep(self) -> list[View]:
         """Every view a later window or retry may still use: the stored keyframes and recent frames, and the
@@ -210,13 +211,14 @@ class MapperCore:
         return delta
 
     def _confirm_due(self, view: View) -> bool:
-        """Whether ``view`` confirms what its fixed camera's last keyframe saw empty (``absence_confirm_s``)."""
+        """Whether ``view`` confirms what its fixed camera's last keyframe saw empty, or saw anew
+        (``absence_confirm_s``)."""
         since = self._confirm.get(view.source_id)
         wait_s = self.config.fusion.absence_confirm_s
-        if since is None or wait_s <= 0 or view.stamp_ns - since < wait_s * 1e9:
+        if since is None or wait_s <= 0 or view.stamp_ns - since[0] < wait_s * 1e9:
             return False
         del self._confirm[view.source_id]
-        self._count("keyframes_confirming_absence")
+        self._count(f"keyframes_confirming_{since[1]}")
         return True
 
     def _drifts(self, view: View) -> bool:
@@ -494,7 +496,7 @@ class MapperCore:
         skip: set[int] = set()
         if changed is not None and sv.changed_only:
             # What did not change this camera placed before from this very pose; a passer-by changes nothing.
-            keep = [touches(d.mask, changed) for d in things]
+            keep = [changed.touches(d.mask) for d in things]
             self._count("single_view_unchanged", keep.count(False))
             boxes = [b if k else None for b, k in zip(boxes, keep, strict=True)]
             skip = {id(d) for d, k in zip(things, keep, strict=True) if not k}
@@ -537,8 +539,8 @@ class MapperCore:
         all_dets, dets = dets, self._not_people(dets)
         things = {id(d) for d in dets}
         people = [d.mask for d in all_dets if id(d) not in things]
-        if not single_view:  # (a single-view keyframe learnt it before placing)
-            self._learn_changes(view, people)
+        fc = self.config.fusion
+        people_known = bool(fc.people_labels) and not fc.fuse_people  # (a person's mask is then among people)
         dets = self._join_split_by_people(all_dets, dets)
         if skip:
             dets = [d for d in dets if id(d) not in skip]
@@ -559,10 +561,20 @@ class MapperCore:
             if all_dets:  # people too: where one stands the camera did not see the floor
                 seen = SeenView.build(
                     view.image, [d.mask for d in all_dets], [d.descriptor for d in all_dets], intrinsics_of(view).K(),
-                    T_world_cam, floor_masks, self.config.single_view.floor_z_m)
+                    T_world_cam, floor_masks, self.config.single_view.floor_z_m,
+                    people=[id(d) not in things for d in all_dets] if people_known else None)
                 self._seen.put(view.source_id, seen)
         # every detection counts as seen, lifted to 3D or not (fusion.absence_*)
         detected = [(d.mask, d.descriptor) for d in dets] if kv is not None else None
+        if kv is not None and people_known:
+            # where people hide a node is no evidence of absence; other occluders hide less (mapper.absence)
+            hd, wd = kv.depth_m.shape
+            seen_people = np.zeros((hd, wd), bool)
+            for m in people:
+                seen_people |= resize_mask(m, hd, wd)
+            if seen_people.any():  # and the depth bleeding past its outline (stereo)
+                seen_people = cv2.dilate(seen_people.astype(np.uint8), np.ones((5, 5), np.uint8)).astype(bool)
+            kv = dataclasses.replace(kv, people=seen_people)
         res = self.objects.integrate(objs, view.source_id, view.stamp_ns or time.time_ns(), kv, detected,
                                      fixed=view.pose_trusted)
         if self.loops is not None:
@@ -581,7 +593,9 @@ class MapperCore:
                     seen, seen_before, view.source_id, res)))
             self.objects.maintain(res)
         if view.pose_trusted and res.seen_gone:
-            self._confirm[view.source_id] = view.stamp_ns
+            self._confirm[view.source_id] = (view.stamp_ns, "absence")
+        elif view.pose_trusted and res.created and not single_view:
+            self._confirm[view.source_id] = (view.stamp_ns, "new")
         else:
             self._confirm.pop(view.source_id, None)
         self._count("nodes_created", res.created)
@@ -594,10 +608,12 @@ class MapperCore:
         self.last = KeyframeResult(view, T_world_cam, vg, len(dets), lift, times)
         return res
 
-    def _learn_changes(self, view: View, people: list[np.ndarray]) -> np.ndarray | None:
-        """A calibrated camera's changed cells since its earlier keyframes (``mapper.changemask``), ``people``
-        (their masks) left out, and the keyframe learnt as its background; None for other views, and when
-        everything is new."""
+    def _learn_changes(self, view: View, people: list[np.ndarray]) -> Changes | None:
+        """What changed in a calibrated camera's view since its earlier single-view keyframes
+        (``mapper.changemask``), ``people`` (their masks) left out, and the keyframe learnt as its background;
+        None for other views, and when everything is new. Only single-view keyframes learn: a measured one may
+        fuse an object it saw without making a node of it (no confident depth), and the next single-view keyframe
+        must still see it as new."""
         if not view.pose_trusted or view.T_world_cam is None:
             return None
         return self._changes.update(view.source_id, view.T_world_cam, view.stamp_ns, view.image, people)

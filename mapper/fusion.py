@@ -257,6 +257,13 @@ class FusionConfig(BaseModel):
         description="absence: a node with more of its pixels behind something nearer (a passer-by) is not judged: "
         "occlusion is not absence",
     )
+    absence_max_occluded_static: float = Field(
+        default=0.7, ge=0.0, le=1.0,
+        description="absence: ... when the keyframe's 2D perception says where people are, that limit is for the "
+        "pixels people hide, and this one for those anything hides (furniture in front: a wall camera sees half of "
+        "a dining chair over the table); the pixels left in sight must still number absence_min_pixels. Set it to "
+        "absence_max_occluded for perception that does not label people (fusion.people_labels)",
+    )
     absence_min_free: float = Field(
         default=0.7, ge=0.5, le=1.0,
         description="absence: this fraction of the node's unoccluded pixels with depth must show depth clearly "
@@ -305,7 +312,8 @@ class FusionConfig(BaseModel):
         default=1.0, ge=0.0,
         description="a calibrated fixed camera whose keyframe saw a node's place empty makes its next frame at "
         "least this many seconds later a keyframe too (it keyframes only on image change, and one keyframe is "
-        "not enough to retire); 0 disables",
+        "not enough to retire); so does one whose measured keyframe made a node (seen once, a small one would be "
+        "pruned as a stray, weak_node_points); 0 disables",
     )
     move_min_similarity: float = Field(
         default=0.8, ge=-1.0, le=1.0,
@@ -340,7 +348,8 @@ class FusionConfig(BaseModel):
         return AbsenceParams(
             max_range_m=self.absence_max_range_m, min_pixels=self.absence_min_pixels,
             min_in_view=self.absence_min_in_view, min_known=self.absence_min_known,
-            max_occluded=self.absence_max_occluded, min_free=self.absence_min_free,
+            max_occluded=self.absence_max_occluded, max_occluded_static=self.absence_max_occluded_static,
+            min_free=self.absence_min_free,
             margin_m=self.absence_margin_m, margin_rel=self.absence_margin_rel, window_px=self.absence_window_px,
         )
 
@@ -1654,7 +1663,9 @@ class ObjectMap:
         one or None) as evidence of absence without depth: a node this camera detected (``source_id`` among its
         sources), within ``absence_max_range_m``, whose points (at least ``absence_min_in_view`` of them and
         ``min_points``, on ``min_pixels`` pixels) land in view on almost no similar detection (``max_same``) and
-        mostly on no other one (``absence_max_occluded``: a passer-by in front is no evidence) counts a miss,
+        mostly on no other one (``absence_max_occluded``: a passer-by in front is no evidence; when ``seen``
+        knows which detections are people, that limit is for them and ``absence_max_occluded_static`` for any,
+        with ``min_points`` left on no detection) counts a miss,
         as in measured keyframes (``absence_missed_*``). The first miss also needs ``before`` to have seen the
         node on a similar detection (``min_seen`` of its points): the camera saw it there from this very pose,
         so a node its estimated geometry puts elsewhere in this view never starts a count. Nodes this keyframe
@@ -1671,9 +1682,13 @@ class ObjectMap:
                 continue
             pts = node.points[:: max(1, -(-len(node.points) // params.max_points))]
             c = seen.coverage(pts, node.descriptor, cfg.merge_similarity)
+            if c.people is None:  # every other detection in front might be a person
+                hidden = c.other > params.max_occluded * c.points
+            else:  # as mapper.absence.judge: people hide little, anything else more (the rest must be in sight)
+                hidden = (c.people > params.max_occluded * c.points or c.other > params.max_occluded_static * c.points
+                          or c.points - c.other < min_points)
             if (c.points < max(min_points, params.min_in_view * len(pts)) or c.pixels < min_pixels
-                    or c.depth_m > params.max_range_m or c.same > max_same * c.points
-                    or c.other > params.max_occluded * c.points):
+                    or c.depth_m > params.max_range_m or c.same > max_same * c.points or hidden):
                 continue
             if node.missed == 0 and node.absent == 0:
                 b = None if before is None else before.coverage(pts, node.descriptor, cfg.merge_similarity)

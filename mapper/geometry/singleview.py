@@ -667,12 +667,14 @@ class SeenView:
     floor: np.ndarray
     descriptors: F32
     floor_z_m: float = 0.0
+    people: np.ndarray | None = None  # (n,) bool: which detections are people; None: not known
 
     @classmethod
     def build(cls, image: np.ndarray, masks: Sequence[np.ndarray], descriptors: Sequence[np.ndarray], K: F64,
               T_world_cam: F64, floor_masks: Sequence[np.ndarray] = (), floor_z_m: float = 0.0, width: int = 160,
-              max_colour_sigma: float = 3.0) -> SeenView:
-        """``image`` (H, W, 3) RGB and ``masks`` (H, W) at the resolution of ``K``. The floor's look is learnt
+              max_colour_sigma: float = 3.0, people: Sequence[bool] | None = None) -> SeenView:
+        """``image`` (H, W, 3) RGB and ``masks`` (H, W) at the resolution of ``K``; ``people``: which of them
+        are people (None: not known). The floor's look is learnt
         from the undetected pixels just under ``floor_masks`` (the objects placed standing on the floor: what
         lies at their feet is floor); undetected pixels within ``max_colour_sigma`` robust standard deviations
         of it (Lab) count as floor. A wall, or another room seen through a doorway, differs and refutes
@@ -708,7 +710,8 @@ class SeenView:
             floor = ((np.abs(x - mu) / sd).max(axis=1) <= max_colour_sigma).reshape(sh, width) & (small < 0)
         desc = (np.stack([np.asarray(v, np.float32) for v in descriptors]) if len(descriptors)
                 else np.zeros((0, 1), np.float32))
-        return cls(Ks, T_world_cam.copy(), small, floor, desc, floor_z_m)
+        who = None if people is None else np.asarray(people, bool).reshape(len(masks))
+        return cls(Ks, T_world_cam.copy(), small, floor, desc, floor_z_m, who)
 
     def _pixels(self, points: F64) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """The pixels (u, v: int) and depths (z) of the world ``points`` that project into this view, in front."""
@@ -753,22 +756,27 @@ class SeenView:
             return Coverage(0, 0, 0, 0, math.inf)
         own = self.owner[v, u]
         same = self._similar(own, descriptor, min_similarity)
-        return Coverage(len(u), len(np.unique(v * self.owner.shape[1] + u)), int(same.sum()),
-                        int(((own >= 0) & ~same).sum()), float(np.median(z)))
+        other = (own >= 0) & ~same
+        people = None
+        if self.people is not None:
+            people = int((other & self.people[np.maximum(own, 0)]).sum()) if len(self.people) else 0
+        return Coverage(len(u), len(np.unique(v * self.owner.shape[1] + u)), int(same.sum()), int(other.sum()),
+                        float(np.median(z)), people)
 
 
 @dataclass(frozen=True)
 class Coverage:
     """How an object's points land in a :class:`SeenView`: how many project into it (in front), on how many
     distinct pixels (at the view's width), how many on a detection with a similar descriptor (seen there), how
-    many on another detection (something else in front, or under: no evidence either way), and their median
-    depth (metres)."""
+    many on another detection (something else in front, or under: no evidence either way), their median
+    depth (metres), and how many of ``other`` are on a person (None: the view does not know its people)."""
 
     points: int
     pixels: int
     same: int
     other: int
     depth_m: float
+    people: int | None = None
 
 
 def relocate_along_ray(points: F64, origin: F64, descriptor: np.ndarray, views: Sequence[SeenView],

@@ -3,6 +3,8 @@ floor and a back wall, so that where an object stood the camera sees the floor o
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 
 from mapper.absence import AbsenceParams, Verdict, judge
@@ -86,6 +88,35 @@ class TestJudge:
         kv, _ = keyframe({}, occluders=(PERSON,))
         j = judge(kv, objs[0].points, AbsenceParams())
         assert j.verdict is Verdict.UNKNOWN and j.occluded > 0.5 * j.pixels
+
+    def test_furniture_in_front_hides_less_than_a_person_does(self) -> None:
+        """A table hides the lower 60 % of where the chair stood: with the keyframe's people known (none here),
+        the rest in sight (29 pixels) seeing through is evidence; not knowing where people are, or the table
+        being a person, it is none; hidden up to 80 %, it is none either."""
+        _, objs = keyframe({"chair": CHAIR})
+        kv, _ = keyframe({}, occluders=(box([0.7, -0.3, 0.0], [1.2, 1.0, 0.75]),))
+        nobody = dataclasses.replace(kv, people=np.zeros(kv.depth_m.shape, bool))
+        j = judge(nobody, objs[0].points, AbsenceParams())
+        assert j.verdict is Verdict.FREE and 0.5 * j.pixels < j.occluded < 0.7 * j.pixels
+        assert judge(kv, objs[0].points, AbsenceParams()).verdict is Verdict.UNKNOWN
+        bare, _ = keyframe({})
+        person = dataclasses.replace(kv, people=kv.depth_m < bare.depth_m - 0.05)  # where the table is
+        assert judge(person, objs[0].points, AbsenceParams()).verdict is Verdict.UNKNOWN
+        tall, _ = keyframe({}, occluders=(box([0.7, -0.3, 0.0], [1.2, 1.0, 0.9]),))
+        tall = dataclasses.replace(tall, people=np.zeros(kv.depth_m.shape, bool))
+        assert judge(tall, objs[0].points, AbsenceParams()).verdict is Verdict.UNKNOWN
+
+    def test_a_person_standing_in_the_place_hides_it(self) -> None:
+        """The chair gone and a person standing where it stood: their surface is at the chair's depth. Known to
+        be a person, it hides the place (no verdict, so no miss either); not known, it looks like the chair."""
+        _, objs = keyframe({"chair": CHAIR})
+        there = box([1.35, 0.1, 0.0], [1.75, 0.55, 1.8])
+        kv, _ = keyframe({}, occluders=(there,))
+        assert judge(kv, objs[0].points, AbsenceParams()).verdict is Verdict.THERE
+        bare, _ = keyframe({})
+        person = dataclasses.replace(kv, people=kv.depth_m < bare.depth_m - 0.05)
+        j = judge(person, objs[0].points, AbsenceParams())
+        assert j.verdict is Verdict.UNKNOWN and j.occluded > 0.75 * j.pixels and j.there < 0.15 * j.pixels
 
     def test_missing_depth_is_no_evidence(self) -> None:
         _, objs = keyframe({"chair": CHAIR})
@@ -281,8 +312,11 @@ def core_that_saw(objects: dict[str, Box], **fusion: object) -> tuple[MapperCore
 class TestMapperCore:
     def test_a_removed_object_is_retired_and_a_delta_says_so(self) -> None:
         core, ids = core_that_saw({"chair": CHAIR, "lamp": LAMP})
+        # one second after its first keyframe it confirms the nodes it made (a keyframe without any change)
+        assert core.ingest(fixed_view({"chair": CHAIR, "lamp": LAMP}, 2)) is not None
+        assert core.counters["keyframes_confirming_new"] == 1 and core.counters["keyframes"] == 2
         # taken away: the camera's image changes (a keyframe), one second later it confirms (another)
-        deltas = [core.ingest(fixed_view({"lamp": LAMP}, seq)) for seq in range(1, 8)]
+        deltas = [core.ingest(fixed_view({"lamp": LAMP}, seq)) for seq in range(3, 10)]
         removals = [d for d in deltas if d is not None and d.removed]
         assert len(removals) == 1 and removals[0].removed == [ids["chair"]]
         (record,) = removals[0].retired
@@ -300,6 +334,27 @@ class TestMapperCore:
             assert d is None or not d.removed
         assert {n.node_id for n in core.nodes()} == set(ids.values())
         assert core.counters["detections_people"] >= 5 and "person" not in {n.label for n in core.nodes()}
+
+    def test_a_removed_object_half_hidden_by_furniture_is_retired(self) -> None:
+        """The chair taken away and a table put in front of its place, hiding 58 % of it: too much for a
+        passer-by, but the table is no person (the keyframe's 2D perception says where people are), so what the
+        camera sees of the place decides."""
+        table = box([0.7, -0.3, 0.0], [1.2, 1.0, 0.65])
+        core, ids = core_that_saw({"chair": CHAIR})
+        removed = set()
+        for seq in range(1, 8):
+            d = core.ingest(fixed_view({"table": table}, seq))
+            removed |= set(d.removed) if d is not None else set()
+        assert removed == {ids["chair"]} and {n.label for n in core.nodes()} == {"table"}
+
+    def test_a_person_in_front_of_a_removed_object_is_no_evidence(self) -> None:
+        """... the same place hidden by a person instead: no verdict, the node stays."""
+        hider = box([0.7, -0.3, 0.0], [1.2, 1.0, 0.65])
+        core, ids = core_that_saw({"chair": CHAIR})
+        for seq in range(1, 8):
+            d = core.ingest(fixed_view({}, seq, people=(hider,)), force_keyframe=True)
+            assert d is None or not d.removed
+        assert [n.node_id for n in core.nodes()] == [ids["chair"]]
 
     def test_people_are_nodes_when_asked(self) -> None:
         core = oracle_core(fuse_people=True)
@@ -374,7 +429,8 @@ def test_retired_nodes_are_answered_to_include_retired_queries_json_and_msgpack(
     body = json.loads(str(payload))
     assert [n["node_id"] for n in body["nodes"]] == [ids["lamp"]]
     assert [r["node"]["node_id"] for r in body["retired"]] == [ids["chair"]]
-    assert body["retired"][0]["reason"] == "absent" and body["retired"][0]["retired_ns"] == 4_000_000_000
+    # seen empty at 2 s (the keyframe confirming the nodes it made at 1 s) and at 3 s (refresh_s): retired
+    assert body["retired"][0]["reason"] == "absent" and body["retired"][0]["retired_ns"] == 3_000_000_000
     q = _Query(keys.graph_nodes, "label=chair;include_retired=1")
     queries.on_query(q)
     (_, data), = q.replies
@@ -511,15 +567,18 @@ class TestMixed:
             assert om.nodes[chair].absent == om.nodes[chair].missed == 0
 
 
-def seen_view(objects: dict[str, Box], occluders: dict[str, Box] | None = None) -> SeenView:
+def seen_view(objects: dict[str, Box], occluders: dict[str, Box] | None = None,
+              people_known: bool = False) -> SeenView:
     """What a calibrated camera at EYE sees without depth (a single-view keyframe): each of ``objects`` and
-    ``occluders`` (label -> box) detected with its label's descriptor."""
+    ``occluders`` (label -> box) detected with its label's descriptor; ``people_known``: the view says which
+    detections are people (those labelled "person")."""
     T = look_at(EYE, list(TARGET))
     named = {**objects, **(occluders or {})}
     _, idx = raycast(T, [FLOOR, WALL, *named.values()])
     owner = np.where(idx >= 2, idx - 2, -1).astype(np.int16)
     desc = np.stack([label_descriptor(k) for k in named]) if named else np.zeros((0, 1), np.float32)
-    return SeenView(INTR.K(), T, owner, idx == 0, desc.astype(np.float32))
+    people = np.array([k == "person" for k in named], bool) if people_known else None
+    return SeenView(INTR.K(), T, owner, idx == 0, desc.astype(np.float32), people=people)
 
 
 class TestSingleViewMisses:
@@ -597,7 +656,24 @@ class TestSingleViewMisses:
         assert om.count_misses(hidden, before, "cam1", UpdateResult()) == set()
         assert om.count_misses(seen_view({}), before, "cam2", UpdateResult()) == set()  # cam2 never detected it
         assert om.count_misses(before, before, "cam1", UpdateResult()) == set()  # still detected
+        assert om.count_misses(seen_view({}, occluders={"person": PERSON}, people_known=True), before, "cam1",
+                               UpdateResult()) == set()
         assert om.nodes[chair].missed == 0
+
+    def test_furniture_in_front_hides_less_than_a_person_does(self) -> None:
+        """The chair's place half hidden by a table: no miss while any detection in front might be a person; a
+        miss once the view knows the table is none (the rest of the place in sight shows no chair)."""
+        om = mapped({"chair": CHAIR})
+        chair = node_of(om, "chair")
+        before = seen_view({"chair": CHAIR})
+        table = {"table": box([0.7, -0.3, 0.0], [1.2, 1.0, 0.65])}
+        assert om.count_misses(seen_view({}, occluders=table), before, "cam1", UpdateResult()) == set()
+        now = seen_view({}, occluders=table, people_known=True)
+        c = now.coverage(om.nodes[chair].points, om.nodes[chair].descriptor, 0.8)
+        assert 0.3 * c.points < c.other < 0.7 * c.points and c.people == 0
+        assert om.count_misses(now, before, "cam1", UpdateResult()) == {chair}
+        as_person = seen_view({}, occluders={"person": table["table"]}, people_known=True)
+        assert om.count_misses(as_person, before, "cam1", UpdateResult()) == set()
 
 
 def test_boxes_out_of_view_only_where_no_point_can_count() -> None:
