@@ -145,7 +145,8 @@ class KeyframeConfig(BaseModel):
     )
     change_threshold: float = Field(
         default=0.1, gt=0.0, le=1.0,
-        description="a static posed camera's thumbnail cell (32x24 grey, 0..1) that changed by this much changed ...",
+        description="a static posed camera's thumbnail cell (32x24, 0..1) that changed by this much in a colour "
+        "channel changed ...",
     )
     change_fraction: float = Field(
         default=0.002, gt=0.0, le=1.0,

@@ -43,6 +43,12 @@ def thumbnail(image: np.ndarray) -> np.ndarray:
     return cv2.resize(grey, (32, 24), interpolation=cv2.INTER_AREA).astype(np.float32) / 255.0
 
 
+def colour_thumbnail(image: np.ndarray) -> np.ndarray:
+    """32x24 RGB thumbnail in [0, 1] for a static camera's changed cells: a bag put down on a floor of its own
+    grey changes the grey thumbnail by less than ``change_threshold``, but not every colour channel."""
+    return cv2.resize(image, (32, 24), interpolation=cv2.INTER_AREA).astype(np.float32) / 255.0
+
+
 def intrinsics_of(view: View, hfov_deg: float = 70.0) -> Intrinsics:
     """The view's intrinsics, or a guess from a typical field of view for an uncalibrated camera."""
     if view.intrinsics is not None:
@@ -56,6 +62,7 @@ class _Last:
     T_world_cam: np.ndarray | None
     stamp_ns: int
     thumb: np.ndarray
+    colour: np.ndarray  # (24, 32, 3)
 
 
 class KeyframeSelector:
@@ -80,11 +87,12 @@ class KeyframeSelector:
     def consider(self, view: View) -> bool:
         """Whether ``view`` is a keyframe (and if so remember it as its source's last)."""
         cfg = self.cfg
-        thumb = thumbnail(view.image)
+        thumb, colour = thumbnail(view.image), colour_thumbnail(view.image)
         last = self._last.get(view.source_id)
         diff = None if last is None or last.thumb.shape != thumb.shape else np.abs(thumb - last.thumb)
         novelty = 1.0 if diff is None else float(diff.mean())
-        changed = 1.0 if diff is None else float(np.mean(diff >= cfg.change_threshold))
+        changed = 1.0 if diff is None else float(np.mean(np.abs(colour - last.colour).max(axis=2)
+                                                          >= cfg.change_threshold))
         if last is None:
             new = True
         elif view.T_world_cam is not None and last.T_world_cam is not None:
@@ -100,7 +108,7 @@ class KeyframeSelector:
         else:
             new = novelty >= cfg.novelty_threshold
         if new:
-            self._last[view.source_id] = _Last(view.T_world_cam, view.stamp_ns, thumb)
+            self._last[view.source_id] = _Last(view.T_world_cam, view.stamp_ns, thumb, colour)
         return new
 
 

@@ -99,6 +99,19 @@ def test_a_slowly_moving_camera_keyframes_by_parallax_and_a_still_one_by_change(
     assert kf == [0, 16, 32]  # still reconsidered after moving_refresh_s (32 s apart), as before
 
 
+def test_a_still_camera_keyframes_on_a_change_of_colour_alone() -> None:
+    """A bag of the floor's grey put down in a fixed camera's view: the grey thumbnail barely moves (below
+    change_threshold), its colour does."""
+    sel = KeyframeSelector(KeyframeConfig())
+    floor = np.full((240, 320, 3), (90, 120, 150), np.uint8)
+    bag = floor.copy()
+    bag[150:170, 100:120] = (137, 112, 90)  # grey 117 vs 114 (0..255)
+    frames = [floor, floor, bag, bag]
+    kf = [k for k, img in enumerate(frames)
+          if sel.consider(dataclasses.replace(_view(cam(0.0), k, "cam"), image=img, stamp_ns=k * 2_000_000_000))]
+    assert kf == [0, 2]
+
+
 def test_store_neighbours_come_from_all_sources_by_parallax() -> None:
     store = KeyframeStore(KeyframeConfig(window_neighbours=2))
     for k in range(5):  # a robot's frames 1 cm apart, then one 40 cm away
