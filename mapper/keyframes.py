@@ -91,8 +91,9 @@ class KeyframeSelector:
         last = self._last.get(view.source_id)
         diff = None if last is None or last.thumb.shape != thumb.shape else np.abs(thumb - last.thumb)
         novelty = 1.0 if diff is None else float(diff.mean())
-        changed = 1.0 if diff is None else float(np.mean(np.abs(colour - last.colour).max(axis=2)
-                                                          >= cfg.change_threshold))
+        changed = 1.0
+        if diff is not None and last is not None:
+            changed = float(np.mean(np.abs(colour - last.colour).max(axis=2) >= cfg.change_threshold))
         if last is None:
             new = True
         elif view.T_world_cam is not None and last.T_world_cam is not None:
