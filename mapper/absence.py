@@ -62,6 +62,15 @@ class AbsenceParams:
     max_points: int = 600  # the node's points are thinned to at most this many (fixed stride)
     window_px: int = 1  # a pixel's depth is the nearest confident depth within this many pixels (nearest_depth)
 
+    def too_hidden(self, n: int, occluded: int, by_people: int | None, min_left: int) -> bool:
+        """Whether too much of a node's ``n`` pixels (or points) is hidden for a verdict: ``occluded`` by
+        anything, ``by_people`` of them by people (None: not known, so any occluder might be a person); with
+        people known, ``min_left`` must stay in sight. See the module docstring."""
+        if by_people is None:
+            return occluded > self.max_occluded * n
+        return (by_people > self.max_occluded * n or occluded > self.max_occluded_static * n
+                or n - occluded < min_left)
+
 
 @dataclass(frozen=True)
 class Judgement:
@@ -153,18 +162,15 @@ def judge(view: KeyframeView, points_world: np.ndarray, params: AbsenceParams,
     free = known & (d > front + margin)
     there = known & ~occluded & ~free
     k, o, f, t = int(known.sum()), int(occluded.sum()), int(free.sum()), int(there.sum())
-    if view.people is None:
-        hidden = o <= params.max_occluded * n
-    else:
+    by_people = None
+    if view.people is not None:
         # A person in front of the place, or standing in it (people walk through furniture in a simulator, and
         # stand right at it in a room), hides it: such pixels are occluded, never the node's own surface.
         person = known & ~free & view.people.reshape(-1)[px]
         by_people = int(person.sum())
         o, t = int((occluded | person).sum()), int((there & ~person).sum())
-        hidden = (by_people <= params.max_occluded * n and o <= params.max_occluded_static * n
-                  and n - o >= params.min_pixels)
     verdict = Verdict.UNKNOWN
-    if k >= params.min_known * n and hidden and f + t > 0:
+    if k >= params.min_known * n and not params.too_hidden(n, o, by_people, params.min_pixels) and f + t > 0:
         if f >= params.min_free * (f + t):
             verdict = Verdict.FREE
         elif t >= params.min_free * (f + t):

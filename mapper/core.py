@@ -16,7 +16,7 @@ import dataclasses
 import logging
 import threading
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any, cast
 
@@ -539,6 +539,10 @@ class MapperCore:
         all_dets, dets = dets, self._not_people(dets)
         things = {id(d) for d in dets}
         people = [d.mask for d in all_dets if id(d) not in things]
+        # their pixels at the depth's size, once: out of the point map, and occluders for evidence of absence
+        people_px = np.zeros(vg.depth_m.shape, bool)
+        for m in people:
+            people_px |= resize_mask(m, *vg.depth_m.shape)
         fc = self.config.fusion
         people_known = bool(fc.people_labels) and not fc.fuse_people  # (a person's mask is then among people)
         dets = self._join_split_by_people(all_dets, dets)
@@ -568,10 +572,7 @@ class MapperCore:
         detected = [(d.mask, d.descriptor) for d in dets] if kv is not None else None
         if kv is not None and people_known:
             # where people hide a node is no evidence of absence; other occluders hide less (mapper.absence)
-            hd, wd = kv.depth_m.shape
-            seen_people = np.zeros((hd, wd), bool)
-            for m in people:
-                seen_people |= resize_mask(m, hd, wd)
+            seen_people = people_px
             if seen_people.any():  # and the depth bleeding past its outline (stereo)
                 seen_people = cv2.dilate(seen_people.astype(np.uint8), np.ones((5, 5), np.uint8)).astype(bool)
             kv = dataclasses.replace(kv, people=seen_people)
@@ -601,7 +602,7 @@ class MapperCore:
         self._count("nodes_created", res.created)
         self._count("nodes_merged", res.merged_duplicates)
         self._count("nodes_pruned", res.pruned)
-        self._add_points(view, vg, people)
+        self._add_points(view, vg, people_px)
         if self.rooms is not None:
             self.rooms.note_camera(T_world_cam[:3, 3])
         times["fusion"] = time.perf_counter() - t
@@ -728,14 +729,14 @@ class MapperCore:
                                       float(b.yaw_rad), float(top)))
         return tops
 
-    def _add_points(self, view: View, vg: ViewGeometry, people: Sequence[np.ndarray] = ()) -> None:
-        """The keyframe's confident depth into the point map, less the pixels of ``people`` (their masks): a
-        passer-by is no obstacle to plan around once gone, nor a wall for the room layer."""
+    def _add_points(self, view: View, vg: ViewGeometry, people_px: np.ndarray | None = None) -> None:
+        """The keyframe's confident depth into the point map, less ``people_px`` (pixels of people, at the
+        depth's size): a passer-by is no obstacle to plan around once gone, nor a wall for the room layer."""
         pm = self.config.point_map
         d = vg.depth_m
         ok = np.isfinite(d) & (d > 0) & (d <= pm.max_depth_m) & (vg.confidence >= pm.min_confidence)
-        for m in people:
-            ok &= ~resize_mask(m, *d.shape)
+        if people_px is not None:
+            ok &= ~people_px
         if not ok.any():
             return
         h, w = d.shape

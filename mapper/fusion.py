@@ -1682,13 +1682,9 @@ class ObjectMap:
                 continue
             pts = node.points[:: max(1, -(-len(node.points) // params.max_points))]
             c = seen.coverage(pts, node.descriptor, cfg.merge_similarity)
-            if c.people is None:  # every other detection in front might be a person
-                hidden = c.other > params.max_occluded * c.points
-            else:  # as mapper.absence.judge: people hide little, anything else more (the rest must be in sight)
-                hidden = (c.people > params.max_occluded * c.points or c.other > params.max_occluded_static * c.points
-                          or c.points - c.other < min_points)
             if (c.points < max(min_points, params.min_in_view * len(pts)) or c.pixels < min_pixels
-                    or c.depth_m > params.max_range_m or c.same > max_same * c.points or hidden):
+                    or c.depth_m > params.max_range_m or c.same > max_same * c.points
+                    or params.too_hidden(c.points, c.other, c.people, min_points)):
                 continue
             if node.missed == 0 and node.absent == 0:
                 b = None if before is None else before.coverage(pts, node.descriptor, cfg.merge_similarity)
