@@ -364,6 +364,11 @@ class RoomsConfig(BaseModel):
     merge_floor_fraction: float = Field(
         default=0.7, ge=0.0, le=1.0, description="... with observed floor along this fraction of it"
     )
+    merge_free_fraction: float = Field(
+        default=0.4, ge=0.0, le=1.0,
+        description="... or, with no wall cell in it, with observed floor or a camera's passage along this fraction "
+        "of it: RGB-only sees floor in patches (0: observed floor only)",
+    )
     assign_max_m: float = Field(
         default=0.6, ge=0.0, description="an object outside every room joins the nearest one within this distance"
     )

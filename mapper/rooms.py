@@ -26,7 +26,10 @@ The id rule (RoomTracker.update), written once here and tested:
   grows, or whose walls are seen better, keeps its id.
 - When one new region covers two or more old rooms, it is split back along the old rooms (a watershed from
   their cells) unless the boundary between two of them is **seen open**: at least ``merge_open_m`` long (wider
-  than any doorway) and observed floor along at least ``merge_floor_fraction`` of it. Only then do they merge;
+  than any doorway) and observed floor along at least ``merge_floor_fraction`` of it, or, with no wall cell left
+  in it, observed floor or a camera's passage along at least ``merge_free_fraction`` of it (RGB-only depth sees
+  floor in patches; a camera that walked where the wall stood saw it open; an object's footprint is no such
+  evidence: a box against a wall reaches over it). Only then do they merge;
   the merged room keeps the id of the one it overlaps most, the other id is retired. (A fresh segmentation joins
   regions across free space wider than ``door_max_m``; rooms it once split stay split until seen open, so a wall
   lost from the map, its floor never seen, merges nothing.)
@@ -83,6 +86,7 @@ class RoomParams:
     door_min_m: float = 0.4  # two rooms touching along this much are connected (a doorway)
     merge_open_m: float = 1.5  # the seen-open rule: an opening this wide between two rooms merges them
     merge_floor_fraction: float = 0.7  # ... with observed floor along this much of it
+    merge_free_fraction: float = 0.4  # ... or, no wall cell in it, with floor seen or passed along this much (0: off)
     assign_max_m: float = 0.6  # an object outside every room joins the nearest one within this distance
     wall_share_m: float = 0.3  # a wall cell up to this deep in a wall band joins the room nearest to it (0: a ring)
     wall_bridge_m: float = 2.5  # a gap up to this long in a straight wall that no camera passed is wall (0: off)
@@ -92,7 +96,8 @@ class RoomParams:
 
 @dataclass(frozen=True)
 class FloorGrid:
-    """One storey's 2D grid: ``wall``, observed ``floor`` and known ``free`` cells (bool, shape (nx, ny))."""
+    """One storey's 2D grid: ``wall``, observed ``floor``, known ``free`` cells and those a camera ``passed``
+    through (bool, shape (nx, ny))."""
 
     origin_ij: tuple[int, int]
     cell_m: float
@@ -100,6 +105,7 @@ class FloorGrid:
     wall: np.ndarray
     floor: np.ndarray
     free: np.ndarray
+    passed: np.ndarray | None = None  # cells a camera passed through (within ``camera_free_m``; None: unknown)
 
     @property
     def shape(self) -> tuple[int, int]:
@@ -207,7 +213,7 @@ def build_grid(points_world: np.ndarray, cameras_world: np.ndarray, footprints: 
         # (above) keeps the gaps: a room seen through a doorway the robot has not used is still seen, as a room.
         wall |= bridge_walls(wall, visited, p.wall_bridge_m / c, p.wall_run_m / c)
     free = (floor | visited | footb) & ~wall
-    return FloorGrid(origin, c, fz, wall, floor, free)
+    return FloorGrid(origin, c, fz, wall, floor, free, visited & ~wall)
 
 
 def dominant_angle(ij: np.ndarray, step_deg: float = 1.0) -> float:
@@ -695,7 +701,12 @@ class RoomTracker:
             return False
         seen = between & grid.floor
         if seen.sum() < self.params.merge_floor_fraction * between.sum():
-            return False
+            ff = self.params.merge_free_fraction
+            if ff <= 0 or grid.passed is None or (between & grid.wall).any():
+                return False
+            seen = between & (grid.floor | grid.passed)  # not footprints: a box against a wall reaches over it
+            if seen.sum() < ff * between.sum():
+                return False
         ij = np.argwhere(seen)
         return float((ij.max(0) - ij.min(0) + 1).max() * grid.cell_m) >= self.params.merge_open_m
 

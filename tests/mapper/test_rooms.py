@@ -102,6 +102,33 @@ class TestIds:
         assert opened.doorways == []
         assert set(rm.in_room.values()) == {opened.rooms[0].room_id}
 
+    def test_rooms_merge_where_a_camera_walked_through_where_the_wall_stood(self) -> None:
+        # RGB-only sees floor in patches: the other evidence that a wall is open is known free space along it, a
+        # camera's passage here, with no wall cell left in the strip
+        def walked(ys: np.ndarray) -> RoomMapper:
+            rm = RoomMapper()
+            rm.update(two_rooms(), NODES)
+            for y in ys:
+                rm.note_camera(np.array([4.05, y, 1.0]))
+            return rm
+
+        lost = two_rooms(wall=False, floor_under_wall=False)
+        through_door = walked(np.arange(1.6, 2.35, 0.15))  # only the doorway's width: no opening seen
+        assert len(through_door.update(lost, NODES).rooms) == 2
+        along = walked(np.arange(0.4, 3.7, 0.3))  # along the whole line where the wall stood
+        assert len(along.update(lost, NODES).rooms) == 1
+        # the same walk with the wall still in the map beside the door: a camera's path merges nothing
+        kept = walked(np.arange(0.4, 3.7, 0.3))
+        assert len(kept.update(two_rooms(floor_under_wall=False), NODES).rooms) == 2
+        # an object's footprint over the line is no passage: a box against a wall reaches over it
+        boxed = walked(np.arange(1.6, 2.35, 0.15))
+        assert len(boxed.update(lost, [*NODES, node("rug", "rug", 4.05, 2.0, 3.0)]).rooms) == 2
+        off = RoomMapper(RoomParams(merge_free_fraction=0.0))
+        off.update(two_rooms(), NODES)
+        for y in np.arange(0.4, 3.7, 0.3):
+            off.note_camera(np.array([4.05, y, 1.0]))
+        assert len(off.update(lost, NODES).rooms) == 2
+
     def test_a_sliver_left_by_the_split_back_joins_its_neighbour(self) -> None:
         rm = RoomMapper()
         ids = sorted(r.room_id for r in rm.update(two_rooms(), NODES).rooms)
