@@ -280,6 +280,12 @@ class FusionConfig(BaseModel):
         "misses and see-throughs together, with no detection in between, retire the node (the camera confirms "
         "every absence_confirm_s while a count is open); 0 disables misses",
     )
+    absence_pixels: bool = Field(
+        default=True,
+        description="a fixed camera's single-view keyframe asks, for its misses, the pixels where it detected the "
+        "node (kept per node and camera) rather than the node's points projected into its view (other cameras' "
+        "RGB-only depth spreads a node's points over what stands around it); off: the points",
+    )
     absence_missed_max_occluded: float = Field(
         default=0.1, ge=0.0, le=1.0,
         description="a miss needs at most this fraction of the node's pixels behind something nearer: a "
@@ -704,6 +710,10 @@ class NodeState:
     # fixed cameras that detected it before and saw its place clear but did not detect it (absence_missed_*).
     absent: int = 0
     missed: int = 0
+    # Calibrated fixed cameras' single-view keyframes: where each (source id) last detected the node, as flat pixel
+    # indices on its SeenView's grid (ObjectMap.remember_pixels): its misses ask those pixels, not the node's points
+    # projected (RGB-only depth from other cameras spreads the points over what stands around the object).
+    seen_px: dict[str, np.ndarray] = field(default_factory=dict)
     # Capture time of the keyframe that last moved the node (0: never moved), and how often it moved.
     last_moved_ns: int = 0
     moves: int = 0
@@ -905,6 +915,8 @@ class UpdateResult:
     seen_gone: set[str] = field(default_factory=set)
     # Nodes moved to where a detection showed them: id -> (centre before, centre after).
     moved: dict[str, tuple[tuple[float, float, float], tuple[float, float, float]]] = field(default_factory=dict)
+    # The node each of the update's objects joined or made, in their order (integrate).
+    targets: list[str] = field(default_factory=list)
 
 
 class ObjectMap:
@@ -1169,6 +1181,7 @@ class ObjectMap:
             self.maintain(res)
         self._enforce_cap(res)
         res.changed -= res.removed
+        res.targets = targets
         return res
 
     # -- absence and moves -------------------------------------------------------------------------
@@ -1274,6 +1287,7 @@ class ObjectMap:
         before = node.centre
         node.points = self._cap(obj.points.astype(np.float32))
         node.rays, node.sight = [], []
+        node.seen_px = {}  # of the old place; the camera that moved it notes the new one (remember_pixels)
         node.view_size_m = _view_size(obj)
         node.last_moved_ns = stamp_ns
         node.moves += 1
@@ -1359,6 +1373,19 @@ class ObjectMap:
                               or verdicts.get(k) is Verdict.FREE or seen_together(node, o))]
         return self._nearest_twin(ranking[0][0], node.descriptor, np.asarray(node.centre, np.float64), candidates)
 
+    def remember_pixels(self, objects: Sequence[Object3D], targets: Sequence[str], source_id: str,
+                        shape: tuple[int, int]) -> None:
+        """A fixed camera's single-view keyframe fused ``objects`` into ``targets`` (``UpdateResult.targets``):
+        note on each node where this camera detected it, on a grid of ``shape`` (its SeenView's)."""
+        h, w = shape
+        for obj, k in zip(objects, targets, strict=False):
+            node = self.nodes.get(k)
+            if node is None or obj.mask is None:
+                continue
+            px = np.flatnonzero(resize_mask(obj.mask, h, w)).astype(np.int32)
+            if len(px):
+                node.seen_px[source_id] = px
+
     def retire(self, node_id: str, res: UpdateResult) -> None:
         """Remove ``node_id`` because its place was seen empty: ``res`` records it as removed and retired."""
         node = self.nodes.pop(node_id)
@@ -1429,6 +1456,7 @@ class ObjectMap:
         for lab, v in gone.label_votes.items():
             keep.label_votes[lab] = keep.label_votes.get(lab, 0.0) + v
         keep.sources |= gone.sources
+        keep.seen_px = {**gone.seen_px, **keep.seen_px}
         keep.first_seen_ns = min(keep.first_seen_ns, gone.first_seen_ns)
         keep.last_seen_ns = max(keep.last_seen_ns, gone.last_seen_ns)
         keep.created_update = min(keep.created_update, gone.created_update)
@@ -1668,7 +1696,9 @@ class ObjectMap:
         with ``min_points`` left on no detection) counts a miss,
         as in measured keyframes (``absence_missed_*``). The first miss also needs ``before`` to have seen the
         node on a similar detection (``min_seen`` of its points): the camera saw it there from this very pose,
-        so a node its estimated geometry puts elsewhere in this view never starts a count. Nodes this keyframe
+        so a node its estimated geometry puts elsewhere in this view never starts a count. Where this camera
+        noted the pixels it detected the node on (``absence_pixels``, :meth:`remember_pixels`), those pixels are
+        asked instead of the node's points projected, with ``min_pixels`` of them left in sight. Nodes this keyframe
         updated are skipped. Returns the nodes that counted; retires (or moves, :meth:`_moved_before`) those
         that reach the count."""
         cfg = self.cfg
@@ -1679,6 +1709,21 @@ class ObjectMap:
         for node_id in sorted(self.nodes):
             node = self.nodes[node_id]
             if node_id in res.changed or source_id not in node.sources or len(node.points) < min_points:
+                continue
+            px = node.seen_px.get(source_id) if cfg.absence_pixels else None
+            if px is not None and len(px):
+                # where this camera detected the node: the pixels, not the points, which other cameras' RGB-only
+                # depth may have spread over the table and the chairs around it
+                c = seen.coverage_pixels(px, node.descriptor, cfg.merge_similarity)
+                far = float(np.linalg.norm(np.asarray(node.centre) - seen.T_world_cam[:3, 3])) > params.max_range_m
+                if (c.pixels < min_pixels or far or c.same > max_same * c.pixels
+                        or params.too_hidden(c.pixels, c.other, c.people, min_pixels)):
+                    continue
+                if node.missed == 0 and node.absent == 0:
+                    b = None if before is None else before.coverage_pixels(px, node.descriptor, cfg.merge_similarity)
+                    if b is None or b.pixels == 0 or b.same < min_seen * b.pixels:
+                        continue
+                misses.add(node_id)
                 continue
             pts = node.points[:: max(1, -(-len(node.points) // params.max_points))]
             c = seen.coverage(pts, node.descriptor, cfg.merge_similarity)

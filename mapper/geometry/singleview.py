@@ -763,6 +763,22 @@ class SeenView:
         return Coverage(len(u), len(np.unique(v * self.owner.shape[1] + u)), int(same.sum()), int(other.sum()),
                         float(np.median(z)), people)
 
+    def coverage_pixels(self, pixels: np.ndarray, descriptor: np.ndarray, min_similarity: float) -> Coverage:
+        """What this view shows at ``pixels`` (flat indices on its grid: where this camera detected an object
+        before, :meth:`mapper.fusion.ObjectMap.remember_pixels`): a :class:`Coverage` counted in pixels (``points``
+        = ``pixels``; no depth)."""
+        px = np.asarray(pixels, np.int64).reshape(-1)
+        px = px[(px >= 0) & (px < self.owner.size)]
+        if len(px) == 0:
+            return Coverage(0, 0, 0, 0, math.inf)
+        own = self.owner.reshape(-1)[px]
+        same = self._similar(own, descriptor, min_similarity)
+        other = (own >= 0) & ~same
+        people = None
+        if self.people is not None:
+            people = int((other & self.people[np.maximum(own, 0)]).sum()) if len(self.people) else 0
+        return Coverage(len(px), len(px), int(same.sum()), int(other.sum()), math.inf, people)
+
 
 @dataclass(frozen=True)
 class Coverage:

@@ -660,6 +660,42 @@ class TestSingleViewMisses:
                                UpdateResult()) == set()
         assert om.nodes[chair].missed == 0
 
+    def test_the_camera_asks_the_pixels_where_it_detected_the_node(self) -> None:
+        """Other cameras' RGB-only depth spread the chair's points over the lamp beside it (their projection lands
+        on the lamp's detection: no evidence either way); the pixels where this camera detected the chair show
+        it gone: misses, and the node retired. A person on those pixels is no miss; without the record (or with
+        ``absence_pixels`` off) the projected points decide, and count none."""
+        for use_pixels, retired in ((True, True), (False, False)):
+            om = mapped({"chair": CHAIR, "lamp": LAMP},
+                        FusionConfig(merge_every_updates=100, absence_pixels=use_pixels))
+            chair, lamp = node_of(om, "chair"), node_of(om, "lamp")
+            before = seen_view({"chair": CHAIR, "lamp": LAMP})
+            _, objs = keyframe({"chair": CHAIR, "lamp": LAMP})
+            om.remember_pixels(objs, [chair, lamp], "cam1", before.owner.shape)
+            assert np.array_equal(om.nodes[chair].seen_px["cam1"], np.flatnonzero(before.owner == 0))
+            om.nodes[chair].points = om.nodes[lamp].points.copy()
+            om.nodes[chair].touch()
+            hidden = seen_view({"lamp": LAMP}, occluders={"person": PERSON}, people_known=True)
+            assert om.count_misses(hidden, before, "cam1", UpdateResult()) == set()
+            now = seen_view({"lamp": LAMP}, people_known=True)
+            res = UpdateResult()
+            for t in range(3):
+                res = UpdateResult()
+                om.count_misses(now, before if t == 0 else now, "cam1", res)
+            assert (chair in res.retired) is retired and lamp in om.nodes
+
+    def test_pixel_records_follow_moves_and_merges(self) -> None:
+        om = mapped({"chair": CHAIR, "lamp": LAMP})
+        chair, lamp = node_of(om, "chair"), node_of(om, "lamp")
+        c, n = om.nodes[chair], om.nodes[lamp]
+        c.seen_px = {"cam1": np.array([1, 2], np.int32)}
+        n.seen_px = {"cam1": np.array([7], np.int32), "cam2": np.array([9], np.int32)}
+        om.merge_nodes(c, n)  # the survivor's own record kept, the other camera's taken over
+        assert set(c.seen_px) == {"cam1", "cam2"} and c.seen_px["cam1"].tolist() == [1, 2]
+        _, objs = keyframe({"chair": MOVED})
+        om._move(c, objs[0], 5, UpdateResult())
+        assert c.seen_px == {}  # of the old place
+
     def test_furniture_in_front_hides_less_than_a_person_does(self) -> None:
         """The chair's place half hidden by a table: no miss while any detection in front might be a person; a
         miss once the view knows the table is none (the rest of the place in sight shows no chair)."""
