@@ -919,6 +919,13 @@ class UpdateResult:
     targets: list[str] = field(default_factory=list)
 
 
+def _coverage(view: Any, probe: np.ndarray, by_pixels: bool, descriptor: np.ndarray, similarity: float) -> Any:
+    """What a SeenView shows of one node: at ``probe`` pixels (flat indices on its grid) or points (world)."""
+    if by_pixels:
+        return view.coverage_pixels(probe, descriptor, similarity)
+    return view.coverage(probe, descriptor, similarity)
+
+
 class ObjectMap:
     """The fused object nodes. Not thread-safe: one owner (the mapper core) calls it."""
 
@@ -1711,28 +1718,25 @@ class ObjectMap:
             if node_id in res.changed or source_id not in node.sources or len(node.points) < min_points:
                 continue
             px = node.seen_px.get(source_id) if cfg.absence_pixels else None
-            if px is not None and len(px):
-                # where this camera detected the node: the pixels, not the points, which other cameras' RGB-only
-                # depth may have spread over the table and the chairs around it
-                c = seen.coverage_pixels(px, node.descriptor, cfg.merge_similarity)
+            # where this camera detected the node: the pixels, not the points, which other cameras' RGB-only depth
+            # may have spread over the table and the chairs around it
+            by_pixels = px is not None and len(px) > 0
+            probe: np.ndarray = (px if px is not None and by_pixels
+                                 else node.points[:: max(1, -(-len(node.points) // params.max_points))])
+            c = _coverage(seen, probe, by_pixels, node.descriptor, cfg.merge_similarity)
+            if by_pixels:
+                least: float = min_pixels
+                min_left = min_pixels
                 far = float(np.linalg.norm(np.asarray(node.centre) - seen.T_world_cam[:3, 3])) > params.max_range_m
-                if (c.pixels < min_pixels or far or c.same > max_same * c.pixels
-                        or params.too_hidden(c.pixels, c.other, c.people, min_pixels)):
-                    continue
-                if node.missed == 0 and node.absent == 0:
-                    b = None if before is None else before.coverage_pixels(px, node.descriptor, cfg.merge_similarity)
-                    if b is None or b.pixels == 0 or b.same < min_seen * b.pixels:
-                        continue
-                misses.add(node_id)
-                continue
-            pts = node.points[:: max(1, -(-len(node.points) // params.max_points))]
-            c = seen.coverage(pts, node.descriptor, cfg.merge_similarity)
-            if (c.points < max(min_points, params.min_in_view * len(pts)) or c.pixels < min_pixels
-                    or c.depth_m > params.max_range_m or c.same > max_same * c.points
-                    or params.too_hidden(c.points, c.other, c.people, min_points)):
+            else:
+                least, min_left = max(min_points, params.min_in_view * len(probe)), min_points
+                far = c.depth_m > params.max_range_m
+            if (c.points < least or c.pixels < min_pixels or far or c.same > max_same * c.points
+                    or params.too_hidden(c.points, c.other, c.people, min_left)):
                 continue
             if node.missed == 0 and node.absent == 0:
-                b = None if before is None else before.coverage(pts, node.descriptor, cfg.merge_similarity)
+                b = None if before is None else _coverage(before, probe, by_pixels, node.descriptor,
+                                                          cfg.merge_similarity)
                 if b is None or b.points == 0 or b.same < min_seen * b.points:
                     continue
             misses.add(node_id)
