@@ -579,7 +579,7 @@ class MapperCore:
         res = self.objects.integrate(objs, view.source_id, view.stamp_ns or time.time_ns(), kv, detected,
                                      fixed=view.pose_trusted)
         if seen is not None and view.pose_trusted:  # where this camera saw each node: its misses ask there
-            self.objects.remember_pixels(objs, res.targets, view.source_id, seen.owner.shape)
+            self.objects.remember_pixels(objs, res.targets, view.source_id, seen)
         if self.loops is not None:
             self._note_fused(view.key, res)
         if single_view:

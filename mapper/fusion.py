@@ -680,6 +680,16 @@ def lift_detections(
 # Nodes
 
 
+@dataclass(frozen=True)
+class PixelRecord:
+    """Where a fixed camera detected a node: flat pixel indices on its SeenView grid of ``shape``, seen from
+    ``T_world_cam``."""
+
+    T_world_cam: np.ndarray
+    shape: tuple[int, int]
+    pixels: np.ndarray
+
+
 @dataclass
 class NodeState:
     """Mutable fusion state of one node."""
@@ -711,9 +721,10 @@ class NodeState:
     absent: int = 0
     missed: int = 0
     # Calibrated fixed cameras' single-view keyframes: where each (source id) last detected the node, as flat pixel
-    # indices on its SeenView's grid (ObjectMap.remember_pixels): its misses ask those pixels, not the node's points
-    # projected (RGB-only depth from other cameras spreads the points over what stands around the object).
-    seen_px: dict[str, np.ndarray] = field(default_factory=dict)
+    # indices on its SeenView's grid, with that view's pose (ObjectMap.remember_pixels): its misses ask those pixels,
+    # not the node's points projected (RGB-only depth from other cameras spreads the points over what stands around
+    # the object). A record of another grid or pose (the camera moved, or changed resolution) is not asked.
+    seen_px: dict[str, PixelRecord] = field(default_factory=dict)
     # Capture time of the keyframe that last moved the node (0: never moved), and how often it moved.
     last_moved_ns: int = 0
     moves: int = 0
@@ -917,6 +928,13 @@ class UpdateResult:
     moved: dict[str, tuple[tuple[float, float, float], tuple[float, float, float]]] = field(default_factory=dict)
     # The node each of the update's objects joined or made, in their order (integrate).
     targets: list[str] = field(default_factory=list)
+
+
+def _pixels_for(record: PixelRecord | None, view: Any) -> np.ndarray | None:
+    """The pixels of a ``NodeState.seen_px`` record when ``view`` is of the same grid and pose, else None."""
+    if record is None or tuple(view.owner.shape) != record.shape:
+        return None
+    return record.pixels if np.allclose(record.T_world_cam, view.T_world_cam, atol=1e-4) else None
 
 
 def _coverage(view: Any, probe: np.ndarray, by_pixels: bool, descriptor: np.ndarray, similarity: float) -> Any:
@@ -1380,18 +1398,18 @@ class ObjectMap:
                               or verdicts.get(k) is Verdict.FREE or seen_together(node, o))]
         return self._nearest_twin(ranking[0][0], node.descriptor, np.asarray(node.centre, np.float64), candidates)
 
-    def remember_pixels(self, objects: Sequence[Object3D], targets: Sequence[str], source_id: str,
-                        shape: tuple[int, int]) -> None:
+    def remember_pixels(self, objects: Sequence[Object3D], targets: Sequence[str], source_id: str, seen: Any
+                        ) -> None:
         """A fixed camera's single-view keyframe fused ``objects`` into ``targets`` (``UpdateResult.targets``):
-        note on each node where this camera detected it, on a grid of ``shape`` (its SeenView's)."""
-        h, w = shape
+        note on each node where this camera detected it, on the grid of ``seen`` (its SeenView), with its pose."""
+        h, w = seen.owner.shape
         for obj, k in zip(objects, targets, strict=False):
             node = self.nodes.get(k)
             if node is None or obj.mask is None:
                 continue
             px = np.flatnonzero(resize_mask(obj.mask, h, w)).astype(np.int32)
             if len(px):
-                node.seen_px[source_id] = px
+                node.seen_px[source_id] = PixelRecord(np.array(seen.T_world_cam, np.float64), (h, w), px)
 
     def retire(self, node_id: str, res: UpdateResult) -> None:
         """Remove ``node_id`` because its place was seen empty: ``res`` records it as removed and retired."""
@@ -1717,7 +1735,7 @@ class ObjectMap:
             node = self.nodes[node_id]
             if node_id in res.changed or source_id not in node.sources or len(node.points) < min_points:
                 continue
-            px = node.seen_px.get(source_id) if cfg.absence_pixels else None
+            px = _pixels_for(node.seen_px.get(source_id), seen) if cfg.absence_pixels else None
             # where this camera detected the node: the pixels, not the points, which other cameras' RGB-only depth
             # may have spread over the table and the chairs around it
             by_pixels = px is not None and len(px) > 0
@@ -1735,8 +1753,8 @@ class ObjectMap:
                     or params.too_hidden(c.points, c.other, c.people, min_left)):
                 continue
             if node.missed == 0 and node.absent == 0:
-                b = None if before is None else _coverage(before, probe, by_pixels, node.descriptor,
-                                                          cfg.merge_similarity)
+                b = (None if before is None or (by_pixels and _pixels_for(node.seen_px.get(source_id), before) is None)
+                     else _coverage(before, probe, by_pixels, node.descriptor, cfg.merge_similarity))
                 if b is None or b.points == 0 or b.same < min_seen * b.points:
                     continue
             misses.add(node_id)

@@ -10,7 +10,7 @@ import numpy as np
 from mapper.absence import AbsenceParams, Verdict, judge
 from mapper.association import KeyframeView
 from mapper.core import MapperCore
-from mapper.fusion import FusionConfig, Object3D, ObjectMap, UpdateResult, voxel_downsample
+from mapper.fusion import FusionConfig, Object3D, ObjectMap, PixelRecord, UpdateResult, voxel_downsample
 from mapper.geometry.contract import OracleData, View
 from mapper.geometry.singleview import SeenView, depth_to_world
 from mapper.perception.base import label_descriptor
@@ -671,13 +671,18 @@ class TestSingleViewMisses:
             chair, lamp = node_of(om, "chair"), node_of(om, "lamp")
             before = seen_view({"chair": CHAIR, "lamp": LAMP})
             _, objs = keyframe({"chair": CHAIR, "lamp": LAMP})
-            om.remember_pixels(objs, [chair, lamp], "cam1", before.owner.shape)
-            assert np.array_equal(om.nodes[chair].seen_px["cam1"], np.flatnonzero(before.owner == 0))
+            om.remember_pixels(objs, [chair, lamp], "cam1", before)
+            rec = om.nodes[chair].seen_px["cam1"]
+            assert np.array_equal(rec.pixels, np.flatnonzero(before.owner == 0)) and rec.shape == before.owner.shape
             om.nodes[chair].points = om.nodes[lamp].points.copy()
             om.nodes[chair].touch()
             hidden = seen_view({"lamp": LAMP}, occluders={"person": PERSON}, people_known=True)
             assert om.count_misses(hidden, before, "cam1", UpdateResult()) == set()
             now = seen_view({"lamp": LAMP}, people_known=True)
+            # the camera moved (recalibrated): its record is of another view, and the points decide
+            turned = dataclasses.replace(now, T_world_cam=now.T_world_cam @ np.diag([1.0, -1.0, -1.0, 1.0]))
+            assert om.count_misses(turned, dataclasses.replace(before, T_world_cam=turned.T_world_cam), "cam1",
+                                   UpdateResult()) == set()
             res = UpdateResult()
             for t in range(3):
                 res = UpdateResult()
@@ -688,10 +693,13 @@ class TestSingleViewMisses:
         om = mapped({"chair": CHAIR, "lamp": LAMP})
         chair, lamp = node_of(om, "chair"), node_of(om, "lamp")
         c, n = om.nodes[chair], om.nodes[lamp]
-        c.seen_px = {"cam1": np.array([1, 2], np.int32)}
-        n.seen_px = {"cam1": np.array([7], np.int32), "cam2": np.array([9], np.int32)}
+        def rec(*px: int) -> PixelRecord:
+            return PixelRecord(np.eye(4), (4, 4), np.array(px, np.int32))
+
+        c.seen_px = {"cam1": rec(1, 2)}
+        n.seen_px = {"cam1": rec(7), "cam2": rec(9)}
         om.merge_nodes(c, n)  # the survivor's own record kept, the other camera's taken over
-        assert set(c.seen_px) == {"cam1", "cam2"} and c.seen_px["cam1"].tolist() == [1, 2]
+        assert set(c.seen_px) == {"cam1", "cam2"} and c.seen_px["cam1"].pixels.tolist() == [1, 2]
         _, objs = keyframe({"chair": MOVED})
         om._move(c, objs[0], 5, UpdateResult())
         assert c.seen_px == {}  # of the old place
