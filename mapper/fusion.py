@@ -931,8 +931,9 @@ class UpdateResult:
 
 
 def _pixels_for(record: PixelRecord | None, view: Any) -> np.ndarray | None:
-    """The pixels of a ``NodeState.seen_px`` record when ``view`` is of the same grid and pose, else None."""
-    if record is None or tuple(view.owner.shape) != record.shape:
+    """The pixels of a ``NodeState.seen_px`` record when ``view`` is of the same grid and pose, else None (and
+    for no record, or an empty one)."""
+    if record is None or len(record.pixels) == 0 or tuple(view.owner.shape) != record.shape:
         return None
     return record.pixels if np.allclose(record.T_world_cam, view.T_world_cam, atol=1e-4) else None
 
@@ -1735,12 +1736,12 @@ class ObjectMap:
             node = self.nodes[node_id]
             if node_id in res.changed or source_id not in node.sources or len(node.points) < min_points:
                 continue
-            px = _pixels_for(node.seen_px.get(source_id), seen) if cfg.absence_pixels else None
+            record = node.seen_px.get(source_id) if cfg.absence_pixels else None
+            px = _pixels_for(record, seen)
             # where this camera detected the node: the pixels, not the points, which other cameras' RGB-only depth
             # may have spread over the table and the chairs around it
-            by_pixels = px is not None and len(px) > 0
-            probe: np.ndarray = (px if px is not None and by_pixels
-                                 else node.points[:: max(1, -(-len(node.points) // params.max_points))])
+            by_pixels = px is not None
+            probe = px if px is not None else node.points[:: max(1, -(-len(node.points) // params.max_points))]
             c = _coverage(seen, probe, by_pixels, node.descriptor, cfg.merge_similarity)
             if by_pixels:
                 least: float = min_pixels
@@ -1753,7 +1754,7 @@ class ObjectMap:
                     or params.too_hidden(c.points, c.other, c.people, min_left)):
                 continue
             if node.missed == 0 and node.absent == 0:
-                b = (None if before is None or (by_pixels and _pixels_for(node.seen_px.get(source_id), before) is None)
+                b = (None if before is None or (by_pixels and _pixels_for(record, before) is None)
                      else _coverage(before, probe, by_pixels, node.descriptor, cfg.merge_similarity))
                 if b is None or b.points == 0 or b.same < min_seen * b.points:
                     continue

@@ -754,14 +754,8 @@ class SeenView:
         u, v, z = self._pixels(points)
         if len(u) == 0:
             return Coverage(0, 0, 0, 0, math.inf)
-        own = self.owner[v, u]
-        same = self._similar(own, descriptor, min_similarity)
-        other = (own >= 0) & ~same
-        people = None
-        if self.people is not None:
-            people = int((other & self.people[np.maximum(own, 0)]).sum()) if len(self.people) else 0
-        return Coverage(len(u), len(np.unique(v * self.owner.shape[1] + u)), int(same.sum()), int(other.sum()),
-                        float(np.median(z)), people)
+        same, other, people = self._tally(self.owner[v, u], descriptor, min_similarity)
+        return Coverage(len(u), len(np.unique(v * self.owner.shape[1] + u)), same, other, float(np.median(z)), people)
 
     def coverage_pixels(self, pixels: np.ndarray, descriptor: np.ndarray, min_similarity: float) -> Coverage:
         """What this view shows at ``pixels`` (flat indices on its grid: where this camera detected an object
@@ -771,13 +765,18 @@ class SeenView:
         px = px[(px >= 0) & (px < self.owner.size)]
         if len(px) == 0:
             return Coverage(0, 0, 0, 0, math.inf)
-        own = self.owner.reshape(-1)[px]
+        same, other, people = self._tally(self.owner.reshape(-1)[px], descriptor, min_similarity)
+        return Coverage(len(px), len(px), same, other, math.inf, people)
+
+    def _tally(self, own: np.ndarray, descriptor: np.ndarray, min_similarity: float) -> tuple[int, int, int | None]:
+        """Of owner indices ``own`` (-1: nothing detected): how many are on a detection like ``descriptor``, how
+        many on another one, and how many of those on a person (None: the view does not know its people)."""
         same = self._similar(own, descriptor, min_similarity)
         other = (own >= 0) & ~same
         people = None
         if self.people is not None:
             people = int((other & self.people[np.maximum(own, 0)]).sum()) if len(self.people) else 0
-        return Coverage(len(px), len(px), int(same.sum()), int(other.sum()), math.inf, people)
+        return int(same.sum()), int(other.sum()), people
 
 
 @dataclass(frozen=True)
